@@ -1,0 +1,415 @@
+"""Typed, strict session configuration.
+
+``load(path)`` reads a YAML file into a frozen ``SessionConfig``. The schema is strict: an unknown
+key, a wrong type or an impossible value raises ``ConfigError`` with one line naming the key.
+Per-joint values may be given as one number (used for every joint) or as a list with one entry
+per joint; the lengths are checked against the robot models when a session is built.
+Relative paths (URDFs) are resolved against the directory of the config file.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import yaml
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from teleop_rt.errors import ConfigError
+
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+PerJointPositive = PositiveFloat | list[PositiveFloat]
+PerJointNonNeg = NonNegFloat | list[NonNegFloat]
+
+MAX_CONFIG_BYTES = 1_000_000
+MAX_TICKS = 100_000_000  # timing statistics are preallocated per tick (16 bytes each)
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=False)
+
+
+def _vec3(values: list[float], key: str) -> list[float]:
+    if len(values) not in (2, 3):
+        raise ValueError(f"{key} needs 2 (x, y) or 3 (x, y, z) numbers, got {len(values)}")
+    return list(values)
+
+
+class RobotSpec(Strict):
+    """Where a robot's kinematics and dynamics come from: a URDF file or example-robot-data."""
+
+    urdf: Path | None = None
+    example_robot: str | None = None
+    ee_frame: str | None = None  # default: the last frame of the model
+    q0_rad: list[FiniteFloat] | None = None  # default: zeros
+
+    @model_validator(mode="after")
+    def _one_source(self) -> RobotSpec:
+        if (self.urdf is None) == (self.example_robot is None):
+            raise ValueError("give exactly one of 'urdf' or 'example_robot'")
+        return self
+
+
+class ControllerSpec(Strict):
+    """A P or PID law per joint: out = kp e + ki integral(e) + kd de/dt (filtered)."""
+
+    kind: Literal["p", "pid"] = "p"
+    kp: PerJointNonNeg
+    ki: PerJointNonNeg = 0.0
+    kd: PerJointNonNeg = 0.0
+    derivative_filter_s: NonNegFloat = 0.0
+    # Anti-windup: the integral term's contribution is clamped to +-integral_limit and the
+    # integrator stops while the output is saturated at +-output_limit (None: no limit).
+    integral_limit: PerJointPositive | None = None
+    output_limit: PerJointPositive | None = None
+
+    @model_validator(mode="after")
+    def _p_has_no_i_d(self) -> ControllerSpec:
+        if self.kind == "p" and (_any_nonzero(self.ki) or _any_nonzero(self.kd)):
+            raise ValueError("kind 'p' takes only kp; set kind: pid to use ki or kd")
+        return self
+
+
+def _any_nonzero(x: float | list[float]) -> bool:
+    return any(v != 0 for v in (x if isinstance(x, list) else [x]))
+
+
+class SideSpec(Strict):
+    """One robot of the pair: its model, virtual mass (eq 3 / 13) and controller (eq 4 / 14)."""
+
+    robot: RobotSpec
+    virtual_mass: PerJointPositive  # kg m^2 per joint (M1 or M2 of the paper)
+    controller: ControllerSpec
+    compensate_friction: bool = True  # include the model's joint friction in n(q, v)
+
+
+class ChannelSpec(Strict):
+    """The COM: a wave-variable (scattering) channel with a constant one-way delay."""
+
+    mode: Literal["wave"] = "wave"
+    delay_ms: NonNegFloat = 0.0
+    wave_impedance: PerJointPositive = 2.0  # b, N m s/rad per joint
+    # First-order low-pass on each received wave (keeps the channel passive; damps the
+    # ringing of the discrete terminations against stiff contact). None switches it off.
+    wave_filter_hz: PositiveFloat | None = 30.0
+
+
+class PlantSpec(Strict):
+    """The simulated plant: integrator, sub-steps and sensor models."""
+
+    integrator: Literal["semi_implicit_euler", "rk4"] = "semi_implicit_euler"
+    substeps: Annotated[int, Field(ge=1, le=100)] = 1
+    torque_noise_std_nm: NonNegFloat = 0.0
+    velocity_noise_std_rad_s: NonNegFloat = 0.0
+    # Coulomb friction is smoothed as f_c * tanh(v / v_s) so the stiff sign() never enters.
+    coulomb_smoothing_rad_s: PositiveFloat = 0.01
+
+
+class DamperOperatorSpec(Strict):
+    """The paper's operator (Z_o = const): a damper between the HSI joints and the ground."""
+
+    kind: Literal["damper"]
+    damping_nm_s_per_rad: PerJointNonNeg = 10.0
+
+
+class Waypoint(Strict):
+    t_s: NonNegFloat
+    position_m: list[FiniteFloat]
+
+    @field_validator("position_m")
+    @classmethod
+    def _xyz(cls, v: list[float]) -> list[float]:
+        return _vec3(v, "position_m")
+
+
+class HandOperatorSpec(Strict):
+    """An active operator: a hand following scripted end-effector waypoints (minimum-jerk
+    segments from the HSI's start pose) through a Cartesian spring-damper."""
+
+    kind: Literal["hand"]
+    stiffness_n_per_m: PositiveFloat = 300.0
+    damping_n_s_per_m: NonNegFloat = 20.0
+    waypoints: list[Waypoint] = Field(min_length=1)
+
+    @field_validator("waypoints")
+    @classmethod
+    def _increasing(cls, wps: list[Waypoint]) -> list[Waypoint]:
+        times = [w.t_s for w in wps]
+        if any(b <= a for a, b in zip(times, times[1:], strict=False)) or times[0] <= 0:
+            raise ValueError("waypoint times must be > 0 and strictly increasing")
+        return wps
+
+
+Operator = Annotated[DamperOperatorSpec | HandOperatorSpec, Field(discriminator="kind")]
+
+
+class HalfPlane(Strict):
+    """A contact surface: the plane through point_m with unit normal pointing to free space."""
+
+    point_m: list[FiniteFloat]
+    normal: list[FiniteFloat]
+
+    @field_validator("point_m", "normal")
+    @classmethod
+    def _xyz(cls, v: list[float], info: Any) -> list[float]:
+        return _vec3(v, info.field_name)
+
+    @field_validator("normal")
+    @classmethod
+    def _nonzero(cls, v: list[float]) -> list[float]:
+        if math.hypot(*v) < 1e-9:
+            raise ValueError("normal must not be the zero vector")
+        return v
+
+
+class WallSpec(HalfPlane):
+    """Unilateral spring-damper: a stiff wall (kind wall) or soft foam (kind foam)."""
+
+    kind: Literal["wall", "foam"]
+    stiffness_n_per_m: PositiveFloat
+    damping_n_s_per_m: NonNegFloat = 0.0
+
+
+class SpringSpec(HalfPlane):
+    """Bilateral spring and/or damper along the normal, rest position at point_m."""
+
+    kind: Literal["spring", "damper"]
+    stiffness_n_per_m: NonNegFloat = 0.0
+    damping_n_s_per_m: NonNegFloat = 0.0
+
+
+class MassSpec(HalfPlane):
+    """A free mass resting against the plane (moves along the normal once pushed), coupled to
+    the end-effector by a stiff unilateral contact (or held: attached: true)."""
+
+    kind: Literal["mass"]
+    mass_kg: PositiveFloat
+    attached: bool = False
+    contact_stiffness_n_per_m: PositiveFloat = 20000.0
+    contact_damping_n_s_per_m: NonNegFloat = 50.0
+
+
+Environment = Annotated[WallSpec | SpringSpec | MassSpec, Field(discriminator="kind")]
+
+
+class SessionConfig(Strict):
+    """A whole session: rate, duration, both robots, the channel, plant, operator, environment."""
+
+    name: str = "session"
+    rate_hz: Annotated[int, Field(ge=10, le=100_000)] = 1000
+    duration_s: PositiveFloat = 10.0
+    seed: Annotated[int, Field(ge=0)] = 0
+    backend: str = "sim"  # a name from the backend registry (teleop_rt.hal)
+    hsi: SideSpec
+    to: SideSpec
+    channel: ChannelSpec = ChannelSpec()
+    plant: PlantSpec = PlantSpec()
+    operator: Operator
+    environment: list[Environment] = Field(default_factory=list)
+
+    @field_validator("duration_s")
+    @classmethod
+    def _duration_ticks(cls, v: float, info: Any) -> float:
+        rate = info.data.get("rate_hz")
+        if rate is not None and not (v * rate <= MAX_TICKS and round(v * rate) >= 1):
+            raise ValueError(
+                f"{v:g} s is {v * rate:.3g} ticks at rate_hz = {rate}; "
+                f"a session runs 1 to {MAX_TICKS} ticks"
+            )
+        return v
+
+    @model_validator(mode="after")
+    def _delay_whole_ticks(self) -> SessionConfig:
+        ticks = self.channel.delay_ms * self.rate_hz / 1000.0
+        if abs(ticks - round(ticks)) > 1e-9:
+            raise ValueError(
+                f"channel.delay_ms = {self.channel.delay_ms} is not a whole number of "
+                f"{1000.0 / self.rate_hz:g} ms ticks at rate_hz = {self.rate_hz}"
+            )
+        return self
+
+    @property
+    def dt(self) -> float:
+        return 1.0 / self.rate_hz
+
+    @property
+    def delay_ticks(self) -> int:
+        return round(self.channel.delay_ms * self.rate_hz / 1000.0)
+
+    @property
+    def n_ticks(self) -> int:
+        return round(self.duration_s * self.rate_hz)
+
+
+def _format_error(err: ValidationError) -> str:
+    errors = err.errors()
+    first = _pick_error(errors)
+    loc_parts = first["loc"]
+    keep_last = first["type"] == "extra_forbidden"  # the user's own (unknown) key
+    loc = ".".join(
+        str(p)
+        for i, p in enumerate(loc_parts)
+        if not _is_union_tag(p, loc_parts[i - 1] if i else None)
+        and not (_is_member_tag(p) and not (keep_last and i == len(loc_parts) - 1))
+    )
+    msg = first["msg"].removeprefix("Value error, ")
+    if first["type"] == "extra_forbidden":
+        msg = "unknown key"
+    return f"{loc or 'config'}: {msg}"
+
+
+_UNION_TAGS = {"damper", "hand", "wall", "foam", "spring", "mass"}
+
+
+_SHAPE_ERRORS = {"float_type", "list_type"}
+
+
+def _is_member_tag(part: Any) -> bool:
+    # A per-joint value is ``number | list of numbers``; pydantic names the member it tried
+    # ('constrained-float', 'list[constrained-float]') in the location. No key looks like that.
+    return isinstance(part, str) and not part.isidentifier()
+
+
+def _pick_error(errors: list[Any]) -> Any:
+    """The first error, unless it only says the input has the other shape of a per-joint union
+    (a list where a number was tried): then the error of the member that fits the shape."""
+    first = errors[0]
+    tags = [i for i, p in enumerate(first["loc"]) if _is_member_tag(p)]
+    if first["type"] in _SHAPE_ERRORS and tags:
+        prefix = first["loc"][: tags[-1]]
+        for other in errors[1:]:
+            if other["loc"][: len(prefix)] == prefix and other["type"] not in _SHAPE_ERRORS:
+                return other
+    return first
+
+
+def _is_union_tag(part: Any, previous: Any) -> bool:
+    # pydantic puts the chosen member of a tagged union (operator.kind, environment.N.kind)
+    # into the error location; a user never wrote that level, so it is left out.
+    return part in _UNION_TAGS and (previous == "operator" or isinstance(previous, int))
+
+
+def from_dict(data: Any, base_dir: Path | None = None) -> SessionConfig:
+    """Validate a plain mapping; raise ConfigError with one line naming the offending key."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"config: expected a mapping at the top level, got {type(data).__name__}")
+    try:
+        cfg = SessionConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_format_error(err)) from None
+    return _resolve_paths(cfg, base_dir) if base_dir is not None else cfg
+
+
+def _resolve_paths(cfg: SessionConfig, base_dir: Path) -> SessionConfig:
+    sides = {}
+    for side in ("hsi", "to"):
+        spec: SideSpec = getattr(cfg, side)
+        if spec.robot.urdf is not None and not spec.robot.urdf.is_absolute():
+            robot = spec.robot.model_copy(update={"urdf": (base_dir / spec.robot.urdf).resolve()})
+            sides[side] = spec.model_copy(update={"robot": robot})
+    return cfg.model_copy(update=sides)
+
+
+def read_yaml(path: Path) -> Any:
+    """Read a YAML file safely (no object tags, bounded size, no alias bombs)."""
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read ({err.strerror})") from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"{path}: config larger than {MAX_CONFIG_BYTES} bytes")
+    try:
+        data = yaml.load(raw, Loader=_NoAliasLoader)  # noqa: S506 - SafeLoader subclass
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid YAML: nested too deeply") from None
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f" (line {mark.line + 1})" if mark is not None else ""
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
+        raise ConfigError(f"{path}: not valid YAML{where}: {problem}") from None
+    if data is None:
+        raise ConfigError(f"{path}: the config file is empty")
+    return data
+
+
+class _NoAliasLoader(yaml.SafeLoader):
+    """SafeLoader that refuses anchors/aliases: a config never needs them and they enable
+    exponential 'billion laughs' expansion."""
+
+    def compose_node(self, parent: Any, index: Any) -> Any:  # type: ignore[override]
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.YAMLError(
+                f"YAML aliases (*{event.anchor}) are not allowed in a config "
+                f"(line {event.start_mark.line + 1})"
+            )
+        return super().compose_node(parent, index)
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Apply ``key.sub=value`` overrides (value parsed as YAML) to a raw config mapping.
+
+    List items are addressed by index (``environment.0.stiffness_n_per_m=5000``).
+    """
+    for item in overrides:
+        key, sep, text = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected key=value")
+        try:
+            value = yaml.safe_load(text)
+        except (yaml.YAMLError, RecursionError):
+            raise ConfigError(f"--set {key}: value is not valid YAML") from None
+        node: Any = data
+        parts = key.split(".")
+        for depth, part in enumerate(parts):
+            last = depth == len(parts) - 1
+            where = ".".join(parts[: depth + 1])
+            if isinstance(node, list):
+                if not part.isdecimal() or int(part) >= len(node):
+                    raise ConfigError(f"--set {key}: {where} is not an index of the list")
+                idx: Any = int(part)
+            elif isinstance(node, dict):
+                idx = part
+                if not last and idx not in node:
+                    node[idx] = {}
+            else:
+                raise ConfigError(f"--set {key}: {'.'.join(parts[:depth])} is not a section")
+            if last:
+                node[idx] = value
+            else:
+                node = node[idx]
+    return data
+
+
+def load(path: str | Path, overrides: list[str] | None = None) -> SessionConfig:
+    """Load, override and validate a session config file."""
+    path = Path(path)
+    data = read_yaml(path)
+    if overrides:
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: expected a mapping at the top level")
+        data = apply_overrides(data, overrides)
+    return from_dict(data, base_dir=path.resolve().parent)
+
+
+def per_joint(value: float | list[float] | None, n: int, key: str) -> list[float] | None:
+    """Broadcast a per-joint parameter to n joints; ConfigError naming key on a length mismatch."""
+    if value is None:
+        return None
+    if isinstance(value, list):
+        if len(value) != n:
+            raise ConfigError(f"{key}: has {len(value)} entries but the robot has {n} joints")
+        return [float(v) for v in value]
+    return [float(value)] * n

@@ -1,0 +1,29 @@
+"""One error tree for everything a user can cause or meet.
+
+The CLI turns any ``TeleopError`` into a single line on stderr and a non-zero exit code;
+anything else is a bug and keeps its traceback.
+"""
+
+
+class TeleopError(Exception):
+    """Base of all errors a user should see as one clear line."""
+
+    exit_code = 1
+
+
+class ConfigError(TeleopError):
+    """A session config is malformed or names something impossible (exit code 2)."""
+
+    exit_code = 2
+
+
+class ModelError(ConfigError):
+    """A robot description cannot be loaded or does not fit the per-joint parameters."""
+
+
+class BackendError(TeleopError):
+    """A hardware (or simulated) backend failed."""
+
+
+class SafetyStop(TeleopError):
+    """The session was stopped to keep the hardware safe."""

@@ -1,0 +1,1 @@
+"""Hardware abstraction: the Backend interface, a registry by name, and the backends."""

@@ -1,0 +1,96 @@
+"""The Backend interface (hardware side of the loop: ``read`` / ``write``) and a registry of
+backends by name, in the spirit of python-can's ``can.Bus(interface=...)``.
+
+A backend drives one robot. Per tick the session calls ``read()`` once, then ``write(tau)``
+once; ``write`` must not block beyond what the hardware protocol needs, and a simulated backend
+advances its plant by one period there (the command is held for the period, like a drive's
+zero-order hold).
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from teleop_rt.errors import ConfigError
+
+if TYPE_CHECKING:
+    from teleop_rt.config import SessionConfig
+    from teleop_rt.model import RobotModel
+
+
+class Feedback:
+    """What a backend measures each tick, in preallocated arrays (SI, joint space).
+
+    ``tau_ext`` is the torque the outside world applies to the robot (see teleop_rt.control).
+    """
+
+    __slots__ = ("q", "v", "tau_ext")
+
+    def __init__(self, n: int) -> None:
+        self.q = np.zeros(n)
+        self.v = np.zeros(n)
+        self.tau_ext = np.zeros(n)
+
+
+class Backend(ABC):
+    """One robot's hardware (real or simulated)."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.feedback = Feedback(n)
+
+    @abstractmethod
+    def start(self) -> None:
+        """Bring the hardware to a state where torque may be commanded."""
+
+    @abstractmethod
+    def read(self) -> Feedback:
+        """Measure q, v and tau_ext into ``self.feedback`` and return it."""
+
+    @abstractmethod
+    def write(self, tau: np.ndarray) -> None:
+        """Command the motor torques tau (N m per joint) for the coming period."""
+
+    @abstractmethod
+    def stop(self) -> None:
+        """Leave the hardware safe: zero torque, drives disabled. Must be idempotent."""
+
+
+BackendFactory = Callable[["SessionConfig", str, "RobotModel"], Backend]
+_REGISTRY: dict[str, BackendFactory] = {}
+
+
+def register_backend(name: str) -> Callable[[BackendFactory], BackendFactory]:
+    """Decorator: make a factory ``(config, side, model) -> Backend`` available by name."""
+
+    def deco(factory: BackendFactory) -> BackendFactory:
+        _REGISTRY[name] = factory
+        return factory
+
+    return deco
+
+
+def available_backends() -> list[str]:
+    _load_builtin()
+    return sorted(_REGISTRY)
+
+
+def create_backend(name: str, cfg: SessionConfig, side: str, model: RobotModel) -> Backend:
+    """Build the backend ``name`` for side 'hsi' or 'to'; ConfigError for an unknown name."""
+    _load_builtin()
+    try:
+        factory = _REGISTRY[name]
+    except KeyError:
+        raise ConfigError(
+            f"backend: unknown backend {name!r} (available: {', '.join(available_backends())})"
+        ) from None
+    return factory(cfg, side, model)
+
+
+def _load_builtin() -> None:
+    # importing registers them; kept lazy so the CAN stack is only imported when used
+    from teleop_rt.hal import sim  # noqa: F401

@@ -1,0 +1,199 @@
+"""Simulated backend: a robot's full nonlinear rigid-body dynamics (Pinocchio ABA, Coriolis,
+gravity, joint friction) with its operator or environment loads, integrated over one period
+per ``write`` with a configurable integrator and number of sub-steps.
+
+The plant owns its own ``RobotModel`` (its own Pinocchio Data), separate from the controller's:
+it stands for the real robot. Sensors are ideal unless noise is configured (seeded, so fast mode
+stays deterministic).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from teleop_rt.config import SessionConfig
+from teleop_rt.hal.base import Backend, Feedback, register_backend
+from teleop_rt.model import RobotModel
+from teleop_rt.world import Load, build_environment, build_operator
+
+# seeds of the two plants' noise generators differ so their noise is independent
+_SIDE_SEED = {"hsi": 1, "to": 2}
+
+
+class SimBackend(Backend):
+    """One simulated robot with the loads acting on it."""
+
+    def __init__(
+        self,
+        plant: RobotModel,
+        loads: list[Load],
+        q0: np.ndarray,
+        dt: float,
+        substeps: int = 1,
+        integrator: str = "semi_implicit_euler",
+        torque_noise_std: float = 0.0,
+        velocity_noise_std: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(plant.nv)
+        if integrator not in ("semi_implicit_euler", "rk4"):
+            raise ValueError(f"unknown integrator {integrator!r}")
+        n = plant.nv
+        self.plant = plant
+        self.joint_loads = [ld for ld in loads if not ld.cartesian]
+        self.cartesian_loads = [ld for ld in loads if ld.cartesian]
+        self.loads = loads
+        self.stateful = [ld for ld in loads if ld.stateful]
+        self.dt = dt
+        self.h = dt / substeps
+        self.substeps = substeps
+        self.rk4 = integrator == "rk4"
+        # state: lists for the scalar arithmetic, numpy mirrors for Pinocchio
+        self.ql = [float(x) for x in q0]
+        self.vl = [0.0] * n
+        self.q = np.array(self.ql)
+        self.v = np.zeros(n)
+        self.t = 0.0
+        self.tick = 0
+        self.tau_motor = [0.0] * n
+        self.tau_load = [0.0] * n  # loads at the current state (what an ideal sensor reads)
+        self._tau = np.zeros(n)
+        self._qs, self._vs = np.zeros(n), np.zeros(n)
+        self.torque_noise_std = torque_noise_std
+        self.velocity_noise_std = velocity_noise_std
+        self.rng = np.random.default_rng(seed)
+        self._noise = np.zeros(n)
+        self._eval_loads(self.t, self.q, self.vl)
+
+    # --- Backend --------------------------------------------------------------------------
+    def start(self) -> None:
+        """Nothing to power up: the simulated robot accepts torque from construction on."""
+
+    def read(self) -> Feedback:
+        fb = self.feedback
+        fb.q[:] = self.q
+        fb.v[:] = self.v
+        fb.tau_ext[:] = self.tau_load
+        if self.torque_noise_std:
+            self.rng.standard_normal(out=self._noise)
+            self._noise *= self.torque_noise_std
+            fb.tau_ext += self._noise
+        if self.velocity_noise_std:
+            self.rng.standard_normal(out=self._noise)
+            self._noise *= self.velocity_noise_std
+            fb.v += self._noise
+        return fb
+
+    def write(self, tau: list[float] | np.ndarray) -> None:
+        self.tau_motor[:] = tau
+        substep = self._rk4_substep if self.rk4 else self._euler_substep
+        for i in range(self.substeps):
+            if i:  # the loads at the tick's start were evaluated at the end of the last write
+                self._eval_loads(self.t, self.q, self.vl)
+            substep()
+        self.tick += 1
+        self.t = self.tick * self.dt  # no drift from summing sub-steps
+        self._eval_loads(self.t, self.q, self.vl)
+
+    def stop(self) -> None:
+        self.tau_motor[:] = [0.0] * self.n
+
+    # --- dynamics -------------------------------------------------------------------------
+    def _eval_loads(self, t: float, q: np.ndarray, v: list[float]) -> None:
+        """tau_load = sum of the loads' joint torques at (t, q, v)."""
+        tl, n = self.tau_load, self.n
+        for j in range(n):
+            tl[j] = 0.0
+        for load in self.joint_loads:
+            load.add_joint_torque(t, q, v, tl)
+        if self.cartesian_loads:
+            plant = self.plant
+            plant.update_ee(q, v)
+            x, xd = plant.ee_pos, plant.ee_vel
+            fx = fy = fz = 0.0
+            for load in self.cartesian_loads:
+                f = load.force(t, x, xd)
+                fx += f[0]
+                fy += f[1]
+                fz += f[2]
+            jx, jy, jz = plant.ee_jac[:3]
+            for j in range(n):  # tau = J^T F
+                tl[j] += jx[j] * fx + jy[j] * fy + jz[j] * fz
+
+    def _acceleration(self, q: np.ndarray, v_arr: np.ndarray, v: list[float]) -> list[float]:
+        # M a + n = g + tau_ext - friction
+        fric = self.plant.friction(v)
+        tm, tl = self.tau_motor, self.tau_load
+        self._tau[:] = [tm[j] + tl[j] - fric[j] for j in range(self.n)]
+        return self.plant.forward_dynamics(q, v_arr, self._tau)
+
+    def _euler_substep(self) -> None:
+        # semi-implicit (symplectic) Euler: v first, then q with the new v
+        h, ql, vl = self.h, self.ql, self.vl
+        a = self._acceleration(self.q, self.v, vl)
+        for load in self.stateful:
+            load.advance(h)
+        for j in range(self.n):
+            vj = vl[j] + h * a[j]
+            vl[j] = vj
+            ql[j] += h * vj
+        self.q[:] = ql
+        self.v[:] = vl
+        self.t += h
+
+    def _rk4_substep(self) -> None:
+        # classic RK4 on (q, v); the loads are re-evaluated at every stage, stateful loads
+        # advance once per sub-step with the force at its start
+        h, ql, vl, n = self.h, self.ql, self.vl, self.n
+        qs, vs = self._qs, self._vs
+        k1v = list(vl)
+        k1a = self._acceleration(self.q, self.v, vl)  # loads already at (t, q, v)
+        for load in self.stateful:
+            load.advance(h)
+        stages = [(k1v, k1a)]
+        for frac in (0.5, 0.5, 1.0):
+            dq, dv = stages[-1]
+            q_stage = [ql[j] + frac * h * dq[j] for j in range(n)]
+            v_stage = [vl[j] + frac * h * dv[j] for j in range(n)]
+            qs[:] = q_stage
+            vs[:] = v_stage
+            self._eval_loads(self.t + frac * h, qs, v_stage)
+            stages.append((v_stage, self._acceleration(qs, vs, v_stage)))
+        (v1, a1), (v2, a2), (v3, a3), (v4, a4) = stages
+        for j in range(n):
+            ql[j] += h / 6.0 * (v1[j] + 2.0 * v2[j] + 2.0 * v3[j] + v4[j])
+            vl[j] += h / 6.0 * (a1[j] + 2.0 * a2[j] + 2.0 * a3[j] + a4[j])
+        self.q[:] = ql
+        self.v[:] = vl
+        self.t += h
+
+
+@register_backend("sim")
+def _make_sim(cfg: SessionConfig, side: str, model: RobotModel) -> SimBackend:
+    spec = getattr(cfg, side)
+    plant = RobotModel.from_spec(spec.robot, side, cfg.plant.coulomb_smoothing_rad_s)
+    q0 = initial_configuration(spec.robot.q0_rad, plant, side)
+    if side == "hsi":
+        loads = [build_operator(cfg.operator, plant, q0)]
+    else:
+        loads = build_environment(cfg.environment)
+    return SimBackend(
+        plant,
+        loads,
+        q0,
+        cfg.dt,
+        substeps=cfg.plant.substeps,
+        integrator=cfg.plant.integrator,
+        torque_noise_std=cfg.plant.torque_noise_std_nm,
+        velocity_noise_std=cfg.plant.velocity_noise_std_rad_s,
+        seed=cfg.seed * 1000 + _SIDE_SEED[side],
+    )
+
+
+def initial_configuration(q0: list[float] | None, model: RobotModel, side: str) -> np.ndarray:
+    """q0 from the config (zeros if absent), length-checked against the model."""
+    from teleop_rt.config import per_joint
+
+    if q0 is None:
+        return np.zeros(model.nq)
+    return np.array(per_joint(q0, model.nq, f"{side}.robot.q0_rad"))

@@ -1,0 +1,168 @@
+"""Fixed-step clock with absolute deadlines, timing statistics and the overrun policy.
+
+Real-time mode: deadlines are absolute, ``next_ns += period_ns`` (never ``sleep(dt)``, which
+drifts); the clock sleeps until ``spin_ns`` before the deadline, then spins on the monotonic
+clock. Fast mode runs ticks back to back (simulation time only).
+
+Overrun policy, applied when a tick's work ends after the next deadline:
+* ``catch_up``: keep the schedule; the following ticks start late until they have caught up;
+* ``skip``: drop the missed deadlines and continue on the next future one (time base kept);
+* ``stop``: raise ``OverrunStop``.
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from teleop_rt.errors import SafetyStop
+
+OVERRUN_POLICIES = ("catch_up", "skip", "stop")
+
+
+class OverrunStop(SafetyStop):
+    """A tick ended after the next deadline and the policy is 'stop'."""
+
+
+class TickClock:
+    """Paces ticks to absolute deadlines (real-time) or not at all (fast mode)."""
+
+    def __init__(
+        self,
+        period_ns: int,
+        realtime: bool,
+        overrun: str = "catch_up",
+        spin_ns: int = 200_000,
+        now_ns=time.monotonic_ns,
+        sleep=time.sleep,
+    ) -> None:
+        if overrun not in OVERRUN_POLICIES:
+            raise ValueError(f"overrun policy must be one of {OVERRUN_POLICIES}, got {overrun!r}")
+        self.period_ns = period_ns
+        self.realtime = realtime
+        self.overrun = overrun
+        self.spin_ns = spin_ns
+        self.now_ns = now_ns
+        self.sleep = sleep
+        self.deadline_ns = 0
+        self.skipped = 0
+
+    def start(self) -> None:
+        self.deadline_ns = self.now_ns()
+
+    def wait(self) -> int:
+        """Wait for the current tick's deadline; return the lateness in ns (0 in fast mode)."""
+        if not self.realtime:
+            return 0
+        now = self.now_ns()
+        remaining = self.deadline_ns - now
+        if remaining > self.spin_ns:
+            self.sleep((remaining - self.spin_ns) * 1e-9)
+            now = self.now_ns()
+        while now < self.deadline_ns:
+            now = self.now_ns()
+        return now - self.deadline_ns
+
+    def finish(self, end_ns: int) -> bool:
+        """Close the tick that ended at end_ns; advance the deadline. Return True if missed."""
+        if not self.realtime:
+            return False
+        next_deadline = self.deadline_ns + self.period_ns
+        missed = end_ns > next_deadline
+        if missed:
+            if self.overrun == "stop":
+                raise OverrunStop(
+                    f"tick overran its deadline by {(end_ns - next_deadline) / 1e3:.0f} us "
+                    "(overrun policy: stop)"
+                )
+            if self.overrun == "skip":
+                # deadlines before end_ns are dropped; one at end_ns is still on time
+                behind = -(-(end_ns - next_deadline) // self.period_ns)
+                self.skipped += behind
+                next_deadline += behind * self.period_ns
+        self.deadline_ns = next_deadline
+        return missed
+
+
+class TimingStats:
+    """Per-tick compute time and lateness in preallocated arrays; summary in microseconds."""
+
+    def __init__(self, capacity: int) -> None:
+        self.compute_ns = np.zeros(capacity, dtype=np.int64)
+        self.lateness_ns = np.zeros(capacity, dtype=np.int64)
+        self.count = 0
+        self.missed = 0
+
+    def add(self, compute_ns: int, lateness_ns: int, missed: bool) -> None:
+        i = self.count
+        self.compute_ns[i] = compute_ns
+        self.lateness_ns[i] = lateness_ns
+        self.count = i + 1
+        if missed:
+            self.missed += 1
+
+    def summary(self) -> dict:
+        n = self.count
+        out = {"ticks": n, "missed_deadlines": self.missed}
+        for name, arr in (
+            ("compute_us", self.compute_ns[:n]),
+            ("lateness_us", self.lateness_ns[:n]),
+        ):
+            if n:
+                p50, p99 = np.percentile(arr, [50, 99])
+                out[name] = {
+                    "p50": float(p50) / 1e3,
+                    "p99": float(p99) / 1e3,
+                    "max": float(arr.max()) / 1e3,
+                }
+            else:
+                out[name] = {"p50": 0.0, "p99": 0.0, "max": 0.0}
+        return out
+
+
+@dataclass
+class RealtimeGrant:
+    """What the OS granted for real-time mode, and how to undo it."""
+
+    notes: list[str]
+    gc_was_enabled: bool
+    old_policy: tuple[int, int] | None = None
+
+    def release(self) -> None:
+        if self.gc_was_enabled:
+            gc.enable()
+        if self.old_policy is not None:
+            policy, prio = self.old_policy
+            try:
+                os.sched_setscheduler(0, policy, os.sched_param(prio))
+            except OSError:
+                pass
+
+
+def acquire_realtime(priority: int = 80) -> RealtimeGrant:
+    """Ask for SCHED_FIFO and stop the garbage collector during the loop; report what worked."""
+    notes: list[str] = []
+    old = None
+    if hasattr(os, "sched_setscheduler"):
+        try:
+            old = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            notes.append(f"SCHED_FIFO priority {priority} granted")
+        except (OSError, PermissionError) as err:
+            old = None
+            notes.append(
+                f"SCHED_FIFO not granted ({err.strerror or err}); running under the default "
+                "scheduler, expect larger lateness (grant CAP_SYS_NICE or an rtprio limit)"
+            )
+    else:  # pragma: no cover - non-Linux
+        notes.append("SCHED_FIFO is not available on this OS; default scheduler")
+    gc_enabled = gc.isenabled()
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    notes.append("garbage collector frozen for the loop")
+    return RealtimeGrant(notes, gc_enabled, old)

@@ -1,0 +1,155 @@
+"""RobotModel: a Pinocchio ``Model`` with its preallocated ``Data`` and the few algorithms the
+stack needs, each writing into arrays owned by the caller or by this object.
+
+Joint friction is taken from the URDF ``<dynamics damping friction>`` tags (Pinocchio stores
+them in ``model.damping`` and ``model.friction``) and modelled as
+``tau_f = damping * v + friction * tanh(v / v_s)``: the plant applies it, the computed torque
+compensates it (it is part of the paper's n(q, v)).
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+from teleop_rt.config import RobotSpec
+from teleop_rt.errors import ModelError
+
+
+class RobotModel:
+    """Kinematics and dynamics of one robot (HSI or TO).
+
+    Pinocchio needs numpy arrays for q, v, a, tau; what it returns is converted to lists where
+    the tick path goes on with scalar arithmetic (cheaper than numpy for a few joints).
+    """
+
+    def __init__(
+        self,
+        model: pin.Model,
+        ee_frame: str | None = None,
+        name: str = "robot",
+        coulomb_smoothing_rad_s: float = 0.01,
+    ) -> None:
+        self.model = model
+        self.data = model.createData()
+        self.name = name
+        self.nq, self.nv = model.nq, model.nv
+        if self.nq != self.nv:
+            raise ModelError(f"{name}: only revolute/prismatic joints are supported (nq != nv)")
+        self.joint_names = list(model.names)[1:]
+        frame = ee_frame or model.frames[model.nframes - 1].name
+        if not model.existFrame(frame):
+            raise ModelError(f"{name}: the robot has no frame named {frame!r}")
+        self.ee_frame = frame
+        self.ee_frame_id = model.getFrameId(frame)
+        self.damping = [float(x) for x in model.damping]
+        self.coulomb = [float(x) for x in model.friction]
+        self.has_coulomb = any(self.coulomb)
+        self.inv_v_s = 1.0 / coulomb_smoothing_rad_s
+        self._fric = [0.0] * self.nv
+        # A view into data.oMf: updated in place by Pinocchio, read without a binding call.
+        self._ee_translation = self.data.oMf[self.ee_frame_id].translation
+        # End-effector kinematics filled by update_ee(): position (m), velocity (m/s) and the
+        # Jacobian rows as lists (rows 0-2: translational, world-aligned).
+        self.ee_pos = [0.0, 0.0, 0.0]
+        self.ee_vel = [0.0, 0.0, 0.0]
+        self.ee_jac: list[list[float]] = [[0.0] * self.nv for _ in range(3)]
+
+    @classmethod
+    def from_spec(
+        cls, spec: RobotSpec, name: str, coulomb_smoothing_rad_s: float = 0.01
+    ) -> RobotModel:
+        """Load the robot named by a config section (URDF path or example-robot-data name)."""
+        model = load_pinocchio_model(spec, name)
+        return cls(model, spec.ee_frame, name, coulomb_smoothing_rad_s)
+
+    # --- dynamics -------------------------------------------------------------------------
+    def friction(self, v: list[float]) -> list[float]:
+        """Joint friction torque at velocity v (N m): a list owned by this object."""
+        out, damping = self._fric, self.damping
+        if self.has_coulomb:
+            coulomb, inv_v_s = self.coulomb, self.inv_v_s
+            for j in range(self.nv):
+                out[j] = damping[j] * v[j] + coulomb[j] * math.tanh(v[j] * inv_v_s)
+        else:
+            for j in range(self.nv):
+                out[j] = damping[j] * v[j]
+        return out
+
+    def rnea(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> list[float]:
+        """M(q) a + n(q, v) without friction (one RNEA call; n: Coriolis, centrifugal, gravity)."""
+        return pin.rnea(self.model, self.data, q, v, a).tolist()
+
+    def forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> list[float]:
+        """Joint acceleration for the total joint torque tau (one ABA call)."""
+        return pin.aba(self.model, self.data, q, v, tau).tolist()
+
+    def mass_matrix(self, q: np.ndarray) -> np.ndarray:
+        """M(q), symmetric (a fresh copy; not for the tick path)."""
+        m = pin.crba(self.model, self.data, np.asarray(q, dtype=float)).copy()
+        return np.triu(m) + np.triu(m, 1).T
+
+    def nonlinear_effects(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """n(q, v) without friction (a fresh copy; not for the tick path)."""
+        return pin.nonLinearEffects(
+            self.model, self.data, np.asarray(q, dtype=float), np.asarray(v, dtype=float)
+        ).copy()
+
+    # --- kinematics -----------------------------------------------------------------------
+    def update_ee(self, q: np.ndarray, v: list[float]) -> None:
+        """Fill ee_pos, ee_vel (world frame, m and m/s) and ee_jac (3 x nv) at (q, v)."""
+        jac = pin.computeFrameJacobian(
+            self.model, self.data, q, self.ee_frame_id, pin.LOCAL_WORLD_ALIGNED
+        )
+        pin.updateFramePlacement(self.model, self.data, self.ee_frame_id)
+        rows = jac.tolist()  # 6 x nv; the first three rows are the translational part
+        self.ee_jac = rows
+        self.ee_pos[:] = self._ee_translation.tolist()
+        vel = self.ee_vel
+        for r in (0, 1, 2):
+            vel[r] = sum(map(operator.mul, rows[r], v))
+
+    def ee_position(self, q: np.ndarray) -> np.ndarray:
+        """End-effector position at q (a fresh copy; not for the tick path)."""
+        pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
+        return self.data.oMf[self.ee_frame_id].translation.copy()
+
+    # --- limits ---------------------------------------------------------------------------
+    @property
+    def position_limits(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.model.lowerPositionLimit.copy(), self.model.upperPositionLimit.copy()
+
+    @property
+    def effort_limits(self) -> np.ndarray:
+        return self.model.effortLimit.copy()
+
+
+def load_pinocchio_model(spec: RobotSpec, name: str) -> pin.Model:
+    """Build a Pinocchio model from a URDF file or an example-robot-data robot name."""
+    if spec.urdf is not None:
+        path = Path(spec.urdf)
+        if not path.is_file():
+            raise ModelError(f"{name}.robot.urdf: no such file: {path}")
+        try:
+            return pin.buildModelFromUrdf(str(path))
+        except (ValueError, RuntimeError) as err:
+            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            raise ModelError(
+                f"{name}.robot.urdf: {path.name} is not a valid URDF: {first}"
+            ) from None
+    try:
+        import example_robot_data
+    except ImportError:  # pragma: no cover - a declared dependency
+        raise ModelError(
+            f"{name}.robot.example_robot: example_robot_data is not installed"
+        ) from None
+    try:
+        return example_robot_data.load(spec.example_robot).model
+    except (ValueError, KeyError, AttributeError, OSError) as err:
+        raise ModelError(
+            f"{name}.robot.example_robot: cannot load {spec.example_robot!r} ({err})"
+        ) from None

@@ -1,0 +1,75 @@
+"""Human-facing output: the progress bar of a long run and the end-of-session summary."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from teleop_rt.session import Summary
+
+
+@contextmanager
+def progress_bar(total: int, enabled: bool = True) -> Iterator[Callable[[int, int], None] | None]:
+    """Yield a ``progress(done, total)`` callback drawing a bar on stderr (None if disabled)."""
+    if not enabled:
+        yield None
+        return
+    columns = (
+        TextColumn("[bold]ticks"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+        TimeRemainingColumn(),
+    )
+    with Progress(*columns, console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task("run", total=total)
+
+        def update(done: int, _total: int) -> None:
+            bar.update(task, completed=done)
+
+        yield update
+
+
+def _fmt(values: list[float]) -> str:
+    return "  ".join(f"{v:.4g}" for v in values)
+
+
+def print_summary(summary: Summary, console: Console | None = None) -> None:
+    """Print the session summary as a table."""
+    console = console or Console()
+    table = Table(title=f"session {summary.name}", show_header=False, title_justify="left")
+    table.add_column("what", style="bold")
+    table.add_column("value")
+    table.add_row("ticks", f"{summary.ticks} ({summary.simulated_time_s:.3f} s simulated)")
+    table.add_row("channel delay", f"{summary.delay_ticks} ticks")
+    table.add_row("T_p per joint (rad^2 s)", _fmt(summary.t_p))
+    table.add_row("T_p total", f"{summary.t_p_total:.4g}")
+    table.add_row("T_tau per joint (N^2 m^2 s)", _fmt(summary.t_tau))
+    table.add_row("T_tau total", f"{summary.t_tau_total:.4g}")
+    table.add_row(
+        "channel energy (J)",
+        f"{summary.channel_energy_j:.4g} (minimum {summary.min_channel_energy_j:.3g})",
+    )
+    timing = summary.timing
+    comp, late = timing["compute_us"], timing["lateness_us"]
+    table.add_row(
+        "tick compute (us)", f"p50 {comp['p50']:.1f}  p99 {comp['p99']:.1f}  max {comp['max']:.1f}"
+    )
+    if summary.realtime:
+        table.add_row(
+            "deadline lateness (us)",
+            f"p50 {late['p50']:.1f}  p99 {late['p99']:.1f}  max {late['max']:.1f}",
+        )
+        table.add_row("missed deadlines", str(timing["missed_deadlines"]))
+    else:
+        rtf = 1e6 * summary.simulated_time_s / max(timing.get("wall_s", 0.0) * 1e6, 1e-9)
+        table.add_row("mode", f"fast ({rtf:.0f}x real time)")
+    for note in summary.notes:
+        table.add_row("note", note)
+    if summary.stopped_early:
+        table.add_row("stopped early", f"[red]{summary.stopped_early}")
+    console.print(table)

@@ -1,0 +1,104 @@
+"""Operator and environment models: forces against closed forms, and the J^T F mapping."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from teleop_rt.config import HandOperatorSpec, MassSpec, RobotSpec, SpringSpec, WallSpec
+from teleop_rt.hal.sim import SimBackend
+from teleop_rt.model import RobotModel
+from teleop_rt.world import HalfPlaneContact, HandTrajectory, PushedMass, ScriptedHand
+from tests.conftest import SCARA_URDF
+
+
+def wall(**kw) -> HalfPlaneContact:
+    spec = dict(
+        kind="wall",
+        point_m=[0.4, 0.0],
+        normal=[-2, 0],
+        stiffness_n_per_m=1000.0,
+        damping_n_s_per_m=10.0,
+    )
+    return HalfPlaneContact(WallSpec(**(spec | kw)))
+
+
+def test_wall_force_is_spring_damper_along_the_normal_inside_only() -> None:
+    w = wall()
+    # 1 cm inside, moving further in at 0.1 m/s: f = 1000 * 0.01 + 10 * 0.1 = 11 N along -x
+    assert w.force(0.0, [0.41, 0.2, 0.1], [0.1, 0.5, 0.0]) == pytest.approx((-11.0, 0.0, 0.0))
+    assert w.in_contact
+    assert w.force(0.0, [0.39, 0.0, 0.0], [1.0, 0.0, 0.0]) == (0.0, 0.0, 0.0)
+    assert not w.in_contact
+    # inside but leaving fast: the unilateral wall never pulls
+    assert w.force(0.0, [0.401, 0.0, 0.0], [-1.0, 0.0, 0.0]) == (0.0, 0.0, 0.0)
+
+
+def test_spring_environment_is_bilateral() -> None:
+    s = HalfPlaneContact(
+        SpringSpec(kind="spring", point_m=[0, 0.1], normal=[0, 1], stiffness_n_per_m=200.0)
+    )
+    assert s.force(0.0, [0.0, 0.12, 0.0], [0.0, 0.0, 0.0]) == pytest.approx((0.0, -4.0, 0.0))
+    assert s.force(0.0, [0.0, 0.08, 0.0], [0.0, 0.0, 0.0]) == pytest.approx((0.0, 4.0, 0.0))
+
+
+def test_minimum_jerk_hand_reference_hits_waypoints_with_zero_velocity() -> None:
+    traj = HandTrajectory([0.0, 0.0, 0.1], [1.0, 3.0], [[0.1, 0.0, 0.1], [0.1, 0.2, 0.1]])
+    for t, pos in (
+        (0.0, [0, 0, 0.1]),
+        (1.0, [0.1, 0, 0.1]),
+        (3.0, [0.1, 0.2, 0.1]),
+        (9.0, [0.1, 0.2, 0.1]),
+    ):
+        traj.evaluate(t)
+        np.testing.assert_allclose(traj.pos, pos, atol=1e-15)
+        np.testing.assert_allclose(traj.vel, 0.0, atol=1e-15)
+    traj.evaluate(0.5)  # midpoint of a minimum-jerk segment: half way, peak speed 1.875 d / T
+    np.testing.assert_allclose(traj.pos, [0.05, 0.0, 0.1], atol=1e-15)
+    np.testing.assert_allclose(traj.vel, [1.875 * 0.1, 0.0, 0.0], rtol=1e-12)
+
+
+def test_hand_waypoints_with_two_numbers_keep_the_start_height() -> None:
+    spec = HandOperatorSpec(kind="hand", waypoints=[{"t_s": 1.0, "position_m": [0.3, 0.1]}])
+    hand = ScriptedHand(spec, [0.35, 0.0, 0.12])
+    assert hand.trajectory.points[-1] == [0.3, 0.1, 0.12]
+    # at rest at the start the hand pulls with K (x_ref - x)
+    f = hand.force(0.0, [0.34, 0.0, 0.12], [0.0, 0.0, 0.0])
+    assert f == pytest.approx((300.0 * 0.01, 0.0, 0.0))
+
+
+def test_contact_torque_is_j_transpose_f_by_virtual_power() -> None:
+    """Power balance: the joint torque the plant reports times v equals F . xdot."""
+    model = RobotModel.from_spec(RobotSpec(urdf=SCARA_URDF, ee_frame="tool"), "to")
+    w = wall(point_m=[0.30, 0.0])  # the tool at q0 is 4.4 cm inside this wall
+    plant = SimBackend(model, [w], np.array([-0.8, 1.8]), 1e-3)
+    plant.vl[:] = [0.3, -0.5]
+    plant.v[:] = plant.vl
+    plant._eval_loads(0.0, plant.q, plant.vl)
+    assert w.in_contact
+    joint_power = float(np.dot(plant.tau_load, plant.vl))
+    cart_power = float(np.dot(w.last_force, model.ee_vel))
+    assert joint_power == pytest.approx(cart_power, rel=1e-12)
+    assert abs(joint_power) > 1e-3
+
+
+def test_pushed_mass_feels_like_m_s_when_pushed_steadily() -> None:
+    """Push the mass with a constant end-effector acceleration a: after the contact settles, the
+    contact force is m a (Z_e = m s along the normal)."""
+    m = PushedMass(
+        MassSpec(
+            kind="mass",
+            point_m=[0.0, 0.0],
+            normal=[-1, 0],
+            mass_kg=0.5,
+            contact_damping_n_s_per_m=100.0,
+        )
+    )
+    dt, a = 1e-4, 2.0
+    x = xd = 0.0
+    for _ in range(20000):  # 2 s
+        f = m.force(0.0, [x, 0.0, 0.0], [xd, 0.0, 0.0])
+        m.advance(dt)
+        xd += a * dt
+        x += xd * dt
+    assert -f[0] == pytest.approx(0.5 * a, rel=1e-3)
