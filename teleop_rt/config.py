@@ -370,7 +370,7 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
         try:
             value = yaml.safe_load(text)
         except (yaml.YAMLError, RecursionError):
-            raise ConfigError(f"--set {key}: value is not valid YAML") from None
+            raise ConfigError(f"--set {key}: value {text!r} is not valid YAML") from None
         node: Any = data
         parts = key.split(".")
         for depth, part in enumerate(parts):

@@ -10,7 +10,6 @@ compensates it (it is part of the paper's n(q, v)).
 from __future__ import annotations
 
 import math
-import operator
 from pathlib import Path
 
 import numpy as np
@@ -109,9 +108,14 @@ class RobotModel:
         rows = jac.tolist()  # 6 x nv; the first three rows are the translational part
         self.ee_jac = rows
         self.ee_pos[:] = self._ee_translation.tolist()
+        jx, jy, jz = rows[0], rows[1], rows[2]
+        x = y = z = 0.0
+        for j, vj in enumerate(v):
+            x += jx[j] * vj
+            y += jy[j] * vj
+            z += jz[j] * vj
         vel = self.ee_vel
-        for r in (0, 1, 2):
-            vel[r] = sum(map(operator.mul, rows[r], v))
+        vel[0], vel[1], vel[2] = x, y, z
 
     def ee_position(self, q: np.ndarray) -> np.ndarray:
         """End-effector position at q (a fresh copy; not for the tick path)."""

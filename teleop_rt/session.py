@@ -100,8 +100,8 @@ class Session:
         self.tau_h = [0.0] * n
         self.tau_e = [0.0] * n
         self.tick = 0
-        self.q0_h = self.hsi.backend.read().q.tolist()
-        self.q0_t = self.to.backend.read().q.tolist()
+        self.q0_h = list(self.hsi.backend.read().q_list)
+        self.q0_t = list(self.to.backend.read().q_list)
         self.metrics = TransparencyAccumulator(self.q0_h, self.q0_t, self.dt)
 
     @property
@@ -113,10 +113,10 @@ class Session:
         hsi, to, ch, n = self.hsi, self.to, self.channel, self.n
         fb_h = hsi.backend.read()
         fb_t = to.backend.read()
-        v_h, v_t = fb_h.v.tolist(), fb_t.v.tolist()
+        v_h, v_t = fb_h.v_list, fb_t.v_list
         tau_h, tau_e = self.tau_h, self.tau_e
-        tau_h[:] = fb_h.tau_ext.tolist()
-        tau_ext_t = fb_t.tau_ext.tolist()
+        tau_h[:] = fb_h.tau_ext
+        tau_ext_t = fb_t.tau_ext
         for j in range(n):
             tau_e[j] = -tau_ext_t[j]
         ch.step(v_h, tau_e)
@@ -130,7 +130,7 @@ class Session:
         g_t = to.computed_torque.step(fb_t.q, fb_t.v, a_ref_t, tau_ext_t, v_t)
         hsi.backend.write(g_h)
         to.backend.write(g_t)
-        self.metrics.add(fb_h.q.tolist(), fb_t.q.tolist(), tau_h, tau_e)
+        self.metrics.add(fb_h.q_list, fb_t.q_list, tau_h, tau_e)
         self.tick += 1
 
     def run(

@@ -53,13 +53,13 @@ def measure_open_chain(omega, delay_ms, k_env, filter_hz=None, flip_c1=False, se
         w = 0.05 * math.sin(omega * k * DT)
         omega_c = [0.0, 0.0]
         omega_c[JOINT] = w
-        tau_e = [-x for x in fb_t.tau_ext.tolist()]
+        tau_e = [-x for x in list(fb_t.tau_ext)]
         channel.step(omega_c, tau_e)
-        th = fb_h.tau_ext.tolist()
+        th = list(fb_h.tau_ext)
         a_h = c1.step([sign * (th[j] - channel.tau_c[j]) for j in range(2)])
         a_t = c2.step([channel.omega_t[j] - fb_t.v[j] for j in range(2)])
-        hsi_plant.write(ct_h.step(fb_h.q, fb_h.v, a_h, th, fb_h.v.tolist()))
-        to_plant.write(ct_t.step(fb_t.q, fb_t.v, a_t, fb_t.tau_ext.tolist(), fb_t.v.tolist()))
+        hsi_plant.write(ct_h.step(fb_h.q, fb_h.v, a_h, th, fb_h.v_list))
+        to_plant.write(ct_t.step(fb_t.q, fb_t.v, a_t, list(fb_t.tau_ext), fb_t.v_list))
         w_o[k], tau_h[k], q_other[k] = w, th[JOINT], fb_h.q[1 - JOINT] - Q0[1 - JOINT]
     z = lock_in(tau_h[settle:], omega, DT) / lock_in(w_o[settle:], omega, DT)
     return z, np.abs(q_other).max()

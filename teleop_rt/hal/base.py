@@ -23,17 +23,21 @@ if TYPE_CHECKING:
 
 
 class Feedback:
-    """What a backend measures each tick, in preallocated arrays (SI, joint space).
+    """What a backend measures each tick (SI, joint space), preallocated.
 
-    ``tau_ext`` is the torque the outside world applies to the robot (see teleop_rt.control).
+    ``q`` and ``v`` are numpy arrays (Pinocchio's inputs); ``q_list``, ``v_list`` hold the same
+    values as lists for the scalar path; ``tau_ext`` (a list) is the torque the outside world
+    applies to the robot (see teleop_rt.control).
     """
 
-    __slots__ = ("q", "v", "tau_ext")
+    __slots__ = ("q", "v", "q_list", "v_list", "tau_ext")
 
     def __init__(self, n: int) -> None:
         self.q = np.zeros(n)
         self.v = np.zeros(n)
-        self.tau_ext = np.zeros(n)
+        self.q_list = [0.0] * n
+        self.v_list = [0.0] * n
+        self.tau_ext = [0.0] * n
 
 
 class Backend(ABC):

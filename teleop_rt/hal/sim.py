@@ -14,6 +14,7 @@ import numpy as np
 from teleop_rt.config import SessionConfig
 from teleop_rt.hal.base import Backend, Feedback, register_backend
 from teleop_rt.model import RobotModel
+from teleop_rt.scalar import assign
 from teleop_rt.world import Load, build_environment, build_operator
 
 # seeds of the two plants' noise generators differ so their noise is independent
@@ -71,18 +72,21 @@ class SimBackend(Backend):
 
     def read(self) -> Feedback:
         fb = self.feedback
-        fb.q[:] = self.q
-        fb.v[:] = self.v
+        fb.q_list[:] = self.ql
+        fb.v_list[:] = self.vl
         fb.tau_ext[:] = self.tau_load
         if self.torque_noise_std:
-            self.rng.standard_normal(out=self._noise)
-            self._noise *= self.torque_noise_std
-            fb.tau_ext += self._noise
+            self._add_noise(fb.tau_ext, self.torque_noise_std)
         if self.velocity_noise_std:
-            self.rng.standard_normal(out=self._noise)
-            self._noise *= self.velocity_noise_std
-            fb.v += self._noise
+            self._add_noise(fb.v_list, self.velocity_noise_std)
+        assign(fb.q, fb.q_list)
+        assign(fb.v, fb.v_list)
         return fb
+
+    def _add_noise(self, values: list[float], std: float) -> None:
+        self.rng.standard_normal(out=self._noise)
+        for j, x in enumerate(self._noise.tolist()):
+            values[j] += std * x
 
     def write(self, tau: list[float] | np.ndarray) -> None:
         self.tau_motor[:] = tau
@@ -116,16 +120,17 @@ class SimBackend(Backend):
                 fx += f[0]
                 fy += f[1]
                 fz += f[2]
-            jx, jy, jz = plant.ee_jac[:3]
+            jx, jy, jz = plant.ee_jac[0], plant.ee_jac[1], plant.ee_jac[2]
             for j in range(n):  # tau = J^T F
                 tl[j] += jx[j] * fx + jy[j] * fy + jz[j] * fz
 
     def _acceleration(self, q: np.ndarray, v_arr: np.ndarray, v: list[float]) -> list[float]:
         # M a + n = g + tau_ext - friction
         fric = self.plant.friction(v)
-        tm, tl = self.tau_motor, self.tau_load
-        self._tau[:] = [tm[j] + tl[j] - fric[j] for j in range(self.n)]
-        return self.plant.forward_dynamics(q, v_arr, self._tau)
+        tm, tl, tau = self.tau_motor, self.tau_load, self._tau
+        for j in range(self.n):
+            tau[j] = tm[j] + tl[j] - fric[j]
+        return self.plant.forward_dynamics(q, v_arr, tau)
 
     def _euler_substep(self) -> None:
         # semi-implicit (symplectic) Euler: v first, then q with the new v
@@ -133,12 +138,12 @@ class SimBackend(Backend):
         a = self._acceleration(self.q, self.v, vl)
         for load in self.stateful:
             load.advance(h)
+        q, v = self.q, self.v
         for j in range(self.n):
             vj = vl[j] + h * a[j]
-            vl[j] = vj
-            ql[j] += h * vj
-        self.q[:] = ql
-        self.v[:] = vl
+            qj = ql[j] + h * vj
+            vl[j] = v[j] = vj
+            ql[j] = q[j] = qj
         self.t += h
 
     def _rk4_substep(self) -> None:
@@ -155,16 +160,16 @@ class SimBackend(Backend):
             dq, dv = stages[-1]
             q_stage = [ql[j] + frac * h * dq[j] for j in range(n)]
             v_stage = [vl[j] + frac * h * dv[j] for j in range(n)]
-            qs[:] = q_stage
-            vs[:] = v_stage
+            assign(qs, q_stage)
+            assign(vs, v_stage)
             self._eval_loads(self.t + frac * h, qs, v_stage)
             stages.append((v_stage, self._acceleration(qs, vs, v_stage)))
         (v1, a1), (v2, a2), (v3, a3), (v4, a4) = stages
         for j in range(n):
             ql[j] += h / 6.0 * (v1[j] + 2.0 * v2[j] + 2.0 * v3[j] + v4[j])
             vl[j] += h / 6.0 * (a1[j] + 2.0 * a2[j] + 2.0 * a3[j] + a4[j])
-        self.q[:] = ql
-        self.v[:] = vl
+        assign(self.q, ql)
+        assign(self.v, vl)
         self.t += h
 
 
