@@ -97,7 +97,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
         extra.append(f"backend={args.backend}")
     cfg = _load_config(args, extra)
     session = Session(cfg)
-    with progress_bar(cfg.n_ticks, enabled=not args.json) as progress:
+    if args.realtime and not args.json:
+        # no live bar in real time: its refresh thread would compete with the loop for the GIL
+        print(
+            f"running {cfg.duration_s:g} s in real time at {cfg.rate_hz} Hz (Ctrl-C stops)",
+            file=sys.stderr,
+        )
+    with progress_bar(cfg.n_ticks, enabled=not (args.json or args.realtime)) as progress:
         summary = session.run(realtime=args.realtime, overrun=args.overrun, progress=progress)
     if args.json:
         json.dump(summary.to_dict(), sys.stdout, indent=2)
