@@ -10,6 +10,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from teleop_rt import __version__
 from teleop_rt.errors import TeleopError
@@ -52,10 +53,48 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--backend", metavar="NAME", help="backend to use instead of the config's")
     run.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    add_log_args(run)
 
     check = sub.add_parser("check", help="validate a config (and load its robots) without running")
     add_config_args(check)
+
+    metrics = sub.add_parser("metrics", help="transparency, energy and timing figures of a log")
+    metrics.add_argument("log", help="an MCAP log written by teleop-rt run or replay")
+    metrics.add_argument("--json", action="store_true", help="print the figures as JSON")
+    metrics.add_argument("--from", dest="t_from", type=float, metavar="S", help="start time, s")
+    metrics.add_argument("--to", dest="t_to", type=float, metavar="S", help="end time, s")
+
+    replay = sub.add_parser(
+        "replay", help="re-simulate a log with its operator input (and --set overrides)"
+    )
+    replay.add_argument("log", help="an MCAP log written by teleop-rt run")
+    replay.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="change the logged session, e.g. --set channel.delay_ms=100 (repeatable)",
+    )
+    replay.add_argument("--json", action="store_true", help="print both summaries as JSON")
+    replay.add_argument("--plot", metavar="PNG", help="also plot the replay's log to PNG")
+    add_log_args(replay)
+
+    plot = sub.add_parser("plot", help="plot HSI vs TO angles and torques and channel energy")
+    plot.add_argument("log", help="an MCAP log")
+    plot.add_argument("-o", "--output", metavar="PNG", help="image to write (default: LOG.png)")
     return parser
+
+
+def add_log_args(p: argparse.ArgumentParser) -> None:
+    group = p.add_mutually_exclusive_group()
+    group.add_argument(
+        "--log",
+        dest="log_out",
+        metavar="PATH",
+        help="MCAP log to write (default: logs/<name>-<UTC time>.mcap; never overwrites)",
+    )
+    group.add_argument("--no-log", action="store_true", help="do not record this run")
 
 
 def _positive_float(text: str) -> float:
@@ -87,7 +126,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from teleop_rt.report import print_summary, progress_bar
+    from teleop_rt.report import progress_bar
     from teleop_rt.session import Session
 
     extra = []
@@ -103,20 +142,106 @@ def _cmd_run(args: argparse.Namespace) -> int:
             f"running {cfg.duration_s:g} s in real time at {cfg.rate_hz} Hz (Ctrl-C stops)",
             file=sys.stderr,
         )
+    recorder = None if args.no_log else _recorder(session, args.log_out)
     with progress_bar(cfg.n_ticks, enabled=not (args.json or args.realtime)) as progress:
-        summary = session.run(realtime=args.realtime, overrun=args.overrun, progress=progress)
-    if args.json:
-        json.dump(summary.to_dict(), sys.stdout, indent=2)
+        summary = session.run(
+            realtime=args.realtime, overrun=args.overrun, progress=progress, recorder=recorder
+        )
+    _print_summary(summary, args.json, recorder)
+    return exit_code(summary)
+
+
+def _recorder(session, log: str | None, suffix: str = ""):
+    from teleop_rt.recording.recorder import Recorder, default_log_path
+
+    path = Path(log) if log else default_log_path(session.cfg.name + suffix)
+    return Recorder(session, path)
+
+
+def _print_summary(summary, as_json: bool, recorder) -> None:
+    from teleop_rt.report import print_summary
+
+    if as_json:
+        out = summary.to_dict()
+        out["log"] = str(recorder.path) if recorder else None
+        json.dump(out, sys.stdout, indent=2)
         print()
     else:
         print_summary(summary)
+        if recorder is not None:
+            print(f"log: {recorder.path}")
+
+
+def exit_code(summary) -> int:
+    """0 for a complete run; 128 + the signal number for a run a signal ended (130, 143)."""
+    if summary.stop_signal:
+        return 128 + summary.stop_signal
     return EXIT_INTERRUPTED if summary.stopped_early else 0
+
+
+def _cmd_metrics(args: argparse.Namespace) -> int:
+    from teleop_rt.recording.metrics import metrics_main
+
+    return metrics_main(args.log, args.json, args.t_from, args.t_to)
+
+
+def _cmd_plot(args: argparse.Namespace) -> int:
+    from teleop_rt.recording.plot import plot_main
+
+    return plot_main(args.log, args.output)
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from teleop_rt.recording.metrics import log_metrics
+    from teleop_rt.recording.reader import read_log
+    from teleop_rt.recording.replay import build_replay
+    from teleop_rt.report import print_comparison, progress_bar
+
+    data = read_log(args.log)
+    original = log_metrics(data)
+    session, ticks = build_replay(data, args.overrides)
+    recorder = None
+    if not args.no_log:  # its own log, never the input (Recorder refuses existing files)
+        recorder = _recorder(session, args.log_out, suffix="-replay")
+    with progress_bar(ticks, enabled=not args.json) as progress:
+        summary = session.run(ticks=ticks, progress=progress, recorder=recorder)
+    if args.json:
+        json.dump(
+            {
+                "original": original,
+                "replay": summary.to_dict(),
+                "overrides": args.overrides,
+                "log": str(recorder.path) if recorder else None,
+                "truncated_input": data.truncated,
+            },
+            sys.stdout,
+            indent=2,
+        )
+        print()
+    else:
+        if data.truncated:
+            print(f"note: {args.log} was cut short ({data.cut_reason}); replayed what it holds")
+        print_comparison(original, summary, args.overrides)
+        if recorder is not None:
+            print(f"replay log: {recorder.path}")
+    if args.plot and recorder is not None:
+        from teleop_rt.recording.plot import plot_log
+
+        plot_log(read_log(recorder.path), args.plot)
+        print(f"plot: {args.plot}")
+    return exit_code(summary)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
-    handler = {"run": _cmd_run, "check": _cmd_check}[args.command]
+    handler = {
+        "run": _cmd_run,
+        "check": _cmd_check,
+        "metrics": _cmd_metrics,
+        "replay": _cmd_replay,
+        "plot": _cmd_plot,
+    }[args.command]
     try:
         return handler(args)
     except TeleopError as err:
@@ -125,6 +250,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("teleop-rt: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    except BrokenPipeError:  # e.g. `teleop-rt metrics LOG --json | head`
+        sys.stderr.close()  # nothing more can be said; keep Python from complaining at exit
+        return 0
 
 
 if __name__ == "__main__":  # pragma: no cover

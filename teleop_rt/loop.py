@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import gc
 import os
+import signal
+import threading
 import time
 from dataclasses import dataclass
 
@@ -166,3 +168,39 @@ def acquire_realtime(priority: int = 80) -> RealtimeGrant:
     gc.disable()
     notes.append("garbage collector frozen for the loop")
     return RealtimeGrant(notes, gc_enabled, old)
+
+
+class StopSignals:
+    """Turns SIGINT and SIGTERM into a flag the loop checks at each tick boundary, so a run
+    stops between ticks (never halfway through one) and the log matches the summary.
+
+    Only the main thread can install signal handlers; elsewhere it is a no-op flag."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self) -> None:
+        self.requested = False
+        self.signum: int | None = None
+        self._previous: dict[int, object] = {}
+
+    @property
+    def reason(self) -> str:
+        name = signal.Signals(self.signum).name if self.signum else "stop"
+        return f"stopped by {name}"
+
+    def _handle(self, signum: int, frame: object) -> None:
+        if self.requested and signum == signal.SIGINT:
+            raise KeyboardInterrupt  # a second Ctrl-C: the user insists
+        self.requested = True
+        self.signum = signum
+
+    def install(self) -> None:
+        if threading.current_thread() is not threading.main_thread():
+            return
+        for sig in self.SIGNALS:
+            self._previous[sig] = signal.signal(sig, self._handle)
+
+    def uninstall(self) -> None:
+        for sig, handler in self._previous.items():
+            signal.signal(sig, handler)
+        self._previous.clear()

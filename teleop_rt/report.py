@@ -73,3 +73,34 @@ def print_summary(summary: Summary, console: Console | None = None) -> None:
     if summary.stopped_early:
         table.add_row("stopped early", f"[red]{summary.stopped_early}")
     console.print(table)
+
+
+def print_comparison(
+    original: dict, replay: Summary, overrides: list[str], console: Console | None = None
+) -> None:
+    """Original log's figures and the replay's, side by side."""
+    console = console or Console()
+    what = ", ".join(overrides) if overrides else "no overrides"
+    table = Table(title=f"replay ({what})", title_justify="left")
+    table.add_column("figure", style="bold")
+    table.add_column("original (log)")
+    table.add_column("replay")
+    rows = [
+        ("ticks", str(original.get("ticks")), str(replay.ticks)),
+        ("T_p per joint", _fmt(original.get("t_p", [])), _fmt(replay.t_p)),
+        ("T_p total", f"{original.get('t_p_total', float('nan')):.4g}", f"{replay.t_p_total:.4g}"),
+        ("T_tau per joint", _fmt(original.get("t_tau", [])), _fmt(replay.t_tau)),
+        (
+            "T_tau total",
+            f"{original.get('t_tau_total', float('nan')):.4g}",
+            f"{replay.t_tau_total:.4g}",
+        ),
+        (
+            "channel energy (J)",
+            f"{original.get('channel_energy_j', float('nan')):.4g}",
+            f"{replay.channel_energy_j:.4g}",
+        ),
+    ]
+    for row in rows:
+        table.add_row(*row)
+    console.print(table)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from teleop_rt.analysis.transparency import TransparencyAccumulator
 from teleop_rt.com.wave import WaveChannel
@@ -21,14 +22,20 @@ from teleop_rt.config import SessionConfig, per_joint
 from teleop_rt.control import ComputedTorque, Pid
 from teleop_rt.errors import ConfigError
 from teleop_rt.hal.base import Backend, create_backend
-from teleop_rt.loop import TickClock, TimingStats, acquire_realtime
+from teleop_rt.loop import StopSignals, TickClock, TimingStats, acquire_realtime
 from teleop_rt.model import RobotModel
+
+if TYPE_CHECKING:
+    from teleop_rt.recording.recorder import Recorder
+    from teleop_rt.world import Load
 
 
 class Side:
     """One robot of the pair on the controller side: model, backend, controllers, signals."""
 
-    def __init__(self, cfg: SessionConfig, name: str, backend_name: str) -> None:
+    def __init__(
+        self, cfg: SessionConfig, name: str, backend_name: str, operator: Load | None = None
+    ) -> None:
         spec = getattr(cfg, name)
         self.name = name
         self.model = RobotModel.from_spec(spec.robot, name, cfg.plant.coulomb_smoothing_rad_s)
@@ -38,7 +45,7 @@ class Side:
         self.computed_torque = ComputedTorque(
             self.model, self.virtual_mass, spec.compensate_friction
         )
-        self.backend: Backend = create_backend(backend_name, cfg, name, self.model)
+        self.backend: Backend = create_backend(backend_name, cfg, name, self.model, operator)
         self.error = [0.0] * n
         self.a_ref = self.controller.out  # reference acceleration (updated in place)
         self.tau_cmd = self.computed_torque.tau  # motor torque command (updated in place)
@@ -61,6 +68,7 @@ class Summary:
     realtime: bool
     notes: list[str] = field(default_factory=list)
     stopped_early: str | None = None
+    stop_signal: int | None = None  # the signal that ended the run (SIGINT, SIGTERM), if any
 
     @property
     def t_p_total(self) -> float:
@@ -80,11 +88,12 @@ class Summary:
 class Session:
     """Everything of one teleoperation session, preallocated at construction."""
 
-    def __init__(self, cfg: SessionConfig) -> None:
+    def __init__(self, cfg: SessionConfig, operator: Load | None = None) -> None:
+        """``operator`` replaces the config's operator model (replay drives it from a log)."""
         self.cfg = cfg
         backend = cfg.backend
         self.dt = cfg.dt
-        self.hsi = Side(cfg, "hsi", backend)
+        self.hsi = Side(cfg, "hsi", backend, operator)
         self.to = Side(cfg, "to", backend)
         n = self.hsi.model.nv
         if self.to.model.nv != n:
@@ -100,9 +109,7 @@ class Session:
         self.tau_h = [0.0] * n
         self.tau_e = [0.0] * n
         self.tick = 0
-        self.q0_h = list(self.hsi.backend.read().q_list)
-        self.q0_t = list(self.to.backend.read().q_list)
-        self.metrics = TransparencyAccumulator(self.q0_h, self.q0_t, self.dt)
+        self.metrics = TransparencyAccumulator(n, self.dt)
 
     @property
     def time_s(self) -> float:
@@ -140,26 +147,34 @@ class Session:
         overrun: str = "catch_up",
         progress: Callable[[int, int], None] | None = None,
         observer: Callable[[Session], None] | None = None,
+        recorder: Recorder | None = None,
     ) -> Summary:
         """Run ``ticks`` ticks (default: the config's duration) and return the summary.
 
-        ``observer(session)`` is called after every tick (tests, recording); ``progress(done,
-        total)`` about 20 times a second of wall time. Ctrl-C ends the run early, cleanly.
+        ``observer(session)`` is called after every tick (tests); ``recorder`` records every
+        tick and is closed (the log finalized, with the summary) however the run ends.
+        ``progress(done, total)`` is called about 20 times a second of wall time. SIGINT and
+        SIGTERM end the run at the next tick boundary; an exception ends it at once, and the
+        log still holds every completed tick.
         """
         total = self.cfg.n_ticks if ticks is None else ticks
         stats = TimingStats(total)
         clock = TickClock(int(round(self.dt * 1e9)), realtime, overrun)
         grant = acquire_realtime() if realtime else None
         notes = list(grant.notes) if grant else []
-        stopped: str | None = None
+        stop = StopSignals()
+        error: str | None = None
         perf = time.perf_counter_ns
         next_report = 0
         wall_start = perf()
         try:
+            stop.install()
             self.hsi.backend.start()
             self.to.backend.start()
             clock.start()
             for k in range(total):
+                if stop.requested:
+                    break
                 lateness = clock.wait()
                 t0 = perf()
                 self.step()
@@ -168,26 +183,37 @@ class Session:
                 t1 = perf()
                 missed = clock.finish(clock.now_ns()) if realtime else False
                 stats.add(t1 - t0, lateness, missed)
+                if recorder is not None:
+                    recorder.record(t1 - t0, lateness, missed)
                 if progress is not None and t1 >= next_report:
                     progress(k + 1, total)
                     next_report = t1 + 50_000_000
-        except KeyboardInterrupt:
-            stopped = "interrupted (Ctrl-C)"
+        except BaseException as exc:
+            error = f"{type(exc).__name__}: {exc}"
+            raise
         finally:
+            stop.uninstall()
             self.hsi.backend.stop()
             self.to.backend.stop()
             if grant:
                 grant.release()
+            summary = self._summary(stats, clock, realtime, notes, wall_start, stop, error)
+            if recorder is not None:
+                recorder.close(summary.to_dict())
         if progress is not None:
             progress(stats.count, total)
+        return summary
+
+    def _summary(self, stats, clock, realtime, notes, wall_start, stop, error) -> Summary:
         timing = stats.summary()
-        timing["wall_s"] = (perf() - wall_start) / 1e9
+        timing["wall_s"] = (time.perf_counter_ns() - wall_start) / 1e9
         if realtime and clock.skipped:
             timing["skipped_deadlines"] = clock.skipped
+        stopped = stop.reason if stop.requested else error
         return Summary(
             name=self.cfg.name,
-            ticks=self.tick,
-            simulated_time_s=self.time_s,
+            ticks=stats.count,
+            simulated_time_s=stats.count * self.dt,
             delay_ticks=self.cfg.delay_ticks,
             t_p=list(self.metrics.t_p),
             t_tau=list(self.metrics.t_tau),
@@ -197,4 +223,5 @@ class Session:
             realtime=realtime,
             notes=notes,
             stopped_early=stopped,
+            stop_signal=stop.signum,
         )

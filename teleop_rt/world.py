@@ -35,6 +35,7 @@ class Load:
 
     cartesian = False
     stateful = False
+    is_operator = False  # operators load the HSI; everything else is environment
     in_contact = False
 
     def advance(self, dt: float) -> None:
@@ -71,6 +72,8 @@ def _unit(v: list[float]) -> tuple[float, float, float]:
 # --- operators (HSI side) ---------------------------------------------------------------------
 class JointDamperOperator(JointLoad):
     """The paper's operator Z_o: a joint damper to the ground, tau = -Z_o v."""
+
+    is_operator = True
 
     def __init__(self, spec: DamperOperatorSpec, n: int) -> None:
         self.damping = per_joint(spec.damping_nm_s_per_rad, n, "operator.damping_nm_s_per_rad")
@@ -132,20 +135,61 @@ class HandTrajectory:
             vel[r] = step * rate
 
 
-class ScriptedHand(CartesianLoad):
-    """An active operator: F = K (x_ref - x) + D (xd_ref - xd), the hand reference scripted."""
+class LoggedTrajectory:
+    """A hand reference replayed from a log, tick-locked: at tick times it returns the logged
+    samples exactly; between ticks (sub-steps) it interpolates linearly; after the last sample
+    it holds the last position at rest."""
 
-    def __init__(self, spec: HandOperatorSpec, start: list[float]) -> None:
+    def __init__(self, pos: np.ndarray, vel: np.ndarray, dt: float) -> None:
+        self.samples_pos = np.asarray(pos, dtype=float)
+        self.samples_vel = np.asarray(vel, dtype=float)
+        self.dt = dt
+        self.last = len(self.samples_pos) - 1
+        self.pos = self.samples_pos[0].tolist()
+        self.vel = self.samples_vel[0].tolist()
+
+    def evaluate(self, t: float) -> None:
+        x = t / self.dt
+        k = round(x)
+        if abs(x - k) < 1e-9:  # on a tick: the logged sample itself
+            if k > self.last:
+                self.pos[:] = self.samples_pos[self.last].tolist()
+                self.vel[:] = [0.0, 0.0, 0.0]
+            else:
+                self.pos[:] = self.samples_pos[k].tolist()
+                self.vel[:] = self.samples_vel[k].tolist()
+            return
+        k0 = min(int(x), self.last)
+        k1 = min(k0 + 1, self.last)
+        w = x - int(x)
+        self.pos[:] = ((1 - w) * self.samples_pos[k0] + w * self.samples_pos[k1]).tolist()
+        self.vel[:] = ((1 - w) * self.samples_vel[k0] + w * self.samples_vel[k1]).tolist()
+
+
+class ScriptedHand(CartesianLoad):
+    """An active operator: F = K (x_ref - x) + D (xd_ref - xd) at the tool. The reference is a
+    script (``from_spec``: minimum-jerk waypoints) or a log (``LoggedTrajectory``, replay)."""
+
+    is_operator = True
+
+    def __init__(
+        self, trajectory: HandTrajectory | LoggedTrajectory, stiffness: float, damping: float
+    ) -> None:
         super().__init__()
+        self.trajectory = trajectory
+        self.k = stiffness
+        self.d = damping
+        self.in_contact = True
+
+    @classmethod
+    def from_spec(cls, spec: HandOperatorSpec, start: list[float]) -> ScriptedHand:
         points = []
         for wp in spec.waypoints:
             p = list(start)  # a 2-number waypoint keeps the start's z
             p[: len(wp.position_m)] = wp.position_m
             points.append(p)
-        self.trajectory = HandTrajectory(start, [w.t_s for w in spec.waypoints], points)
-        self.k = spec.stiffness_n_per_m
-        self.d = spec.damping_n_s_per_m
-        self.in_contact = True
+        trajectory = HandTrajectory(start, [w.t_s for w in spec.waypoints], points)
+        return cls(trajectory, spec.stiffness_n_per_m, spec.damping_n_s_per_m)
 
     @property
     def reference(self) -> list[float]:
@@ -240,7 +284,7 @@ def build_operator(
     """The operator load on the HSI, from its config section."""
     if isinstance(spec, DamperOperatorSpec):
         return JointDamperOperator(spec, robot.nv)
-    return ScriptedHand(spec, robot.ee_position(q0).tolist())
+    return ScriptedHand.from_spec(spec, robot.ee_position(q0).tolist())
 
 
 def build_environment(specs: list[Environment]) -> list[Load]:

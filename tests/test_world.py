@@ -60,7 +60,7 @@ def test_minimum_jerk_hand_reference_hits_waypoints_with_zero_velocity() -> None
 
 def test_hand_waypoints_with_two_numbers_keep_the_start_height() -> None:
     spec = HandOperatorSpec(kind="hand", waypoints=[{"t_s": 1.0, "position_m": [0.3, 0.1]}])
-    hand = ScriptedHand(spec, [0.35, 0.0, 0.12])
+    hand = ScriptedHand.from_spec(spec, [0.35, 0.0, 0.12])
     assert hand.trajectory.points[-1] == [0.3, 0.1, 0.12]
     # at rest at the start the hand pulls with K (x_ref - x)
     f = hand.force(0.0, [0.34, 0.0, 0.12], [0.0, 0.0, 0.0])

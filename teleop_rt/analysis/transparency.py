@@ -14,16 +14,20 @@ import numpy as np
 class TransparencyAccumulator:
     """Accumulates T_p and T_tau tick by tick (scalar path, nothing allocated but floats)."""
 
-    def __init__(self, q0_hsi: list[float], q0_to: list[float], dt: float) -> None:
-        self.offset = [float(a) - float(b) for a, b in zip(q0_hsi, q0_to, strict=True)]
+    def __init__(self, n: int, dt: float, offset: list[float] | None = None) -> None:
+        # alpha = angle moved since the first tick: unless given, the offset q_h - q_t is taken
+        # there (a log holds that tick too, so metrics from the log use the very same offset)
+        self.offset = offset
         self.dt = dt
-        self.n = len(self.offset)
-        self.t_p = [0.0] * self.n
-        self.t_tau = [0.0] * self.n
+        self.n = n
+        self.t_p = [0.0] * n
+        self.t_tau = [0.0] * n
 
     def add(
         self, q_h: list[float], q_t: list[float], tau_h: list[float], tau_e: list[float]
     ) -> None:
+        if self.offset is None:
+            self.offset = [a - b for a, b in zip(q_h, q_t, strict=True)]
         dt, t_p, t_tau, offset = self.dt, self.t_p, self.t_tau, self.offset
         for j in range(self.n):
             e = q_h[j] - q_t[j] - offset[j]

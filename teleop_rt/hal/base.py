@@ -40,12 +40,27 @@ class Feedback:
         self.tau_ext = [0.0] * n
 
 
+class WorldSnapshot:
+    """What a simulated world knows at the tick's read (zeros for real hardware): the operator's
+    hand reference and force (HSI) or the environment force and contacts (TO), for logging and
+    replay. Vectors are 3-lists in the world frame, SI units."""
+
+    __slots__ = ("reference", "reference_velocity", "force", "contacts")
+
+    def __init__(self, n_contacts: int = 0) -> None:
+        self.reference = [0.0, 0.0, 0.0]
+        self.reference_velocity = [0.0, 0.0, 0.0]
+        self.force = [0.0, 0.0, 0.0]
+        self.contacts = [0.0] * n_contacts
+
+
 class Backend(ABC):
     """One robot's hardware (real or simulated)."""
 
-    def __init__(self, n: int) -> None:
+    def __init__(self, n: int, n_contacts: int = 0) -> None:
         self.n = n
         self.feedback = Feedback(n)
+        self.world = WorldSnapshot(n_contacts)
 
     @abstractmethod
     def start(self) -> None:
@@ -64,7 +79,9 @@ class Backend(ABC):
         """Leave the hardware safe: zero torque, drives disabled. Must be idempotent."""
 
 
-BackendFactory = Callable[["SessionConfig", str, "RobotModel"], Backend]
+# factory(config, side, controller model, operator=None): operator replaces the config's
+# operator model on the HSI of a simulated backend (replay drives it from a log)
+BackendFactory = Callable[..., Backend]
 _REGISTRY: dict[str, BackendFactory] = {}
 
 
@@ -83,7 +100,9 @@ def available_backends() -> list[str]:
     return sorted(_REGISTRY)
 
 
-def create_backend(name: str, cfg: SessionConfig, side: str, model: RobotModel) -> Backend:
+def create_backend(
+    name: str, cfg: SessionConfig, side: str, model: RobotModel, operator: object = None
+) -> Backend:
     """Build the backend ``name`` for side 'hsi' or 'to'; ConfigError for an unknown name."""
     _load_builtin()
     try:
@@ -92,7 +111,7 @@ def create_backend(name: str, cfg: SessionConfig, side: str, model: RobotModel) 
         raise ConfigError(
             f"backend: unknown backend {name!r} (available: {', '.join(available_backends())})"
         ) from None
-    return factory(cfg, side, model)
+    return factory(cfg, side, model, operator=operator)
 
 
 def _load_builtin() -> None:

@@ -15,7 +15,7 @@ from teleop_rt.config import SessionConfig
 from teleop_rt.hal.base import Backend, Feedback, register_backend
 from teleop_rt.model import RobotModel
 from teleop_rt.scalar import assign
-from teleop_rt.world import Load, build_environment, build_operator
+from teleop_rt.world import Load, ScriptedHand, build_environment, build_operator
 
 # seeds of the two plants' noise generators differ so their noise is independent
 _SIDE_SEED = {"hsi": 1, "to": 2}
@@ -36,7 +36,10 @@ class SimBackend(Backend):
         velocity_noise_std: float = 0.0,
         seed: int = 0,
     ) -> None:
-        super().__init__(plant.nv)
+        contact_loads = [ld for ld in loads if ld.cartesian and not ld.is_operator]
+        super().__init__(plant.nv, len(contact_loads))
+        self.contact_loads = contact_loads
+        self.hand = next((ld for ld in loads if isinstance(ld, ScriptedHand)), None)
         if integrator not in ("semi_implicit_euler", "rk4"):
             raise ValueError(f"unknown integrator {integrator!r}")
         n = plant.nv
@@ -81,7 +84,25 @@ class SimBackend(Backend):
             self._add_noise(fb.v_list, self.velocity_noise_std)
         assign(fb.q, fb.q_list)
         assign(fb.v, fb.v_list)
+        self._snapshot_world()
         return fb
+
+    def _snapshot_world(self) -> None:
+        # the loads were last evaluated at this tick's time (end of the previous write)
+        world = self.world
+        if self.hand is not None:
+            world.reference[:] = self.hand.trajectory.pos
+            world.reference_velocity[:] = self.hand.trajectory.vel
+            world.force[:] = self.hand.last_force
+        elif self.contact_loads:
+            fx = fy = fz = 0.0
+            for j, load in enumerate(self.contact_loads):
+                f = load.last_force
+                fx += f[0]
+                fy += f[1]
+                fz += f[2]
+                world.contacts[j] = 1.0 if load.in_contact else 0.0
+            world.force[0], world.force[1], world.force[2] = fx, fy, fz
 
     def _add_noise(self, values: list[float], std: float) -> None:
         self.rng.standard_normal(out=self._noise)
@@ -174,12 +195,14 @@ class SimBackend(Backend):
 
 
 @register_backend("sim")
-def _make_sim(cfg: SessionConfig, side: str, model: RobotModel) -> SimBackend:
+def _make_sim(
+    cfg: SessionConfig, side: str, model: RobotModel, operator: Load | None = None
+) -> SimBackend:
     spec = getattr(cfg, side)
     plant = RobotModel.from_spec(spec.robot, side, cfg.plant.coulomb_smoothing_rad_s)
     q0 = initial_configuration(spec.robot.q0_rad, plant, side)
     if side == "hsi":
-        loads = [build_operator(cfg.operator, plant, q0)]
+        loads = [operator if operator is not None else build_operator(cfg.operator, plant, q0)]
     else:
         loads = build_environment(cfg.environment)
     return SimBackend(

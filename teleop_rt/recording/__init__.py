@@ -1,0 +1,1 @@
+"""Recording: every session an MCAP log (ros2msg / CDR), a reader, metrics and replay."""

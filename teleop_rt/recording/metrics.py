@@ -1,0 +1,154 @@
+"""The live session summary's numbers, recomputed from a log alone.
+
+T_p and T_tau (eq 18) repeat the live TransparencyAccumulator operation by operation:
+e = q_h - q_t - offset, then t_p += e * e * dt tick after tick. ``np.cumsum`` adds sequentially
+as the live loop does (``np.sum`` adds pairwise and differs in the last bits), so a whole log
+gives the live figures bit for bit. Timing goes through ``TimingStats.summary`` itself.
+
+Windows (``t_from <= t < t_to``) keep the offset of the session start (q_h - q_t at tick 0):
+alpha in eq 18 is the angle moved since the start of the session, not of the window. The
+window's channel energy is its last value and its minimum is taken with 0.0 as the live one.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from teleop_rt.loop import TimingStats
+from teleop_rt.recording.reader import LogData, read_log
+
+TOPICS = ("/hsi", "/to", "/channel", "/timing")
+_COMPARED = ("ticks", "t_p", "t_tau", "channel_energy_j", "min_channel_energy_j")
+
+
+def log_metrics(data: LogData, offset: np.ndarray | None = None) -> dict:
+    """Summary figures of the ticks in ``data`` (all four topics read).
+
+    ``offset``: q_h - q_t at the session start; default the first tick in ``data``.
+    """
+    hsi, to, channel, timing = (data.topics[name] for name in TOPICS)
+    n, dt = len(hsi), data.dt
+    q_h, q_t = hsi["q"], to["q"]
+    if offset is None:
+        offset = q_h[0] - q_t[0] if n else np.zeros(data.layout.n)
+    e = q_h - q_t - offset
+    t_p = _sequential_sum(e * e * dt, data.layout.n)
+    tau_e = -to["tau_ext"]  # torque the TO applies to the environment, as the session
+    e = hsi["tau_ext"] - tau_e
+    t_tau = _sequential_sum(e * e * dt, data.layout.n)
+    energy = channel["total_energy"]
+    finite = energy[~np.isnan(energy)]
+    return {
+        "name": data.meta.get("name", ""),
+        "ticks": n,
+        "simulated_time_s": n * dt,
+        "delay_ticks": int(data.meta.get("delay_ticks", 0)),
+        "t_p": t_p,
+        "t_tau": t_tau,
+        "t_p_total": float(sum(t_p)),
+        "t_tau_total": float(sum(t_tau)),
+        "channel_energy_j": float(energy[-1]) if n else 0.0,
+        "min_channel_energy_j": min(0.0, float(finite.min())) if len(finite) else 0.0,
+        "timing": _timing(timing),
+        "first_tick": int(hsi["tick"][0]) if n else None,
+        "truncated": data.truncated,
+        "cut_reason": data.cut_reason,
+    }
+
+
+def _sequential_sum(terms: np.ndarray, n: int) -> list[float]:
+    """Column sums added one tick after the other, starting from 0.0 (as the live loop)."""
+    if len(terms) == 0:
+        return [0.0] * n
+    return [float(x) for x in np.cumsum(terms, axis=0)[-1]]
+
+
+def _timing(timing: np.ndarray) -> dict:
+    stats = TimingStats(0)
+    stats.compute_ns = timing["compute_ns"].astype(np.int64)
+    stats.lateness_ns = timing["lateness_ns"].astype(np.int64)
+    stats.count = len(timing)
+    stats.missed = int(np.count_nonzero(timing["missed"]))
+    return stats.summary()
+
+
+def agrees_with_live(metrics: dict, summary: dict | None) -> bool | None:
+    """Whether a whole log's figures equal its live summary exactly (None: nothing to compare)."""
+    if summary is None or metrics["first_tick"] not in (0, None):
+        return None
+    same = all(metrics[key] == summary.get(key) for key in _COMPARED)
+    live = summary.get("timing", {})
+    return same and all(metrics["timing"][k] == live.get(k) for k in metrics["timing"])
+
+
+def session_offset(path: str | Path, dt: float) -> np.ndarray | None:
+    """q_h - q_t of the log's first tick (tick 0 at time 0), None if the log has none."""
+    first = read_log(path, ("/hsi", "/to"), None, dt)
+    if not first.ticks:
+        return None
+    return first.topics["/hsi"]["q"][0] - first.topics["/to"]["q"][0]
+
+
+def format_metrics(m: dict) -> str:
+    """Plain-text table of ``log_metrics`` (plus ``window_s`` / ``live_summary_agrees``)."""
+
+    def row(what: str, value: str) -> str:
+        return f"{what:<30}{value}"
+
+    def vec(values: list[float]) -> str:
+        return "  ".join(f"{v:.6g}" for v in values)
+
+    t = m["timing"]
+    lines = [
+        row("session", f"{m['name']} (delay {m['delay_ticks']} ticks)"),
+        row("ticks", f"{m['ticks']} ({m['simulated_time_s']:.3f} s)"),
+    ]
+    if m.get("window_s"):
+        lo, hi = m["window_s"]
+        end = "the end" if hi is None else f"{hi:g}"
+        lines.append(row("window (s)", f"{0.0 if lo is None else lo:g} to {end}"))
+    lines += [
+        row("T_p per joint (rad^2 s)", vec(m["t_p"])),
+        row("T_p total", f"{m['t_p_total']:.6g}"),
+        row("T_tau per joint (N^2 m^2 s)", vec(m["t_tau"])),
+        row("T_tau total", f"{m['t_tau_total']:.6g}"),
+        row(
+            "channel energy (J)",
+            f"{m['channel_energy_j']:.6g} (minimum {m['min_channel_energy_j']:.6g})",
+        ),
+    ]
+    for key, what in (("compute_us", "tick compute (us)"), ("lateness_us", "lateness (us)")):
+        s = t[key]
+        lines.append(row(what, f"p50 {s['p50']:.1f}  p99 {s['p99']:.1f}  max {s['max']:.1f}"))
+    lines.append(row("missed deadlines", str(t["missed_deadlines"])))
+    agrees = m.get("live_summary_agrees")
+    if agrees is not None:
+        lines.append(row("live summary", "agrees exactly" if agrees else "DIFFERS from the log"))
+    if m["truncated"]:
+        lines.append(row("log cut short", m["cut_reason"] or ""))
+    return "\n".join(lines)
+
+
+def metrics_main(
+    path: str | Path, as_json: bool = False, t_from: float | None = None, t_to: float | None = None
+) -> int:
+    """``teleop-rt metrics LOG [--json] [--from S] [--to S]``: print the figures; exit code."""
+    data = read_log(path, TOPICS, t_from, t_to)
+    offset = None
+    if data.ticks and int(data.topics["/hsi"]["tick"][0]) != 0:
+        offset = session_offset(path, data.dt)
+    m = log_metrics(data, offset)
+    m["window_s"] = None if t_from is None and t_to is None else [t_from, t_to]
+    m["live_summary_agrees"] = None if m["window_s"] else agrees_with_live(m, data.summary)
+    if as_json:
+        json.dump(m, sys.stdout, indent=2)
+        print()
+    else:
+        print(format_metrics(m))
+    if data.truncated:
+        print(f"teleop-rt: warning: {data.path}: {data.cut_reason}", file=sys.stderr)
+    return 0

@@ -1,0 +1,96 @@
+"""Replay: re-simulate a logged session, driven by the logged operator input, tick-locked.
+
+The session is rebuilt from the config stored in the log (``--set`` overrides applied on top,
+so a replay can answer "what would this operator motion have felt like with 100 ms of delay?").
+The operator is the logged one:
+
+* a scripted hand: its logged reference (position and velocity at every tick) drives the same
+  hand spring-damper; with no overrides (and one sub-step per tick) the replay reproduces every
+  logged signal bit for bit;
+* the paper's damper operator: it is passive and has no input; the config's damper is used;
+* no operator model (a real person on hardware): the logged HSI tool motion becomes the hand's
+  reference (forward kinematics of the logged joint angles, velocity by central differences).
+
+A replay always runs on the simulated backend.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from teleop_rt.config import SessionConfig, apply_overrides, from_dict
+from teleop_rt.model import RobotModel
+from teleop_rt.recording.reader import LogData, LogError
+from teleop_rt.session import Session
+from teleop_rt.world import LoggedTrajectory, ScriptedHand
+
+# hand used for logs without an operator model (a person's motion imposed through a stiff grip)
+PERSON_HAND_STIFFNESS_N_PER_M = 2000.0
+PERSON_HAND_DAMPING_N_S_PER_M = 40.0
+
+
+def replay_config(data: LogData, overrides: list[str]) -> SessionConfig:
+    """The logged session's config with overrides, on the simulated backend."""
+    if not data.config_yaml:
+        raise LogError(f"{data.path}: the log holds no config.yaml attachment; cannot replay")
+    raw = yaml.safe_load(data.config_yaml)
+    raw["backend"] = "sim"
+    raw = apply_overrides(raw, overrides)
+    _restore_urdfs(raw, data)
+    return from_dict(raw)
+
+
+def _restore_urdfs(raw: dict, data: LogData) -> None:
+    """Use the URDFs attached to the log when the recorded paths do not exist here."""
+    for side in ("hsi", "to"):
+        robot = raw.get(side, {}).get("robot", {})
+        path = robot.get("urdf")
+        attached = data.attachments.get(f"urdf/{side}.urdf")
+        if path and not Path(path).is_file() and attached is not None:
+            folder = Path(tempfile.mkdtemp(prefix="teleop-rt-replay-"))
+            target = folder / f"{side}.urdf"
+            target.write_bytes(attached)
+            robot["urdf"] = str(target)
+
+
+def replay_operator(cfg: SessionConfig, data: LogData) -> ScriptedHand | None:
+    """The operator load that replays the logged operator input (None: the config's)."""
+    kind = data.meta.get("operator", "none")
+    hsi = data.topics["/hsi"]
+    if kind == "damper":
+        return None
+    if kind == "hand":
+        pos, vel = hsi["operator_reference_m"], hsi["operator_reference_velocity_m_s"]
+    else:
+        pos, vel = _tool_motion(cfg, hsi["q"])
+    if cfg.operator.kind == "hand":
+        k, d = cfg.operator.stiffness_n_per_m, cfg.operator.damping_n_s_per_m
+    else:
+        k, d = PERSON_HAND_STIFFNESS_N_PER_M, PERSON_HAND_DAMPING_N_S_PER_M
+    return ScriptedHand(LoggedTrajectory(pos, vel, log_dt(data)), k, d)
+
+
+def log_dt(data: LogData) -> float:
+    return 1.0 / float(data.meta["rate_hz"])
+
+
+def _tool_motion(cfg: SessionConfig, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    model = RobotModel.from_spec(cfg.hsi.robot, "hsi")
+    pos = np.array([model.ee_position(qk) for qk in q])
+    vel = np.gradient(pos, cfg.dt, axis=0) if len(pos) > 1 else np.zeros_like(pos)
+    return pos, vel
+
+
+def build_replay(data: LogData, overrides: list[str]) -> tuple[Session, int]:
+    """The replay session and the number of ticks to run (as many as the log holds)."""
+    for topic in ("/hsi",):
+        if topic not in data.topics:
+            raise LogError(f"{data.path}: no {topic} messages to replay")
+    cfg = replay_config(data, overrides)
+    session = Session(cfg, operator=replay_operator(cfg, data))
+    # as long as the log, also when --set rate_hz changed the tick
+    return session, round(len(data.topics["/hsi"]) * log_dt(data) / cfg.dt)

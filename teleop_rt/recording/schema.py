@@ -1,0 +1,186 @@
+"""The log format: one fixed-layout row of float64 per tick, split into four MCAP topics.
+
+Encoding: ROS 2 message definitions (``ros2msg``) with CDR payloads (``cdr``). Foxglove decodes
+them without plugins, and because every field has a fixed size the payloads of a whole batch of
+ticks are one numpy view: the writer encodes thousands of messages with a single ``astype``
+instead of one encoder call per message, and the reader decodes a topic the same way.
+
+Topics (n joints, E environment elements; all SI units, joint space):
+
+* ``/hsi``       teleop_rt/msg/HsiTick: the HSI robot and the operator
+* ``/to``        teleop_rt/msg/ToTick: the TO robot and the environment
+* ``/channel``   teleop_rt/msg/ChannelTick: the wave channel's port variables, waves, energy
+* ``/timing``    teleop_rt/msg/TimingTick: compute time and deadline lateness of the tick
+
+A message's log time is the tick's simulated time in ns from the session start.
+
+Besides the messages a log holds (so that it describes itself):
+* metadata ``teleop_rt`` at the start: software_version, schema_version, joints, env_elements,
+  rate_hz, delay_ticks, name, backend, operator ("damper", "hand" or "none");
+* attachments ``config.yaml`` (the resolved session config) and ``urdf/hsi.urdf``,
+  ``urdf/to.urdf`` when the robots came from URDF files;
+* metadata ``teleop_rt.summary`` at the end: the live summary as JSON under the key ``json``.
+  A log without it was cut short.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+CDR_HEADER = b"\x00\x01\x00\x00"  # CDR, little endian, no options
+SCHEMA_VERSION = 1
+
+
+@dataclass(frozen=True)
+class Field:
+    name: str
+    ros_type: str  # "uint64", "int64", "float64", "uint8"
+    length: int | None  # None for a scalar, else the size of a fixed array
+    doc: str = ""
+
+    @property
+    def count(self) -> int:
+        """Row columns taken by this field."""
+        return 1 if self.length is None else self.length
+
+    @property
+    def definition(self) -> str:
+        size = "" if self.length is None else f"[{self.length}]"
+        line = f"{self.ros_type}{size} {self.name}"
+        return f"{line}  # {self.doc}" if self.doc else line
+
+
+_NUMPY = {"uint64": "<u8", "int64": "<i8", "float64": "<f8", "uint8": "u1"}
+
+
+@dataclass(frozen=True)
+class Topic:
+    """One topic: its message type and fields, in row order."""
+
+    name: str
+    type_name: str
+    fields: tuple[Field, ...]
+
+    @property
+    def width(self) -> int:
+        """Number of float64 columns this topic takes in a row (the tick and time included)."""
+        return sum(f.count for f in self.fields)
+
+    @property
+    def definition(self) -> bytes:
+        return "\n".join(f.definition for f in self.fields).encode() + b"\n"
+
+    @property
+    def dtype(self) -> np.dtype:
+        """Numpy dtype of one CDR payload (after the 4-byte encapsulation header).
+
+        All 8-byte fields come first, so CDR's natural alignment adds no padding."""
+        return np.dtype(
+            [
+                (f.name, _NUMPY[f.ros_type], () if f.length is None else (f.length,))
+                for f in self.fields
+            ]
+        )
+
+
+def _common() -> list[Field]:
+    return [Field("tick", "uint64", None, "tick number k"), Field("t", "float64", None, "k dt, s")]
+
+
+def _joint(names: list[str], n: int, doc: str) -> list[Field]:
+    return [Field(name, "float64", n, doc) for name in names]
+
+
+ROBOT_FIELDS = (
+    ("q", "joint angles, rad"),
+    ("v", "joint velocities, rad/s"),
+    ("tau_ext", "measured torque the outside applies to the robot, N m"),
+    ("tau_cmd", "commanded motor torque, N m"),
+    ("a_ref", "reference acceleration times the virtual mass (controller output), N m"),
+)
+
+
+@dataclass(frozen=True)
+class LogLayout:
+    """Row layout and topics of a session with n joints and E environment elements."""
+
+    n: int
+    n_env: int
+
+    @property
+    def topics(self) -> tuple[Topic, ...]:
+        n, e = self.n, self.n_env
+        robot = [Field(name, "float64", n, doc) for name, doc in ROBOT_FIELDS]
+        hsi = Topic(
+            "/hsi",
+            "teleop_rt/msg/HsiTick",
+            (
+                *_common(),
+                *robot,
+                Field("operator_reference_m", "float64", 3, "hand reference, world frame"),
+                Field("operator_reference_velocity_m_s", "float64", 3, ""),
+                Field("operator_force_n", "float64", 3, "operator force on the HSI tool"),
+            ),
+        )
+        contact = [Field("in_contact", "uint8", e, "per environment element")] if e else []
+        to = Topic(
+            "/to",
+            "teleop_rt/msg/ToTick",
+            (
+                *_common(),
+                *robot,
+                Field("environment_force_n", "float64", 3, "environment force on the TO tool"),
+                *contact,
+            ),
+        )
+        channel = Topic(
+            "/channel",
+            "teleop_rt/msg/ChannelTick",
+            (
+                *_common(),
+                *_joint(["omega_c", "tau_c", "omega_t", "tau_t"], n, "port variables (eq 8)"),
+                *_joint(["u_l", "v_l", "u_r", "v_r"], n, "waves (eq 9), as used this tick"),
+                *_joint(["power", "energy"], n, "W and J per joint (eq 7, 8)"),
+                Field("total_energy", "float64", None, "J, all joints"),
+            ),
+        )
+        timing = Topic(
+            "/timing",
+            "teleop_rt/msg/TimingTick",
+            (
+                *_common(),
+                Field("compute_ns", "int64", None, "tick compute time"),
+                Field("lateness_ns", "int64", None, "wake-up after the deadline"),
+                Field("missed", "uint8", None, "1 if the tick ended after the next deadline"),
+            ),
+        )
+        return (hsi, to, channel, timing)
+
+    @property
+    def row_width(self) -> int:
+        """float64 columns per tick: the tick and time once, then every topic's own fields."""
+        return 2 + sum(t.width - 2 for t in self.topics)
+
+    def columns(self) -> dict[str, slice]:
+        """Row slice of every topic's own fields (after the shared tick and time)."""
+        out, start = {}, 2
+        for topic in self.topics:
+            width = topic.width - 2
+            out[topic.name] = slice(start, start + width)
+            start += width
+        return out
+
+    def encode(self, rows: np.ndarray, topic: Topic, cols: slice) -> np.ndarray:
+        """CDR payloads (without the header) of many ticks for one topic, one row each."""
+        out = np.empty(len(rows), dtype=topic.dtype)
+        out["tick"] = rows[:, 0]
+        out["t"] = rows[:, 1]
+        block = rows[:, cols]
+        col = 0
+        for f in topic.fields[2:]:
+            values = block[:, col : col + f.count]
+            out[f.name] = values[:, 0] if f.length is None else values
+            col += f.count
+        return out

@@ -1,0 +1,69 @@
+"""plot_log: a PNG with one angle and one torque axis per joint and the channel energy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from log_fixtures import write_synthetic_log
+from matplotlib.image import imread
+
+from teleop_rt.recording import plot
+from teleop_rt.recording.plot import make_figure, plot_log, plot_main
+from teleop_rt.recording.reader import read_log
+
+
+@pytest.mark.parametrize("n", [1, 3])
+def test_figure_content(tmp_path, n):
+    log = write_synthetic_log(tmp_path / "a.mcap", 800, n)
+    data = read_log(log.path)
+    fig = make_figure(data)
+    axes = fig.axes
+    assert len(axes) == 2 * n + 1
+    t = log.field("/hsi", "t")[:, 0]
+    for j in range(n):
+        angle, torque = axes[2 * j], axes[2 * j + 1]
+        to, hsi = angle.get_lines()  # TO drawn first, HSI dashed on top
+        assert hsi.get_linestyle() == "--" and to.get_linestyle() == "-"  # paper's Fig 6
+        np.testing.assert_array_equal(hsi.get_xdata(), t)
+        np.testing.assert_array_equal(hsi.get_ydata(), log.field("/hsi", "q")[:, j])
+        np.testing.assert_array_equal(to.get_ydata(), log.field("/to", "q")[:, j])
+        tau_e, tau_h = torque.get_lines()
+        np.testing.assert_array_equal(tau_h.get_ydata(), log.field("/hsi", "tau_ext")[:, j])
+        np.testing.assert_array_equal(tau_e.get_ydata(), -log.field("/to", "tau_ext")[:, j])
+    (energy,) = axes[-1].get_lines()
+    np.testing.assert_array_equal(energy.get_ydata(), log.field("/channel", "total_energy")[:, 0])
+    assert "synthetic" in fig.get_suptitle() and "800 ticks" in fig.get_suptitle()
+
+
+def test_png_written(tmp_path):
+    log = write_synthetic_log(tmp_path / "a.mcap", 500)
+    out = plot_log(read_log(log.path), tmp_path / "out.png", title="my title")
+    assert out == tmp_path / "out.png" and out.stat().st_size > 20_000
+    image = imread(out)
+    height, width = image.shape[:2]
+    assert (width, height) == (1100, 660)  # figsize (11, 2 (n + 1) + 0.6) at 100 dpi
+    assert image.std() > 0.05  # not a blank canvas
+
+
+def test_long_log_is_an_envelope(tmp_path, monkeypatch):
+    monkeypatch.setattr(plot, "MAX_POINTS", 100)
+    energy = np.zeros(2000)
+    energy[1234] = -3.0  # a one-tick spike survives decimation
+    log = write_synthetic_log(tmp_path / "a.mcap", 2000, channel_total_energy=energy)
+    fig = make_figure(read_log(log.path))
+    for ax in fig.axes:
+        for line in ax.get_lines():
+            assert len(line.get_ydata()) <= 100
+    assert fig.axes[-1].get_lines()[0].get_ydata().min() == -3.0
+    q = log.field("/hsi", "q")[:, 0]
+    hsi = fig.axes[0].get_lines()[1].get_ydata()
+    assert hsi.min() == q.min() and hsi.max() == q.max()
+
+
+def test_plot_main_default_path(tmp_path, capsys):
+    log = write_synthetic_log(tmp_path / "run.mcap", 300, with_summary=False)
+    assert plot_main(log.path) == 0
+    assert (tmp_path / "run.png").stat().st_size > 20_000
+    captured = capsys.readouterr()
+    assert "wrote" in captured.out and "warning" in captured.err
+    assert plot_main(log.path, tmp_path / "x.png") == 0 and (tmp_path / "x.png").exists()
