@@ -28,14 +28,7 @@ def _build_parser() -> argparse.ArgumentParser:
 
     def add_config_args(p: argparse.ArgumentParser) -> None:
         p.add_argument("config", help="session config (YAML), e.g. configs/paper_experiment.yaml")
-        p.add_argument(
-            "--set",
-            dest="overrides",
-            action="append",
-            default=[],
-            metavar="KEY=VALUE",
-            help="override a config value, e.g. --set channel.delay_ms=50 (repeatable)",
-        )
+        add_set_arg(p, "override a config value, e.g. --set channel.delay_ms=50 (repeatable)")
 
     run = sub.add_parser("run", help="run a session and print its summary")
     add_config_args(run)
@@ -68,14 +61,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "replay", help="re-simulate a log with its operator input (and --set overrides)"
     )
     replay.add_argument("log", help="an MCAP log written by teleop-rt run")
-    replay.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="change the logged session, e.g. --set channel.delay_ms=100 (repeatable)",
-    )
+    add_set_arg(replay, "change the logged session, e.g. --set channel.delay_ms=100 (repeatable)")
     replay.add_argument("--json", action="store_true", help="print both summaries as JSON")
     replay.add_argument("--plot", metavar="PNG", help="also plot the replay's log to PNG")
     add_log_args(replay)
@@ -84,6 +70,12 @@ def _build_parser() -> argparse.ArgumentParser:
     plot.add_argument("log", help="an MCAP log")
     plot.add_argument("-o", "--output", metavar="PNG", help="image to write (default: LOG.png)")
     return parser
+
+
+def add_set_arg(p: argparse.ArgumentParser, help_text: str) -> None:
+    p.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help=help_text
+    )
 
 
 def add_log_args(p: argparse.ArgumentParser) -> None:
