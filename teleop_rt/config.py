@@ -94,9 +94,10 @@ class SideSpec(Strict):
 
 
 class ChannelSpec(Strict):
-    """The COM: a wave-variable (scattering) channel with a constant one-way delay."""
+    """The COM: a wave-variable (scattering) channel with a constant one-way delay, or, for
+    comparison, a plain delayed force-feedback channel (mode: direct, not passive)."""
 
-    mode: Literal["wave"] = "wave"
+    mode: Literal["wave", "direct"] = "wave"
     delay_ms: NonNegFloat = 0.0
     wave_impedance: PerJointPositive = 2.0  # b, N m s/rad per joint
     # First-order low-pass on each received wave (keeps the channel passive; damps the

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from teleop_rt.analysis.transparency import TransparencyAccumulator
+from teleop_rt.com.direct import DirectChannel
 from teleop_rt.com.wave import WaveChannel
 from teleop_rt.config import SessionConfig, per_joint
 from teleop_rt.control import ComputedTorque, Pid
@@ -102,8 +103,11 @@ class Session:
                 "the channel couples joint to joint"
             )
         self.n = n
-        b = per_joint(cfg.channel.wave_impedance, n, "channel.wave_impedance")
-        self.channel = WaveChannel(b, cfg.delay_ticks, self.dt, cfg.channel.wave_filter_hz)
+        if cfg.channel.mode == "direct":
+            self.channel: WaveChannel | DirectChannel = DirectChannel(n, cfg.delay_ticks, self.dt)
+        else:
+            b = per_joint(cfg.channel.wave_impedance, n, "channel.wave_impedance")
+            self.channel = WaveChannel(b, cfg.delay_ticks, self.dt, cfg.channel.wave_filter_hz)
         # per-tick signals as lists (scalar path); tau_e: torque the TO applies to the
         # environment, = tau_t of the channel
         self.tau_h = [0.0] * n
