@@ -69,6 +69,31 @@ def _build_parser() -> argparse.ArgumentParser:
     plot = sub.add_parser("plot", help="plot HSI vs TO angles and torques and channel energy")
     plot.add_argument("log", help="an MCAP log")
     plot.add_argument("-o", "--output", metavar="PNG", help="image to write (default: LOG.png)")
+
+    bode = sub.add_parser(
+        "bode", help="measure the displayed impedance Z_h(j omega) and compare with the models"
+    )
+    add_config_args(bode)
+    bode.add_argument("--json", dest="json_out", metavar="OUT", help="write JSON ('-': stdout)")
+    bode.add_argument("--plot", metavar="PNG", help="magnitude and phase plot")
+    bode.add_argument("--joint", type=int, default=1, help="excited joint, 0-based (default 1)")
+    bode.add_argument("--omegas", metavar="W1,W2,...", help="frequencies, rad/s")
+    bode.add_argument("--omega-min", type=float, default=0.5, help="rad/s (default 0.5)")
+    bode.add_argument("--omega-max", type=float, default=50.0, help="rad/s (default 50)")
+    bode.add_argument("--points", type=int, default=20, help="log-spaced points (default 20)")
+    bode.add_argument(
+        "--amplitude", type=float, default=0.05, help="omega_o amplitude, rad/s (default 0.05)"
+    )
+    for name, unit in (("stiffness", "N m/rad"), ("damping", "N m s/rad"), ("mass", "kg m^2")):
+        bode.add_argument(
+            f"--env-{name}", type=float, default=0.0, help=f"joint-space environment, {unit}"
+        )
+    bode.add_argument(
+        "--max-seconds",
+        type=float,
+        default=60.0,
+        help="simulated seconds per frequency (at least 3 windows) before it counts as not settled",
+    )
     return parser
 
 
@@ -224,6 +249,109 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return exit_code(summary)
 
 
+def _cmd_bode(args: argparse.Namespace) -> int:
+    import math
+
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from teleop_rt.analysis.bode import (
+        default_omegas,
+        measure_displayed_impedance,
+        plot_bode,
+        setup_from_config,
+    )
+    from teleop_rt.errors import ConfigError
+
+    if args.omegas is not None:
+        try:
+            omegas = [float(x) for x in args.omegas.split(",") if x.strip()]
+        except ValueError:
+            raise ConfigError(f"--omegas {args.omegas!r}: expected numbers a,b,c (rad/s)") from None
+    else:
+        if not 0 < args.omega_min <= args.omega_max or args.points < 1:
+            raise ConfigError("need 0 < --omega-min <= --omega-max and --points >= 1")
+        omegas = default_omegas(args.omega_min, args.omega_max, args.points).tolist()
+    if not omegas or not all(w > 0 and math.isfinite(w) for w in omegas):
+        raise ConfigError("frequencies must be positive finite numbers (rad/s)")
+    if not (args.max_seconds > 0 and math.isfinite(args.max_seconds)):
+        raise ConfigError(f"--max-seconds must be > 0, got {args.max_seconds}")
+    cfg = _load_config(args)
+    setup = setup_from_config(cfg, args.joint, args.env_mass, args.env_damping, args.env_stiffness)
+    to_stdout = args.json_out == "-"
+    columns = (
+        TextColumn("[bold]frequencies"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total}"),
+        TimeElapsedColumn(),
+    )
+    console = Console(stderr=True)
+    with Progress(
+        *columns, console=console, transient=True, disable=not console.is_terminal
+    ) as bar:
+        task = bar.add_task("bode", total=len(omegas))
+        result = measure_displayed_impedance(
+            setup.params,
+            omegas,
+            args.joint,
+            args.amplitude,
+            dt=setup.dt,
+            max_seconds=args.max_seconds,
+            chain_kwargs=setup.chain_kwargs,
+            progress=lambda done, _total: bar.update(task, completed=done),
+        )
+    params = {"config": str(args.config), "overrides": args.overrides}
+    params.update(result.params_dict())
+    params.update(setup.info)
+    doc = result.to_dict(params)
+    if args.json_out:
+        text = json.dumps(doc, indent=2)
+        if to_stdout:
+            print(text)
+        else:
+            Path(args.json_out).write_text(text + "\n")
+    if not to_stdout:
+        _print_bode(result)
+        if args.json_out:
+            print(f"json: {args.json_out}")
+    if args.plot:
+        plot_bode(result, args.plot)
+        if not to_stdout:
+            print(f"plot: {args.plot}")
+    return 0
+
+
+def _print_bode(result) -> None:
+    import numpy as np
+    from rich.console import Console
+    from rich.table import Table
+
+    p = result.params
+    table = Table(
+        title=f"displayed impedance Z_h, joint {result.joint}, T_d = {p.delay_s * 1000:g} ms, "
+        f"b = {p.b:g} N m s/rad, wave filter "
+        f"{f'{p.wave_filter_hz:g} Hz' if p.wave_filter_hz and p.delay_s > 0 else 'off'}",
+        title_justify="left",
+    )
+    columns = ("omega rad/s", "|Z| meas.", "|Z| discr.", "|Z| cont.")
+    for col in (*columns, "deg meas.", "deg discr.", "deg cont.", "settled"):
+        table.add_column(col, justify="right")
+    for pt, zd, za in zip(result.points, result.discrete, result.analytic, strict=True):
+        settled = pt.settled
+        meas = (f"{abs(pt.z):.4g}", f"{np.degrees(np.angle(pt.z)):.2f}") if settled else ("-", "-")
+        table.add_row(
+            f"{pt.omega:.4g}",
+            meas[0],
+            f"{abs(zd):.4g}",
+            f"{abs(za):.4g}",
+            meas[1],
+            f"{np.degrees(np.angle(zd)):.2f}",
+            f"{np.degrees(np.angle(za)):.2f}",
+            "yes" if settled else f"[red]no ({pt.reason})",
+        )
+    Console().print(table)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
@@ -233,6 +361,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         "metrics": _cmd_metrics,
         "replay": _cmd_replay,
         "plot": _cmd_plot,
+        "bode": _cmd_bode,
     }[args.command]
     try:
         return handler(args)
