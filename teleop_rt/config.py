@@ -32,6 +32,7 @@ PerJointPositive = PositiveFloat | list[PositiveFloat]
 PerJointNonNeg = NonNegFloat | list[NonNegFloat]
 
 MAX_CONFIG_BYTES = 1_000_000
+MAX_DELAY_MS = 10_000.0  # 10 s one way: beyond any teleoperation link, and bounded memory
 MAX_TICKS = 100_000_000  # timing statistics are preallocated per tick (16 bytes each)
 
 
@@ -98,7 +99,7 @@ class ChannelSpec(Strict):
     comparison, a plain delayed force-feedback channel (mode: direct, not passive)."""
 
     mode: Literal["wave", "direct"] = "wave"
-    delay_ms: NonNegFloat = 0.0
+    delay_ms: Annotated[float, Field(ge=0, le=MAX_DELAY_MS, allow_inf_nan=False)] = 0.0
     wave_impedance: PerJointPositive = 2.0  # b, N m s/rad per joint
     # First-order low-pass on each received wave (keeps the channel passive; damps the
     # ringing of the discrete terminations against stiff contact). None switches it off.
@@ -113,7 +114,7 @@ class PlantSpec(Strict):
     torque_noise_std_nm: NonNegFloat = 0.0
     velocity_noise_std_rad_s: NonNegFloat = 0.0
     # Coulomb friction is smoothed as f_c * tanh(v / v_s) so the stiff sign() never enters.
-    coulomb_smoothing_rad_s: PositiveFloat = 0.01
+    coulomb_smoothing_rad_s: Annotated[float, Field(ge=1e-6, le=10.0)] = 0.01
 
 
 class DamperOperatorSpec(Strict):
@@ -206,7 +207,7 @@ Environment = Annotated[WallSpec | SpringSpec | MassSpec, Field(discriminator="k
 class SessionConfig(Strict):
     """A whole session: rate, duration, both robots, the channel, plant, operator, environment."""
 
-    name: str = "session"
+    name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")] = "session"
     rate_hz: Annotated[int, Field(ge=10, le=100_000)] = 1000
     duration_s: PositiveFloat = 10.0
     seed: Annotated[int, Field(ge=0)] = 0
@@ -222,12 +223,22 @@ class SessionConfig(Strict):
     @classmethod
     def _duration_ticks(cls, v: float, info: Any) -> float:
         rate = info.data.get("rate_hz")
-        if rate is not None and not (v * rate <= MAX_TICKS and round(v * rate) >= 1):
+        if rate is not None and not (v * rate <= MAX_TICKS and math.floor(v * rate + 0.5) >= 1):
             raise ValueError(
                 f"{v:g} s is {v * rate:.3g} ticks at rate_hz = {rate}; "
                 f"a session runs 1 to {MAX_TICKS} ticks"
             )
         return v
+
+    @model_validator(mode="after")
+    def _tool_frames_named(self) -> SessionConfig:
+        # a robot's last frame is not necessarily its tool (example-robot-data's double
+        # pendulum ends at the elbow): Cartesian loads need the point named explicitly
+        if self.operator.kind == "hand" and self.hsi.robot.ee_frame is None:
+            raise ValueError("hsi.robot.ee_frame: required with a hand operator (the held point)")
+        if self.environment and self.to.robot.ee_frame is None:
+            raise ValueError("to.robot.ee_frame: required with an environment (the contact point)")
+        return self
 
     @model_validator(mode="after")
     def _delay_whole_ticks(self) -> SessionConfig:
@@ -249,7 +260,7 @@ class SessionConfig(Strict):
 
     @property
     def n_ticks(self) -> int:
-        return round(self.duration_s * self.rate_hz)
+        return math.floor(self.duration_s * self.rate_hz + 0.5)  # half up, not half even
 
 
 def _format_error(err: ValidationError) -> str:

@@ -39,6 +39,8 @@ class RobotModel:
         self.nq, self.nv = model.nq, model.nv
         if self.nq != self.nv:
             raise ModelError(f"{name}: only revolute/prismatic joints are supported (nq != nv)")
+        if self.nv == 0:
+            raise ModelError(f"{name}.robot: the robot has no moving joint")
         self.joint_names = list(model.names)[1:]
         frame = ee_frame or model.frames[model.nframes - 1].name
         if not model.existFrame(frame):
@@ -105,7 +107,7 @@ class RobotModel:
             self.model, self.data, q, self.ee_frame_id, pin.LOCAL_WORLD_ALIGNED
         )
         pin.updateFramePlacement(self.model, self.data, self.ee_frame_id)
-        rows = jac.tolist()  # 6 x nv; the first three rows are the translational part
+        rows = jac.reshape(6, self.nv).tolist()  # (a 1-DoF Jacobian comes back flat)
         self.ee_jac = rows
         self.ee_pos[:] = self._ee_translation.tolist()
         jx, jy, jz = rows[0], rows[1], rows[2]

@@ -340,7 +340,7 @@ def test_robot_needs_exactly_one_source(paper_data: dict[str, Any]) -> None:
 
 def test_unknown_example_robot_is_named(paper_data: dict[str, Any]) -> None:
     def mutate(d: dict[str, Any]) -> None:
-        d["hsi"]["robot"] = {"example_robot": "no_such_robot_xyz"}
+        d["hsi"]["robot"] = {"example_robot": "no_such_robot_xyz", "ee_frame": "tool"}
 
     err = session_error(paper_data, mutate)
     assert_names_key(err, "hsi.robot.example_robot")
@@ -473,3 +473,25 @@ def test_a_yaml_file_written_by_hand_round_trips(tmp_path: Path) -> None:
     cfg = load(write(tmp_path, text))
     assert cfg.delay_ticks == 100
     assert cfg.hsi.robot.urdf is not None and cfg.hsi.robot.urdf.is_file()
+
+
+def test_cartesian_loads_need_a_named_tool_frame(paper_data: dict[str, Any]) -> None:
+    def mutate(d: dict[str, Any]) -> None:
+        d["hsi"]["robot"] = {"example_robot": "double_pendulum"}  # its last frame is the elbow
+
+    assert_names_key(config_error(paper_data, mutate), "hsi.robot.ee_frame")
+
+
+@pytest.mark.parametrize("delay", [1e7, 10001.0])
+def test_delay_is_bounded(paper_data: dict[str, Any], delay: float) -> None:
+    def mutate(d: dict[str, Any]) -> None:
+        d["channel"]["delay_ms"] = delay
+
+    assert_names_key(config_error(paper_data, mutate), "channel.delay_ms")
+
+
+def test_session_name_cannot_escape_the_log_folder(paper_data: dict[str, Any]) -> None:
+    def mutate(d: dict[str, Any]) -> None:
+        d["name"] = "../../escaped"
+
+    assert_names_key(config_error(paper_data, mutate), "name")

@@ -55,7 +55,7 @@ def contact_warnings(cfg, to_model) -> list[str]:
     c2 = per_joint(cfg.to.controller.kp, n, "to.controller.kp")
     limit = min(contact_stiffness_limit(b[j], m2[j], c2[j], cfg.dt) for j in range(n))
     to_model.update_ee(q0, [0.0] * n)
-    jacobian = np.array(to_model.ee_jac[:3])
+    jacobian = np.array(to_model.ee_jac[:3]).reshape(3, n)
     out = []
     for i, env in enumerate(cfg.environment):
         k = getattr(env, "stiffness_n_per_m", 0.0) or getattr(env, "contact_stiffness_n_per_m", 0.0)

@@ -13,13 +13,14 @@ window's channel energy is its last value and its minimum is taken with 0.0 as t
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from teleop_rt.loop import TimingStats
-from teleop_rt.recording.reader import LogData, read_log
+from teleop_rt.recording.reader import LogData, LogError, read_log
 
 TOPICS = ("/hsi", "/to", "/channel", "/timing")
 _COMPARED = ("ticks", "t_p", "t_tau", "channel_energy_j", "min_channel_energy_j")
@@ -133,10 +134,19 @@ def format_metrics(m: dict) -> str:
     return "\n".join(lines)
 
 
+def _check_window(t_from: float | None, t_to: float | None) -> None:
+    for name, value in (("--from", t_from), ("--to", t_to)):
+        if value is not None and not math.isfinite(value):
+            raise LogError(f"{name} {value}: expected a finite time in seconds")
+    if t_from is not None and t_to is not None and t_to <= t_from:
+        raise LogError(f"--from {t_from:g} --to {t_to:g}: the window is empty")
+
+
 def metrics_main(
     path: str | Path, as_json: bool = False, t_from: float | None = None, t_to: float | None = None
 ) -> int:
     """``teleop-rt metrics LOG [--json] [--from S] [--to S]``: print the figures; exit code."""
+    _check_window(t_from, t_to)
     data = read_log(path, TOPICS, t_from, t_to)
     offset = None
     if data.ticks and int(data.topics["/hsi"]["tick"][0]) != 0:

@@ -11,7 +11,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from teleop_rt.recording.reader import LogData, read_log
+from teleop_rt.recording.reader import LogData, LogError, read_log
 
 TOPICS = ("/hsi", "/to", "/channel")
 MAX_POINTS = 20_000  # per line; longer signals are drawn as their min / max envelope
@@ -61,10 +61,17 @@ def _envelope(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def plot_log(data: LogData, out_png: str | Path, title: str | None = None) -> Path:
-    """Draw the log to a PNG; return its path."""
+    """Draw the log to a new PNG (an existing file, the log itself above all, is never
+    overwritten); return its path."""
     out = Path(out_png)
     fig = make_figure(data, title)
-    FigureCanvasAgg(fig).print_png(out)
+    try:
+        with open(out, "xb") as stream:
+            FigureCanvasAgg(fig).print_png(stream)
+    except FileExistsError:
+        raise LogError(f"{out}: the file exists; choose another output path") from None
+    except OSError as err:
+        raise LogError(f"{out}: cannot write the plot ({err.strerror})") from None
     return out
 
 
