@@ -1,4 +1,4 @@
-"""Command line: ``teleop-rt run | check``.
+"""Command line: ``teleop-rt run | check | metrics | replay | plot | bode``.
 
 Anything that is the user's input's fault ends as one line on stderr and a non-zero exit code
 (2 for a bad config or argument), never a traceback.
@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from teleop_rt import __version__
-from teleop_rt.errors import TeleopError
+from teleop_rt.errors import SafetyStop, TeleopError
 
 EXIT_INTERRUPTED = 130
 
@@ -135,11 +135,19 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
     cfg = _load_config(args)
     session = Session(cfg)  # builds models and backends: catches joint-count mismatches too
+    _print_warnings(session)
     print(
         f"{args.config}: ok ({session.n} joints, {cfg.n_ticks} ticks at {cfg.rate_hz} Hz, "
         f"delay {cfg.delay_ticks} ticks, backend {cfg.backend})"
     )
     return 0
+
+
+def _print_warnings(session) -> None:
+    from teleop_rt.analysis.contact import contact_warnings
+
+    for line in contact_warnings(session.cfg, session.to.model):
+        print(f"teleop-rt: warning: {line}", file=sys.stderr)
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -153,6 +161,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         extra.append(f"backend={args.backend}")
     cfg = _load_config(args, extra)
     session = Session(cfg)
+    _print_warnings(session)
     if args.realtime and not args.json:
         # no live bar in real time: its refresh thread would compete with the loop for the GIL
         print(
@@ -190,7 +199,10 @@ def _print_summary(summary, as_json: bool, recorder) -> None:
 
 
 def exit_code(summary) -> int:
-    """0 for a complete run; 128 + the signal number for a run a signal ended (130, 143)."""
+    """0 for a complete run; 128 + the signal number for a run a signal ended (130, 143);
+    3 for a safety stop."""
+    if summary.safety_stop:
+        return SafetyStop.exit_code
     if summary.stop_signal:
         return 128 + summary.stop_signal
     return EXIT_INTERRUPTED if summary.stopped_early else 0

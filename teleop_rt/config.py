@@ -117,6 +117,18 @@ class PlantSpec(Strict):
     coulomb_smoothing_rad_s: Annotated[float, Field(ge=1e-6, le=10.0)] = 0.01
 
 
+class SafetySpec(Strict):
+    """The safety layer (teleop_rt/safety.py): limits come from the URDFs."""
+
+    enabled: bool = True
+    position_limits: bool = True  # stop outside the URDF joint limits
+    velocity_limits: bool = True  # stop above the URDF velocity limits
+    torque_limits: Literal["saturate", "stop", "off"] = "saturate"  # URDF effort limits
+    # a torque pinned at its limit this many ticks in a row is a fault (a loop gone unstable,
+    # a stuck joint), not a transient: stop. 0 never stops for saturation.
+    saturation_stop_ticks: Annotated[int, Field(ge=0)] = 200
+
+
 class DamperOperatorSpec(Strict):
     """The paper's operator (Z_o = const): a damper between the HSI joints and the ground."""
 
@@ -216,6 +228,7 @@ class SessionConfig(Strict):
     to: SideSpec
     channel: ChannelSpec = ChannelSpec()
     plant: PlantSpec = PlantSpec()
+    safety: SafetySpec = SafetySpec()
     operator: Operator
     environment: list[Environment] = Field(default_factory=list)
 

@@ -26,4 +26,6 @@ class BackendError(TeleopError):
 
 
 class SafetyStop(TeleopError):
-    """The session was stopped to keep the hardware safe."""
+    """The session was stopped to keep the hardware safe (exit code 3)."""
+
+    exit_code = 3

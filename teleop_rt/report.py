@@ -70,6 +70,8 @@ def print_summary(summary: Summary, console: Console | None = None) -> None:
         table.add_row("mode", f"fast ({rtf:.0f}x real time)")
     for note in summary.notes:
         table.add_row("note", note)
+    if summary.saturated_ticks:
+        table.add_row("torque saturated", f"{summary.saturated_ticks} ticks (URDF effort limits)")
     if summary.stopped_early:
         table.add_row("stopped early", f"[red]{summary.stopped_early}")
     console.print(table)

@@ -21,10 +21,11 @@ from teleop_rt.com.direct import DirectChannel
 from teleop_rt.com.wave import WaveChannel
 from teleop_rt.config import SessionConfig, per_joint
 from teleop_rt.control import ComputedTorque, Pid
-from teleop_rt.errors import ConfigError
+from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.hal.base import Backend, create_backend
 from teleop_rt.loop import StopSignals, TickClock, TimingStats, acquire_realtime
 from teleop_rt.model import RobotModel
+from teleop_rt.safety import Supervisor
 
 if TYPE_CHECKING:
     from teleop_rt.recording.recorder import Recorder
@@ -70,6 +71,8 @@ class Summary:
     notes: list[str] = field(default_factory=list)
     stopped_early: str | None = None
     stop_signal: int | None = None  # the signal that ended the run (SIGINT, SIGTERM), if any
+    safety_stop: bool = False  # the safety layer ended the run (stopped_early says why)
+    saturated_ticks: int = 0  # ticks in which a commanded torque hit its effort limit
 
     @property
     def t_p_total(self) -> float:
@@ -114,6 +117,7 @@ class Session:
         self.tau_e = [0.0] * n
         self.tick = 0
         self.metrics = TransparencyAccumulator(n, self.dt)
+        self.supervisor = Supervisor(cfg.safety, self.hsi.model, self.to.model)
 
     @property
     def time_s(self) -> float:
@@ -139,6 +143,12 @@ class Session:
         a_ref_t = to.controller.step(err_t)
         g_h = hsi.computed_torque.step(fb_h.q, fb_h.v, a_ref_h, tau_h, v_h)
         g_t = to.computed_torque.step(fb_t.q, fb_t.v, a_ref_t, tau_ext_t, v_t)
+        sup, k = self.supervisor, self.tick  # step 7: nothing unchecked reaches a motor
+        sup.saturation(
+            k,
+            sup.check(k, "hsi", fb_h.q_list, v_h, tau_h, g_h)
+            | sup.check(k, "to", fb_t.q_list, v_t, tau_ext_t, g_t),
+        )
         hsi.backend.write(g_h)
         to.backend.write(g_t)
         self.metrics.add(fb_h.q_list, fb_t.q_list, tau_h, tau_e)
@@ -168,6 +178,7 @@ class Session:
         notes = list(grant.notes) if grant else []
         stop = StopSignals()
         error: str | None = None
+        safety_stop = False
         perf = time.perf_counter_ns
         next_report = 0
         wall_start = perf()
@@ -192,6 +203,9 @@ class Session:
                 if progress is not None and t1 >= next_report:
                     progress(k + 1, total)
                     next_report = t1 + 50_000_000
+        except SafetyStop as exc:
+            error = f"safety stop: {exc}"
+            safety_stop = True
         except BaseException as exc:
             error = f"{type(exc).__name__}: {exc}"
             raise
@@ -202,6 +216,7 @@ class Session:
             if grant:
                 grant.release()
             summary = self._summary(stats, clock, realtime, notes, wall_start, stop, error)
+            summary.safety_stop = safety_stop
             if recorder is not None:
                 recorder.close(summary.to_dict())
         if progress is not None:
@@ -228,4 +243,5 @@ class Session:
             notes=notes,
             stopped_early=stopped,
             stop_signal=stop.signum,
+            saturated_ticks=self.supervisor.saturated_ticks,
         )

@@ -100,5 +100,10 @@ def test_stiff_wall_stays_bounded_with_the_default_wave_filter(delay_ms: int) ->
 
 def test_stiff_wall_without_the_filter_rings_up_at_short_delay() -> None:
     # the documented reason the filter is on by default (see teleop_rt/com/wave.py)
-    s = run(CONFIGS / "stiff_wall.yaml", "channel.delay_ms=10", "channel.wave_filter_hz=null")
+    unfiltered = ("channel.delay_ms=10", "channel.wave_filter_hz=null")
+    s = run(CONFIGS / "stiff_wall.yaml", *unfiltered, "safety.enabled=false")
     assert not np.isfinite(s.t_tau_total) or s.t_tau_total > 1e3
+    # with the safety layer on (the default) the same run ends in a safety stop instead
+    guarded = run(CONFIGS / "stiff_wall.yaml", *unfiltered)
+    assert guarded.safety_stop and "effort limit" in guarded.stopped_early
+    assert guarded.ticks < 6000

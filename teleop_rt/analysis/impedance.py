@@ -5,11 +5,13 @@ frequency, 1/s; usually ``1j * omega`` with omega in rad/s), scalar or array, an
 numpy values of the broadcast shape. Joint space units: torque N m, velocity rad/s, virtual
 inertia ("mass") kg m^2, damping and wave impedance N m s/rad, stiffness N m/rad, time s.
 
-Sign convention (the one place it is written down): an impedance is Z(s) = tau(s) / omega(s),
-where tau is the torque that must be applied to a port to move it at omega, so a passive load has
-Re Z(j omega) >= 0. Ports of the chain:
+Impedance convention: Z(s) = tau(s) / omega(s), where tau is the torque that must be applied to
+a port to move it at omega, so a passive load has Re Z(j omega) >= 0. The stack's sign
+convention for the running signals is written once, in ``teleop_rt/control.py``; in its terms
+the paper's damper operator is tau_h = -Z_o v_h (operator on the HSI) and eq 21 holds for
+tau_h / tau_c. Ports of the chain:
 
-* Z_o: operator hand, tau_h = Z_o omega_h (eq 5), a damper here;
+* Z_o: operator hand, a damper of Z_o (eq 5 writes its reaction as Z_o omega_h);
 * Z_h = tau_h / omega_o (eq 19): what the operator feels, Z_h = G_tau Z_c (eq 20);
 * Z_c = tau_c / omega_c: the channel seen from the HSI side;
 * Z_t = tau_t / omega_t = G_omega Z_e (eq 23): the velocity-controlled TO with its environment,

@@ -48,7 +48,7 @@ class DirectChannel:
             energy[j] += p * dt
             total += energy[j]
         self.total_energy = total
-        if total < self.min_total_energy:
+        if not total >= self.min_total_energy:  # also catches NaN
             self.min_total_energy = total
 
     def stored_energy(self) -> float:

@@ -90,7 +90,7 @@ class WaveChannel:
             energy[j] += p * dt
             total += energy[j]
         self.total_energy = total
-        if total < self.min_total_energy:
+        if not total >= self.min_total_energy:  # also catches NaN
             self.min_total_energy = total
 
     def _exchange(self) -> None:

@@ -45,16 +45,26 @@ def replay_config(data: LogData, overrides: list[str]) -> SessionConfig:
 
 
 def _restore_urdfs(raw: dict, data: LogData) -> None:
-    """Use the URDFs attached to the log when the recorded paths do not exist here."""
+    """Replay with the URDFs the session ran with (attached to the log), not whatever the
+    recorded paths hold today: an edited URDF would silently change the replay."""
     for side in ("hsi", "to"):
         robot = raw.get(side, {}).get("robot", {})
-        path = robot.get("urdf")
         attached = data.attachments.get(f"urdf/{side}.urdf")
-        if path and not Path(path).is_file() and attached is not None:
-            folder = Path(tempfile.mkdtemp(prefix="teleop-rt-replay-"))
-            target = folder / f"{side}.urdf"
+        if robot.get("urdf") and attached is not None:
+            target = _replay_dir() / f"{side}.urdf"
             target.write_bytes(attached)
             robot["urdf"] = str(target)
+
+
+_REPLAY_DIR: tempfile.TemporaryDirectory | None = None
+
+
+def _replay_dir() -> Path:
+    """One temporary folder per process for restored URDFs, removed at exit."""
+    global _REPLAY_DIR
+    if _REPLAY_DIR is None:
+        _REPLAY_DIR = tempfile.TemporaryDirectory(prefix="teleop-rt-replay-")
+    return Path(_REPLAY_DIR.name)
 
 
 def replay_operator(cfg: SessionConfig, data: LogData) -> ScriptedHand | None:
