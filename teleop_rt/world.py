@@ -39,7 +39,18 @@ class Load:
     in_contact = False
 
     def advance(self, dt: float) -> None:
-        """Advance internal state by dt (stateful loads only)."""
+        """Advance internal state by dt (stateful loads only; semi-implicit Euler)."""
+
+    # RK4 needs the state itself: stateful loads also implement these three
+    def state(self) -> tuple[float, ...]:
+        return ()
+
+    def set_state(self, state: tuple[float, ...]) -> None:
+        """Set the internal state (RK4 stages)."""
+
+    def derivative(self) -> tuple[float, ...]:
+        """d(state)/dt with the force of the last ``force`` call."""
+        return ()
 
 
 class JointLoad(Load):
@@ -276,6 +287,15 @@ class PushedMass(CartesianLoad):
         # the mass feels the contact force's reaction, pushing it along -n (semi-implicit Euler)
         self.s_dot += dt * self._f / self.m
         self.s += dt * self.s_dot
+
+    def state(self) -> tuple[float, float]:
+        return (self.s, self.s_dot)
+
+    def set_state(self, state: tuple[float, ...]) -> None:
+        self.s, self.s_dot = state
+
+    def derivative(self) -> tuple[float, float]:
+        return (self.s_dot, self._f / self.m)
 
 
 def build_operator(

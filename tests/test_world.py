@@ -102,3 +102,23 @@ def test_pushed_mass_feels_like_m_s_when_pushed_steadily() -> None:
         xd += a * dt
         x += xd * dt
     assert -f[0] == pytest.approx(0.5 * a, rel=1e-3)
+
+
+def _held_mass_velocity(integrator: str, substeps: int, ticks: int = 200) -> np.ndarray:
+    """The TO tool holding a 0.3 kg mass (attached, soft coupling), driven by a smooth torque."""
+    spec = MassSpec(kind="mass", point_m=[0.40, 0.0], normal=[-1, 0], mass_kg=0.3, attached=True,
+                    contact_stiffness_n_per_m=2000.0, contact_damping_n_s_per_m=5.0)  # fmt: skip
+    model = RobotModel.from_spec(RobotSpec(urdf=SCARA_URDF, ee_frame="tool"), "to")
+    model.has_coulomb = False  # the smoothed Coulomb kink at v = 0 would cap any method's order
+    plant = SimBackend(model, [PushedMass(spec)], np.array([-0.8, 1.8]), 1e-3,
+                       substeps=substeps, integrator=integrator)  # fmt: skip
+    for k in range(ticks):
+        plant.write([0.3 * np.sin(0.02 * k), -0.1])
+    return np.array(plant.vl)
+
+
+def test_rk4_is_fourth_order_with_a_stateful_load() -> None:
+    reference = _held_mass_velocity("rk4", 64)
+    errors = [np.abs(_held_mass_velocity("rk4", m) - reference).max() for m in (2, 4, 8)]
+    # halving the step divides the error by 2^4 = 16 for a 4th-order method
+    assert errors[0] / errors[1] > 12 and errors[1] / errors[2] > 12, errors

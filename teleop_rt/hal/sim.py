@@ -168,27 +168,37 @@ class SimBackend(Backend):
         self.t += h
 
     def _rk4_substep(self) -> None:
-        # classic RK4 on (q, v); the loads are re-evaluated at every stage, stateful loads
-        # advance once per sub-step with the force at its start
+        # classic RK4 on (q, v) and the stateful loads' states; every stage re-evaluates the
+        # loads at its own (t, q, v, load state)
         h, ql, vl, n = self.h, self.ql, self.vl, self.n
-        qs, vs = self._qs, self._vs
+        qs, vs, stateful = self._qs, self._vs, self.stateful
+        s0 = [load.state() for load in stateful]
         k1v = list(vl)
-        k1a = self._acceleration(self.q, self.v, vl)  # loads already at (t, q, v)
-        for load in self.stateful:
-            load.advance(h)
-        stages = [(k1v, k1a)]
+        k1a = self._acceleration(self.q, self.v, vl)  # loads already at (t, q, v, s0)
+        stages = [(k1v, k1a, [load.derivative() for load in stateful])]
         for frac in (0.5, 0.5, 1.0):
-            dq, dv = stages[-1]
+            dq, dv, ds = stages[-1]
             q_stage = [ql[j] + frac * h * dq[j] for j in range(n)]
             v_stage = [vl[j] + frac * h * dv[j] for j in range(n)]
+            for load, x0, dx in zip(stateful, s0, ds, strict=True):
+                load.set_state(tuple(a + frac * h * b for a, b in zip(x0, dx, strict=True)))
             assign(qs, q_stage)
             assign(vs, v_stage)
             self._eval_loads(self.t + frac * h, qs, v_stage)
-            stages.append((v_stage, self._acceleration(qs, vs, v_stage)))
-        (v1, a1), (v2, a2), (v3, a3), (v4, a4) = stages
+            accel = self._acceleration(qs, vs, v_stage)
+            stages.append((v_stage, accel, [load.derivative() for load in stateful]))
+        (v1, a1, d1), (v2, a2, d2), (v3, a3, d3), (v4, a4, d4) = stages
+        w = h / 6.0
         for j in range(n):
-            ql[j] += h / 6.0 * (v1[j] + 2.0 * v2[j] + 2.0 * v3[j] + v4[j])
-            vl[j] += h / 6.0 * (a1[j] + 2.0 * a2[j] + 2.0 * a3[j] + a4[j])
+            ql[j] += w * (v1[j] + 2.0 * v2[j] + 2.0 * v3[j] + v4[j])
+            vl[j] += w * (a1[j] + 2.0 * a2[j] + 2.0 * a3[j] + a4[j])
+        for i, load in enumerate(stateful):
+            load.set_state(
+                tuple(
+                    x + w * (p1 + 2.0 * p2 + 2.0 * p3 + p4)
+                    for x, p1, p2, p3, p4 in zip(s0[i], d1[i], d2[i], d3[i], d4[i], strict=True)
+                )
+            )
         assign(self.q, ql)
         assign(self.v, vl)
         self.t += h
