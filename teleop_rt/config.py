@@ -106,8 +106,25 @@ class ChannelSpec(Strict):
     wave_filter_hz: PositiveFloat | None = 30.0
 
 
+class FaultSpec(Strict):
+    """A fault injected into the simulated plant during [start_s, start_s + duration_s).
+
+    nan: the measured torque reads NaN; dropout: the sensors stop updating (stale feedback);
+    noise_burst: Gaussian noise of std ``magnitude`` N m on the measured torque; bias: the
+    measured torque is off by ``magnitude`` N m; saturation: the motor delivers at most
+    ``magnitude`` N m; stuck: the joint is held where it is.
+    """
+
+    kind: Literal["nan", "dropout", "noise_burst", "bias", "saturation", "stuck"]
+    robot: Literal["hsi", "to"]
+    joint: Annotated[int, Field(ge=0)] = 0
+    start_s: NonNegFloat = 0.0
+    duration_s: PositiveFloat = 1e9
+    magnitude: NonNegFloat = 1.0
+
+
 class PlantSpec(Strict):
-    """The simulated plant: integrator, sub-steps and sensor models."""
+    """The simulated plant: integrator, sub-steps, sensor models and injected faults."""
 
     integrator: Literal["semi_implicit_euler", "rk4"] = "semi_implicit_euler"
     substeps: Annotated[int, Field(ge=1, le=100)] = 1
@@ -115,6 +132,7 @@ class PlantSpec(Strict):
     velocity_noise_std_rad_s: NonNegFloat = 0.0
     # Coulomb friction is smoothed as f_c * tanh(v / v_s) so the stiff sign() never enters.
     coulomb_smoothing_rad_s: Annotated[float, Field(ge=1e-6, le=10.0)] = 0.01
+    faults: list[FaultSpec] = Field(default_factory=list)
 
 
 class SafetySpec(Strict):
@@ -127,6 +145,16 @@ class SafetySpec(Strict):
     # a torque pinned at its limit this many ticks in a row is a fault (a loop gone unstable,
     # a stuck joint), not a transient: stop. 0 never stops for saturation.
     saturation_stop_ticks: Annotated[int, Field(ge=0)] = 200
+    # feedback that has not been refreshed for this many ticks is stale: stop
+    stale_ticks: Annotated[int, Field(ge=1)] = 3
+    # a joint whose measured acceleration misses the commanded virtual dynamics (eq 3 / 13) by
+    # more than this, this many ticks in a row, does not follow its torque (saturated or
+    # blocked actuator, broken model): stop. 0 ticks switches the check off.
+    tracking_error_rad_s2: PositiveFloat = 20.0
+    tracking_error_ticks: Annotated[int, Field(ge=0)] = 20
+    # the stop itself: the HSI is damped, the TO is brought to rest, then both get zero torque
+    stop_damping_nm_s_per_rad: NonNegFloat = 0.5
+    stop_max_ticks: Annotated[int, Field(ge=0)] = 500
 
 
 class DamperOperatorSpec(Strict):

@@ -38,14 +38,77 @@ class RobotLimits:
         self.effort = [e if e > 0 else None for e in model.effort_limits.tolist()]
 
 
+class Tracking:
+    """Does a joint follow its commanded virtual dynamics? Under computed torque the measured
+    acceleration (v[k] - v[k-1]) / dt equals the one commanded at k-1 (eq 3 / 13); a
+    saturated or blocked actuator, or a wrong model, breaks that."""
+
+    def __init__(self, n: int, dt: float) -> None:
+        self.dt = dt
+        self.prev_v: list[float] | None = None
+        self.prev_a = [0.0] * n
+        self.run = [0] * n  # ticks in a row above the tolerance
+
+    def update(self, v: list[float], a_cmd: list[float], tolerance: float) -> int | None:
+        """Record this tick; return the joint that missed (over ``tolerance``), or None."""
+        worst = None
+        if self.prev_v is not None:
+            for j, vj in enumerate(v):
+                error = (vj - self.prev_v[j]) / self.dt - self.prev_a[j]
+                self.run[j] = self.run[j] + 1 if abs(error) > tolerance else 0
+                if worst is None or self.run[j] > self.run[worst]:
+                    worst = j
+        self.prev_v = list(v)
+        self.prev_a[:] = a_cmd
+        return worst
+
+    def reset(self) -> None:
+        self.prev_v = None
+
+
 class Supervisor:
     """Checks both robots every tick; saturates torques; raises SafetyStop on a violation."""
 
-    def __init__(self, spec: SafetySpec, hsi: RobotModel, to: RobotModel) -> None:
+    def __init__(self, spec: SafetySpec, hsi: RobotModel, to: RobotModel, dt: float = 1e-3) -> None:
         self.spec = spec
         self.limits = {"hsi": RobotLimits(hsi, "hsi"), "to": RobotLimits(to, "to")}
+        self.tracking = {"hsi": Tracking(hsi.nv, dt), "to": Tracking(to.nv, dt)}
         self.saturated_ticks = 0  # ticks in which at least one torque was saturated
         self.saturated_run = 0  # ... of them in a row, up to this tick
+
+    def check_feedback(
+        self, tick: int, name: str, age_ticks: int, v: list[float], a_cmd: list[float]
+    ) -> None:
+        """Stale sensors; a joint not following its commanded acceleration (last tick's)."""
+        if not self.spec.enabled:
+            return
+        tracking = self.tracking[name]
+        if age_ticks:
+            tracking.reset()  # no fresh velocity: nothing to compare
+            if age_ticks >= self.spec.stale_ticks:
+                raise SafetyStop(
+                    f"tick {tick}: {name} feedback stale for {age_ticks} ticks (sensor dropout)"
+                )
+            return
+        ticks = self.spec.tracking_error_ticks
+        if not ticks:
+            return
+        j = tracking.update(v, a_cmd, self.spec.tracking_error_rad_s2)
+        if j is not None and tracking.run[j] >= ticks:
+            self._stop(
+                tick, name, j,
+                f"does not follow its commanded acceleration (off by more than "
+                f"{self.spec.tracking_error_rad_s2:g} rad/s^2 for {ticks} ticks: saturated or "
+                "blocked actuator)",
+            )  # fmt: skip
+
+    def check_measured(
+        self, tick: int, name: str, q: list[float], v: list[float], tau_ext: list[float]
+    ) -> None:
+        """Finite measurements: checked for both robots before any command is looked at, so a
+        stop names the sensor at fault, not the command it poisoned through the channel."""
+        if self.spec.enabled and not math.isfinite(sum(q) + sum(v) + sum(tau_ext)):
+            self._non_finite(tick, name, q, v, tau_ext, [])
 
     def check(
         self,

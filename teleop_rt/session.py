@@ -11,10 +11,13 @@ One tick k (see ../shared/docs/architecture.md), in this order:
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
+
+import numpy as np
 
 from teleop_rt.analysis.transparency import TransparencyAccumulator
 from teleop_rt.com.direct import DirectChannel
@@ -117,7 +120,7 @@ class Session:
         self.tau_e = [0.0] * n
         self.tick = 0
         self.metrics = TransparencyAccumulator(n, self.dt)
-        self.supervisor = Supervisor(cfg.safety, self.hsi.model, self.to.model)
+        self.supervisor = Supervisor(cfg.safety, self.hsi.model, self.to.model, self.dt)
 
     @property
     def time_s(self) -> float:
@@ -144,6 +147,10 @@ class Session:
         g_h = hsi.computed_torque.step(fb_h.q, fb_h.v, a_ref_h, tau_h, v_h)
         g_t = to.computed_torque.step(fb_t.q, fb_t.v, a_ref_t, tau_ext_t, v_t)
         sup, k = self.supervisor, self.tick  # step 7: nothing unchecked reaches a motor
+        sup.check_measured(k, "hsi", fb_h.q_list, v_h, tau_h)
+        sup.check_measured(k, "to", fb_t.q_list, v_t, tau_ext_t)
+        sup.check_feedback(k, "hsi", fb_h.age_ticks, v_h, hsi.computed_torque.a_des.tolist())
+        sup.check_feedback(k, "to", fb_t.age_ticks, v_t, to.computed_torque.a_des.tolist())
         sup.saturation(
             k,
             sup.check(k, "hsi", fb_h.q_list, v_h, tau_h, g_h)
@@ -206,6 +213,7 @@ class Session:
         except SafetyStop as exc:
             error = f"safety stop: {exc}"
             safety_stop = True
+            notes.append(f"after the stop: {self._bring_to_rest()}")
         except BaseException as exc:
             error = f"{type(exc).__name__}: {exc}"
             raise
@@ -222,6 +230,36 @@ class Session:
         if progress is not None:
             progress(stats.count, total)
         return summary
+
+    def _bring_to_rest(self) -> str:
+        """The reaction to a safety stop: the HSI is damped, the TO is brought to zero velocity
+        under its own velocity loop; then (in run's finally) both get zero torque. Sensors that
+        are not usable end it at once with zero torque."""
+        spec = self.cfg.safety
+        hsi, to = self.hsi, self.to
+        zeros = np.zeros(self.n)
+        gains = to.controller.kp
+        limits = self.supervisor.limits
+        for i in range(spec.stop_max_ticks):
+            fb_h, fb_t = hsi.backend.read(), to.backend.read()
+            values = fb_h.v_list + fb_t.v_list + fb_h.q_list + fb_t.q_list + list(fb_t.tau_ext)
+            if fb_h.age_ticks or fb_t.age_ticks or not all(map(math.isfinite, values)):
+                return f"sensors unusable after {i} ticks: zero torque"
+            gravity = hsi.model.rnea(fb_h.q, zeros, zeros)
+            g_h = [
+                gravity[j] - spec.stop_damping_nm_s_per_rad * fb_h.v_list[j] for j in range(self.n)
+            ]
+            a_t = [-gains[j] * fb_t.v_list[j] for j in range(self.n)]
+            g_t = to.computed_torque.step(fb_t.q, fb_t.v, a_t, list(fb_t.tau_ext), fb_t.v_list)
+            for name, g in (("hsi", g_h), ("to", g_t)):
+                for j, emax in enumerate(limits[name].effort):
+                    if emax is not None:
+                        g[j] = min(max(g[j], -emax), emax)
+            hsi.backend.write(g_h)
+            to.backend.write(g_t)
+            if max(abs(x) for x in fb_t.v_list) < 1e-3:
+                return f"TO at rest after {i + 1} ticks, then zero torque"
+        return f"TO not at rest after {spec.stop_max_ticks} ticks; zero torque"
 
     def _summary(self, stats, clock, realtime, notes, wall_start, stop, error) -> Summary:
         timing = stats.summary()

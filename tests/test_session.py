@@ -105,5 +105,7 @@ def test_stiff_wall_without_the_filter_rings_up_at_short_delay() -> None:
     assert not np.isfinite(s.t_tau_total) or s.t_tau_total > 1e3
     # with the safety layer on (the default) the same run ends in a safety stop instead
     guarded = run(CONFIGS / "stiff_wall.yaml", *unfiltered)
-    assert guarded.safety_stop and "effort limit" in guarded.stopped_early
+    # (the torque saturates, so the joint stops following its commanded acceleration)
+    reason = guarded.stopped_early
+    assert guarded.safety_stop and ("effort limit" in reason or "does not follow" in reason)
     assert guarded.ticks < 6000

@@ -30,9 +30,10 @@ class Feedback:
     applies to the robot (see teleop_rt.control).
     """
 
-    __slots__ = ("q", "v", "q_list", "v_list", "tau_ext")
+    __slots__ = ("q", "v", "q_list", "v_list", "tau_ext", "age_ticks")
 
     def __init__(self, n: int) -> None:
+        self.age_ticks = 0  # ticks since the sensors last delivered (0: fresh this tick)
         self.q = np.zeros(n)
         self.v = np.zeros(n)
         self.q_list = [0.0] * n

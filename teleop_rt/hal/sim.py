@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop_rt.config import SessionConfig
+from teleop_rt.config import FaultSpec, SessionConfig
+from teleop_rt.errors import ConfigError
 from teleop_rt.hal.base import Backend, Feedback, register_backend
 from teleop_rt.model import RobotModel
 from teleop_rt.scalar import assign
@@ -35,6 +36,7 @@ class SimBackend(Backend):
         torque_noise_std: float = 0.0,
         velocity_noise_std: float = 0.0,
         seed: int = 0,
+        faults: list[FaultSpec] | None = None,
     ) -> None:
         contact_loads = [ld for ld in loads if ld.cartesian and not ld.is_operator]
         super().__init__(plant.nv, len(contact_loads))
@@ -67,14 +69,26 @@ class SimBackend(Backend):
         self.velocity_noise_std = velocity_noise_std
         self.rng = np.random.default_rng(seed)
         self._noise = np.zeros(n)
+        self.faults = list(faults or [])
+        self._held: dict[int, float] = {}  # stuck joints: the angle they are held at
         self._eval_loads(self.t, self.q, self.vl)
 
     # --- Backend --------------------------------------------------------------------------
     def start(self) -> None:
         """Nothing to power up: the simulated robot accepts torque from construction on."""
 
+    def _active(self, kind: str) -> list[FaultSpec]:
+        t = self.tick * self.dt
+        return [
+            f for f in self.faults if f.kind == kind and f.start_s <= t < f.start_s + f.duration_s
+        ]
+
     def read(self) -> Feedback:
         fb = self.feedback
+        if self.faults and self._active("dropout"):
+            fb.age_ticks += 1  # the sensors did not deliver: the last values stay
+            return fb
+        fb.age_ticks = 0
         fb.q_list[:] = self.ql
         fb.v_list[:] = self.vl
         fb.tau_ext[:] = self.tau_load
@@ -82,10 +96,20 @@ class SimBackend(Backend):
             self._add_noise(fb.tau_ext, self.torque_noise_std)
         if self.velocity_noise_std:
             self._add_noise(fb.v_list, self.velocity_noise_std)
+        if self.faults:
+            self._corrupt_sensors(fb)
         assign(fb.q, fb.q_list)
         assign(fb.v, fb.v_list)
         self._snapshot_world()
         return fb
+
+    def _corrupt_sensors(self, fb: Feedback) -> None:
+        for f in self._active("nan"):
+            fb.tau_ext[f.joint] = float("nan")
+        for f in self._active("bias"):
+            fb.tau_ext[f.joint] += f.magnitude
+        for f in self._active("noise_burst"):
+            fb.tau_ext[f.joint] += f.magnitude * float(self.rng.standard_normal())
 
     def _snapshot_world(self) -> None:
         # the loads were last evaluated at this tick's time (end of the previous write)
@@ -111,11 +135,23 @@ class SimBackend(Backend):
 
     def write(self, tau: list[float] | np.ndarray) -> None:
         self.tau_motor[:] = tau
+        stuck = []
+        if self.faults:
+            for f in self._active("saturation"):
+                lim = f.magnitude
+                self.tau_motor[f.joint] = min(max(self.tau_motor[f.joint], -lim), lim)
+            stuck = self._active("stuck")
+            for f in stuck:
+                self._held.setdefault(f.joint, self.ql[f.joint])
         substep = self._rk4_substep if self.rk4 else self._euler_substep
         for i in range(self.substeps):
             if i:  # the loads at the tick's start were evaluated at the end of the last write
                 self._eval_loads(self.t, self.q, self.vl)
             substep()
+            for f in stuck:  # a blocked joint: held in place whatever the torque
+                j = f.joint
+                self.ql[j] = self.q[j] = self._held[j]
+                self.vl[j] = self.v[j] = 0.0
         self.tick += 1
         self.t = self.tick * self.dt  # no drift from summing sub-steps
         self._eval_loads(self.t, self.q, self.vl)
@@ -225,7 +261,19 @@ def _make_sim(
         torque_noise_std=cfg.plant.torque_noise_std_nm,
         velocity_noise_std=cfg.plant.velocity_noise_std_rad_s,
         seed=cfg.seed * 1000 + _SIDE_SEED[side],
+        faults=_faults_for(cfg, side, plant.nv),
     )
+
+
+def _faults_for(cfg: SessionConfig, side: str, n: int) -> list[FaultSpec]:
+    faults = []
+    for i, f in enumerate(cfg.plant.faults):
+        if f.robot != side:
+            continue
+        if f.joint >= n:
+            raise ConfigError(f"plant.faults.{i}.joint: {f.joint} but the {side} has {n} joints")
+        faults.append(f)
+    return faults
 
 
 def initial_configuration(q0: list[float] | None, model: RobotModel, side: str) -> np.ndarray:
