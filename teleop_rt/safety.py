@@ -44,26 +44,31 @@ class Tracking:
     saturated or blocked actuator, or a wrong model, breaks that."""
 
     def __init__(self, n: int, dt: float) -> None:
-        self.dt = dt
-        self.prev_v: list[float] | None = None
+        self.inv_dt = 1.0 / dt
+        self.valid = False  # prev_v holds a fresh velocity
+        self.prev_v = [0.0] * n
         self.prev_a = [0.0] * n
         self.run = [0] * n  # ticks in a row above the tolerance
 
     def update(self, v: list[float], a_cmd: list[float], tolerance: float) -> int | None:
         """Record this tick; return the joint that missed (over ``tolerance``), or None."""
         worst = None
-        if self.prev_v is not None:
+        if self.valid:
+            prev_v, prev_a, run, inv_dt = self.prev_v, self.prev_a, self.run, self.inv_dt
+            longest = -1
             for j, vj in enumerate(v):
-                error = (vj - self.prev_v[j]) / self.dt - self.prev_a[j]
-                self.run[j] = self.run[j] + 1 if abs(error) > tolerance else 0
-                if worst is None or self.run[j] > self.run[worst]:
-                    worst = j
-        self.prev_v = list(v)
+                error = (vj - prev_v[j]) * inv_dt - prev_a[j]
+                r = run[j] + 1 if (error > tolerance or error < -tolerance) else 0
+                run[j] = r
+                if r > longest:
+                    worst, longest = j, r
+        self.prev_v[:] = v
         self.prev_a[:] = a_cmd
+        self.valid = True
         return worst
 
     def reset(self) -> None:
-        self.prev_v = None
+        self.valid = False
 
 
 class Supervisor:
