@@ -136,3 +136,25 @@ def test_stiff_end_is_b_coth_and_a_spring_b_over_td(hz: float) -> None:
         z_free = drive_hsi_port(B, DELAY_MS, omega, 4.0, lambda s: 0.0)
         ratio = (z_free / (1j * omega)).real / stiffness
         assert abs(ratio / T_D**2 - 1) < 0.05
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    b=st.floats(0.01, 100.0),
+    delay_ticks=st.integers(0, 2000),
+    seed=st.integers(0, 2**32 - 1),
+    filtered=st.booleans(),
+)
+def test_channel_is_passive_for_delays_up_to_two_seconds(b, delay_ticks, seed, filtered):
+    """Energy that entered the channel is never negative, for 0-2000 ticks of delay, any b,
+    random port signals, filter on or off (stored energy checked at a few ticks: it costs O(D))."""
+    rng = np.random.default_rng(seed)
+    ch = WaveChannel([b], delay_ticks, DT, filter_hz=30.0 if filtered else None)
+    ticks = delay_ticks + 100
+    checkpoints = set(rng.integers(0, ticks, size=5).tolist()) | {ticks - 1}
+    omega, tau = rng.normal(size=ticks).tolist(), rng.normal(size=ticks).tolist()
+    for k in range(ticks):
+        ch.step([omega[k]], [tau[k]])
+        assert ch.total_energy >= -1e-12
+        if k in checkpoints:
+            assert ch.total_energy >= ch.stored_energy() * (1 - 1e-9) - 1e-12
