@@ -19,21 +19,18 @@ M1, M2, C1, C2, Z_O, B = 0.1, 0.1, 2.0, 20.0, 10.0, 2.0
 JOINT = 1  # the excited joint; the other must stay still (decoupling)
 
 
+def paper_params(delay_ms: float, k_env: float, filter_hz: float | None) -> ImpedanceParams:
+    return ImpedanceParams(
+        m1=M1, m2=M2, c1=C1, c2=C2, z_o=Z_O, b=B, delay_s=delay_ms / 1000,
+        env_stiffness=k_env, wave_filter_hz=filter_hz,
+    )  # fmt: skip
+
+
 def measure_open_chain(omega, delay_ms, k_env, filter_hz=None, flip_c1=False, seconds=2.0):
     """The product's open chain (teleop_rt.analysis.bode.OpenChain) on the SCARA pair: the
     operator velocity imposed on the channel, a damper operator on the HSI, a joint spring on
     the TO; Z_h by lock-in over the second half (whole periods at 0.5 and 1 Hz)."""
-    params = ImpedanceParams(
-        m1=M1,
-        m2=M2,
-        c1=C1,
-        c2=C2,
-        z_o=Z_O,
-        b=B,
-        delay_s=delay_ms / 1000,
-        env_stiffness=k_env,
-        wave_filter_hz=filter_hz,
-    )
+    params = paper_params(delay_ms, k_env, filter_hz)
     chain = OpenChain(params, JOINT, DT)
     if flip_c1:
         chain.c1_sign = -1.0
@@ -60,17 +57,7 @@ CASES = [
 def test_running_blocks_display_eq_20_to_24(delay_ms, k_env, filter_hz, hz) -> None:
     omega = 2 * math.pi * hz
     z, other = measure_open_chain(omega, delay_ms, k_env, filter_hz)
-    params = ImpedanceParams(
-        m1=M1,
-        m2=M2,
-        c1=C1,
-        c2=C2,
-        z_o=Z_O,
-        b=B,
-        delay_s=delay_ms / 1000,
-        env_stiffness=k_env,
-        wave_filter_hz=filter_hz,
-    )
+    params = paper_params(delay_ms, k_env, filter_hz)
     analytic = complex(displayed_impedance(1j * omega, params))
     # continuous-time analytic vs the 1 kHz loop: the one-tick sensing and hold cost
     # O(omega dt) ~ 0.6 % here; 2 % in magnitude and 2 degrees in phase (issue #4's bar)

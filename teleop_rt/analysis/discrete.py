@@ -68,20 +68,14 @@ from teleop_rt.analysis.impedance import (
     Complex,
     ControllerGains,
     ImpedanceParams,
+    ImpedanceParts,
 )
 
 DT = 1e-3
 
 
-class DiscreteParts(NamedTuple):
-    """The factors of Z_h(z) = G_tau Z_c(Z_t = G_omega Z_e), each over omega."""
-
-    g_tau: Complex
-    g_omega: Complex
-    z_e: Complex
-    z_t: Complex
-    z_c: Complex
-    z_h: Complex
+# the same factors as the continuous model, each over omega
+DiscreteParts = ImpedanceParts
 
 
 def delay_ticks(delay_s: float, dt: float = DT) -> int:

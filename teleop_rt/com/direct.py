@@ -9,6 +9,7 @@ signal names as ``WaveChannel`` (waves stay zero) let sessions and logs use eith
 from __future__ import annotations
 
 from teleop_rt.com.delay import DelayLine
+from teleop_rt.com.energy import account_power
 
 
 class DirectChannel:
@@ -40,16 +41,7 @@ class DirectChannel:
             self.tau_c[:] = self.backward.pop()
             self.forward.push(omega_c)
             self.backward.push(tau_t)
-        dt, energy, power = self.dt, self.energy, self.power
-        total = 0.0
-        for j in range(self.n):
-            p = self.omega_c[j] * self.tau_c[j] - self.omega_t[j] * self.tau_t[j]
-            power[j] = p
-            energy[j] += p * dt
-            total += energy[j]
-        self.total_energy = total
-        if not total >= self.min_total_energy:  # also catches NaN
-            self.min_total_energy = total
+        account_power(self)
 
     def stored_energy(self) -> float:
         """No stored-energy notion for a non-passive channel (kept for the common interface)."""

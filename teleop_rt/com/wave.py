@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 
 from teleop_rt.com.delay import DelayLine
+from teleop_rt.com.energy import account_power
 
 
 class WaveChannel:
@@ -82,16 +83,7 @@ class WaveChannel:
             self.tau_c[:] = tau_t
         else:
             self._exchange()
-        dt, energy, power = self.dt, self.energy, self.power
-        total = 0.0
-        for j in range(self.n):
-            p = self.omega_c[j] * self.tau_c[j] - self.omega_t[j] * self.tau_t[j]
-            power[j] = p
-            energy[j] += p * dt
-            total += energy[j]
-        self.total_energy = total
-        if not total >= self.min_total_energy:  # also catches NaN
-            self.min_total_energy = total
+        account_power(self)
 
     def _exchange(self) -> None:
         received_u = self.u_line.pop()
