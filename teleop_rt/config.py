@@ -24,6 +24,7 @@ from pydantic import (
 )
 
 from teleop_rt.errors import ConfigError
+from teleop_rt.hal.can.config import CanSpec
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -259,6 +260,7 @@ class SessionConfig(Strict):
     safety: SafetySpec = SafetySpec()
     operator: Operator
     environment: list[Environment] = Field(default_factory=list)
+    can: CanSpec | None = None  # the CAN backend's buses and drives (teleop_rt.hal.can)
 
     @field_validator("duration_s")
     @classmethod

@@ -237,6 +237,12 @@ class Session:
         are not usable end it at once with zero torque."""
         spec = self.cfg.safety
         hsi, to = self.hsi, self.to
+        try:
+            return self._damp_and_rest(spec, hsi, to)
+        except SafetyStop as exc:  # a second fault while stopping: zero torque at once
+            return f"a further fault while stopping ({exc}): zero torque"
+
+    def _damp_and_rest(self, spec, hsi: Side, to: Side) -> str:
         zeros = np.zeros(self.n)
         gains = to.controller.kp
         limits = self.supervisor.limits

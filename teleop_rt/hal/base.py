@@ -118,3 +118,4 @@ def create_backend(
 def _load_builtin() -> None:
     # importing registers them; kept lazy so the CAN stack is only imported when used
     from teleop_rt.hal import sim  # noqa: F401
+    from teleop_rt.hal.can import backend  # noqa: F401  (python-can / canopen load on start)

@@ -1,0 +1,595 @@
+"""The CAN backend: one robot's CiA 402 drives in cyclic synchronous torque mode over python-can.
+
+``start()`` opens the robot's bus, runs the canopen start-up (``startup.Startup``: NMT reset,
+drive check, SDO configuration, PDO mapping, NMT start), then cycles SYNC while the robot rests
+with its drives disabled to zero the external-torque sensor, and steps the CiA 402 state
+machine to OPERATION ENABLED. From then on the loop owns the bus; per tick:
+
+* ``read()``: handle the frames that came in since the last window (late TPDOs, EMCY,
+  heartbeats), send SYNC, collect TPDO1 of every drive (position, velocity), TPDO2 where it is
+  due (statusword, torque actual) and the torque sensor's TPDO until all are in or the window
+  (``feedback_window_us`` after SYNC) closes; step each drive's CiA 402 stepper with its
+  latest statusword; check for faults; convert to joint SI units;
+* ``write(tau)``: one RPDO per drive with the stepper's controlword and the target torque
+  (zero unless the drive reports OPERATION ENABLED), and the master's heartbeat when due.
+
+Frames are packed and unpacked with the precompiled structs of ``codec`` into preallocated
+messages (canopen's PDO objects cost about 15 us per access).
+
+Faults end the session with ``SafetyStop`` from ``read()`` or ``write()``, naming the robot,
+joint, drive node and reason: a drive's feedback missing ``missed_feedback_ticks`` (3) ticks in
+a row, an EMCY, a drive heartbeat not seen for ``heartbeat_timeout_ms`` (counted in ticks), a
+statusword that leaves OPERATION ENABLED (fault, quick stop, disabled), a drive leaving NMT
+OPERATIONAL, a CAN error frame or a bus error. ``stop()`` then sends zero torque with quick
+stop until each drive reports SWITCH ON DISABLED, then disable voltage, then NMT
+pre-operational.
+
+Transport: the torque sent after the feedback of SYNC k takes effect at SYNC k+1 (synchronous
+RPDO), one tick later than on the simulated backend, whose ``write`` acts on the state it read.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import TYPE_CHECKING
+
+from teleop_rt.errors import BackendError, ConfigError, SafetyStop
+from teleop_rt.hal.base import Backend, Feedback, register_backend
+from teleop_rt.hal.can import codec
+from teleop_rt.hal.can.config import CanSpec
+from teleop_rt.scalar import assign
+
+if TYPE_CHECKING:
+    import can
+
+    from teleop_rt.config import SessionConfig
+    from teleop_rt.model import RobotModel
+
+_TPDO1, _TPDO2, _EMCY, _HEARTBEAT, _SENSOR = range(5)
+_SOD = "SWITCH ON DISABLED"
+_FAULT_STATES = ("FAULT", "FAULT REACTION ACTIVE")
+
+
+class CanBackend(Backend):
+    """One robot on one CAN bus (see the module docstring).
+
+    Parameters:
+        cfg: the session config; its ``can`` section (defaults if absent) and ``rate_hz``.
+        side: 'hsi' or 'to'.
+        n: the robot's number of joints (one drive each).
+        operator: passed to an in-process emulator (``can.emulate``) like to the sim backend.
+    """
+
+    def __init__(self, cfg: SessionConfig, side: str, n: int, operator: object = None) -> None:
+        super().__init__(n, len(cfg.environment) if side == "to" else 0)
+        spec = cfg.can if cfg.can is not None else CanSpec()
+        side_spec = spec.side(side)
+        key = f"can.{side}"
+        if len(side_spec.drives) != n:
+            raise ConfigError(
+                f"{key}.drives: {len(side_spec.drives)} drive(s) but the robot has {n} joints"
+            )
+        sensor = side_spec.torque_sensor
+        if sensor is not None:
+            scale = sensor.scale_nm if isinstance(sensor.scale_nm, list) else [sensor.scale_nm] * n
+            channels = sensor.channels if sensor.channels is not None else list(range(n))
+            if len(scale) != n or len(channels) != n:
+                raise ConfigError(f"{key}.torque_sensor: needs one scale / channel per joint ({n})")
+            width = max(channels) + 1
+            if width * (2 if sensor.dtype == "int16" else 4) > 8:
+                raise ConfigError(f"{key}.torque_sensor: {width} {sensor.dtype} exceed 8 bytes")
+            import struct
+
+            code = "h" if sensor.dtype == "int16" else "i"
+            self._sensor_layout = struct.Struct("<" + code * width)
+            self._sensor_scale = [float(s) for s in scale]
+            self._sensor_channels = channels
+        self.cfg = cfg
+        self.spec = spec
+        self.side = side
+        self.side_spec = side_spec
+        self.operator = operator
+        self.sensor = sensor
+        self.node_ids = [d.node_id for d in side_spec.drives]
+        self.emulator = None  # the in-process emulator when can.emulate is on
+        self.bus: can.BusABC | None = None
+        self.drive_info: list = []
+        rate = cfg.rate_hz
+        self.period_ns = round(cfg.dt * 1e9)
+        self.window_ns = 0 if spec.emulate else spec.feedback_window_us * 1000
+        self.hb_timeout_ticks = math.ceil(spec.heartbeat_timeout_ms * rate / 1000)
+        self.master_hb_ticks = max(1, round(spec.master_heartbeat_ms * rate / 1000))
+        self.status_every = spec.status_every_sync
+        self.missed_limit = spec.missed_feedback_ticks
+        # per drive, raw feedback and state
+        self._pos = [0] * n
+        self._vel = [0] * n
+        self._sw = [0] * n
+        self._torque_actual = [0] * n
+        self._cw = [0] * n
+        self._miss = [0] * n
+        self._last_hb = [0] * n
+        self._hb_operational = [False] * n  # a drive's heartbeat said OPERATIONAL once
+        self._next_status = [0] * n
+        self._rad_per_count = [0.0] * n
+        self._rad_s_per_unit = [0.0] * n
+        self._offset = [d.zero_offset_rad for d in side_spec.drives]
+        self._units: list[codec.JointUnits] = []
+        self._steppers: list = []
+        self._sensor_raw: list[int] = [0] * (width if sensor is not None else 0)
+        self._sensor_zero = [0.0] * n
+        self._sensor_miss = 0
+        self._routes: dict[int, tuple[int, int]] = {}
+        self._faults: list[str] = []
+        self._got = 0
+        self.tick = 0
+        self.master_hb_tick = -(10**9)  # tick of the master's last heartbeat (first: at once)
+        self.running = False  # the session's ticks (after start-up)
+        self._cyclic = False  # drives are NMT operational and the loop owns the bus
+        self._stopped = False
+        self._faulted = False
+        self._keepalive = None
+        self.stats = {"ticks": 0, "missed_windows": 0, "late_frames": 0, "saturated": 0}
+        self.stop_report: list[str] = []
+
+    # --- start ------------------------------------------------------------------------------
+    def start(self) -> None:
+        from teleop_rt.hal.can.startup import Startup
+
+        self._open_bus()
+        info = Startup(self.bus, self.side, self.side_spec, self.spec, self.cfg.dt).run()
+        self.begin_cyclic(info)
+        if not self.spec.emulate:
+            self._start_keepalive()
+
+    def begin_cyclic(self, info: list, bus: can.BusABC | None = None) -> None:
+        """The cyclic part of ``start`` for drives already configured and NMT operational
+        (``info`` as ``Startup.run`` returns it): zero the sensor, enable. ``bus`` replaces the
+        backend's own (tools measuring the backend without a transport)."""
+        import can
+
+        from teleop_rt.hal.can.cia402 import Cia402Stepper
+
+        if bus is not None:
+            self.bus = bus
+        self.drive_info = info
+        self._units = [d.units for d in info]
+        for i, u in enumerate(self._units):
+            self._rad_per_count[i] = u.counts_to_rad(1)
+            self._rad_s_per_unit[i] = u.velocity_to_rad_s(1)
+        self._steppers = [Cia402Stepper() for _ in info]
+        self._build_routes()
+        self._prepare_messages(can)
+        self._cyclic = True
+        try:
+            self._zero_sensor()
+            self._enable()
+        except SafetyStop:
+            self._latch_fault()
+            raise
+        self.running = True
+
+    def _start_keepalive(self) -> None:
+        """Until the loop's first ``read``, a thread keeps the cycle going (SYNC, zero torque,
+        heartbeats): the drives watch the master's heartbeat and expect SYNC, and the session
+        starts the other robot's drives in between. Faults it sees are raised by ``read``."""
+        import threading
+
+        stop = threading.Event()
+
+        def run() -> None:
+            while not stop.is_set():
+                self._pace()
+                try:
+                    self._cycle()
+                    for i, st in enumerate(self._steppers):
+                        self._cw[i] = st.step(self._sw[i])
+                    self._send_commands(None)
+                except SafetyStop as exc:
+                    self._faults.append(str(exc))
+                    return
+
+        thread = threading.Thread(target=run, name=f"can-{self.side}-keepalive", daemon=True)
+        self._keepalive = (stop, thread)
+        thread.start()
+
+    def _join_keepalive(self) -> None:
+        if self._keepalive is not None:
+            stop, thread = self._keepalive
+            stop.set()
+            thread.join()
+            self._keepalive = None
+
+    def _open_bus(self) -> None:
+        if self.bus is not None:
+            return
+        if self.spec.emulate:
+            from teleop_rt.hal.can.emulator import emulated_bus
+
+            self.bus = emulated_bus(self.cfg, self.side, self.operator)
+            self.emulator = self.bus.emulator
+            return
+        import can
+
+        kwargs = self.side_spec.bus.kwargs()
+        try:
+            self.bus = can.Bus(**kwargs)
+        except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
+            described = ", ".join(f"{k}={v}" for k, v in kwargs.items())
+            raise BackendError(f"can: {self.side} bus ({described}): cannot open: {exc}") from None
+
+    def _build_routes(self) -> None:
+        r = self._routes
+        for i, node in enumerate(self.node_ids):
+            r[codec.tpdo1_cob_id(node)] = (_TPDO1, i)
+            r[codec.tpdo2_cob_id(node)] = (_TPDO2, i)
+            r[codec.emcy_cob_id(node)] = (_EMCY, i)
+            r[codec.heartbeat_cob_id(node)] = (_HEARTBEAT, i)
+        if self.sensor is not None:
+            r[self.sensor.cob_id] = (_SENSOR, 0)
+
+    def _prepare_messages(self, can) -> None:
+        self._sync_msg = can.Message(
+            arbitration_id=codec.COB_ID_SYNC, is_extended_id=False, data=b""
+        )
+        self._rpdo_msgs = [
+            can.Message(
+                arbitration_id=codec.rpdo1_cob_id(node), is_extended_id=False, data=bytearray(4)
+            )
+            for node in self.node_ids
+        ]
+        master = self.spec.master_node_id
+        self._hb_msg = can.Message(
+            arbitration_id=0x700 + master, is_extended_id=False, data=b"\x05"
+        )
+        self._nmt_msg = can.Message(
+            arbitration_id=codec.COB_ID_NMT, is_extended_id=False, data=bytearray(2)
+        )
+        self._can_error = can.CanError
+        self._recv = self.bus.recv
+        self._send_raw = self.bus.send
+        self._next_ns = time.perf_counter_ns()
+
+    def _pace(self) -> None:
+        """Start-up and stop run at the real SYNC period (a drive expects it); not emulated."""
+        if self.spec.emulate:
+            return
+        self._next_ns += self.period_ns
+        delay = self._next_ns - time.perf_counter_ns()
+        if delay > 0:
+            time.sleep(delay / 1e9)
+        else:
+            self._next_ns = time.perf_counter_ns()
+
+    def _zero_sensor(self) -> None:
+        """Drives disabled (faults reset), robot at rest: average the sensor for the offset."""
+        sensor = self.sensor
+        ticks = sensor.zero_ticks if sensor is not None else 0
+        sums = [0.0] * len(self._sensor_raw)
+        count = 0
+        bit = 1 << (2 * self.n)
+        for _ in range(max(ticks, 1)):
+            self._pace()
+            self._cycle()
+            self._check(running=False)
+            for i, st in enumerate(self._steppers):
+                cw = st.step(self._sw[i])
+                self._cw[i] = cw if st.state == "FAULT" else 0x00
+            if sensor is not None and self._got & bit:
+                count += 1
+                for c, x in enumerate(self._sensor_raw):
+                    sums[c] += x
+            self._send_commands(None)
+        if sensor is not None and ticks:
+            if not count:
+                raise SafetyStop(f"can: {self.side} torque sensor 0x{sensor.cob_id:03X}: no data")
+            for j, c in enumerate(self._sensor_channels):
+                self._sensor_zero[j] = sums[c] / count
+
+    def _enable(self) -> None:
+        limit = self.spec.enable_timeout_ticks
+        for _ in range(limit):
+            self._pace()
+            self._cycle()
+            self._check(running=False)
+            done = True
+            for i, st in enumerate(self._steppers):
+                self._cw[i] = st.step(self._sw[i])
+                done = done and st.state == "OPERATION ENABLED"
+            if done:
+                self._fill_feedback()
+                return
+            self._send_commands(None)
+        states = ", ".join(
+            f"node {node}: {st.state}"
+            for node, st in zip(self.node_ids, self._steppers, strict=True)
+        )
+        raise SafetyStop(
+            f"can: {self.side} drives did not reach OPERATION ENABLED within {limit} ticks "
+            f"({states})"
+        )
+
+    # --- the cyclic exchange -------------------------------------------------------------------
+    def _cycle(self) -> None:
+        """Drain, SYNC, collect until everything expected is in or the window closes."""
+        self.tick += 1
+        tick = self.tick
+        recv, on_frame = self._recv, self._on_frame
+        try:
+            while (msg := recv(0.0)) is not None:  # late frames of the last window, EMCY, ...
+                on_frame(msg, False)
+            self._send_raw(self._sync_msg)
+            n = self.n
+            expected = (1 << n) - 1
+            for i in range(n):
+                if tick >= self._next_status[i]:
+                    expected |= 1 << (n + i)
+            if self.sensor is not None:
+                expected |= 1 << (2 * n)
+            self._got = 0
+            deadline = time.perf_counter_ns() + self.window_ns
+            while self._got & expected != expected:
+                remaining = deadline - time.perf_counter_ns()
+                msg = recv(remaining / 1e9 if remaining > 0 else 0.0)
+                if msg is None:
+                    break
+                on_frame(msg, True)
+        except self._can_error as exc:
+            raise SafetyStop(f"can: {self.side} bus error: {exc}") from None
+        got = self._got
+        missed = False
+        for i in range(self.n):
+            if got & (1 << i) and (got & (1 << (n + i)) or not expected & (1 << (n + i))):
+                self._miss[i] = 0
+            else:
+                self._miss[i] += 1
+                missed = True
+        if self.sensor is not None:
+            if got & (1 << (2 * n)):
+                self._sensor_miss = 0
+            else:
+                self._sensor_miss += 1
+                missed = True
+        fb = self.feedback
+        if missed:
+            self.stats["missed_windows"] += 1
+            fb.age_ticks += 1
+        else:
+            fb.age_ticks = 0
+
+    def _on_frame(self, msg: can.Message, fresh: bool) -> None:
+        if msg.is_error_frame:
+            self._faults.append(f"can: {self.side} bus: CAN error frame 0x{msg.arbitration_id:X}")
+            return
+        route = self._routes.get(msg.arbitration_id)
+        if route is None:
+            return  # our own frames (echoed by some interfaces), SDO, other nodes
+        kind, i = route
+        data = msg.data
+        try:
+            if kind == _TPDO1:
+                self._pos[i], self._vel[i] = codec.unpack_tpdo1(data)
+                if fresh:
+                    self._got |= 1 << i
+                else:
+                    self.stats["late_frames"] += 1
+            elif kind == _TPDO2:
+                self._sw[i], self._torque_actual[i] = codec.unpack_tpdo2(data)
+                if fresh:
+                    self._got |= 1 << (self.n + i)
+                self._next_status[i] = self.tick + self.status_every
+            elif kind == _SENSOR:
+                raw = self._sensor_layout.unpack(data)
+                self._sensor_raw[:] = raw
+                if fresh:
+                    self._got |= 1 << (2 * self.n)
+            elif kind == _EMCY:
+                emcy = codec.decode_emcy(data)
+                if not emcy.is_reset:
+                    self._faults.append(f"{self._drive(i)}: {emcy.describe()}")
+            else:
+                self._last_hb[i] = self.tick
+                state = codec.decode_heartbeat(data)
+                if state == "OPERATIONAL":
+                    self._hb_operational[i] = True
+                elif state == "BOOT-UP" or self._hb_operational[i]:
+                    what = "rebooted (boot-up)" if state == "BOOT-UP" else f"NMT state {state}"
+                    self._faults.append(f"{self._drive(i)}: {what}")
+        except (codec.CanFrameError, ValueError) as exc:
+            name = "torque sensor" if kind == _SENSOR else self._drive(i)
+            self._faults.append(f"{name}: malformed frame 0x{msg.arbitration_id:03X}: {exc}")
+
+    def _check(self, running: bool) -> None:
+        """Raise SafetyStop for every fault seen this tick (several are joined)."""
+        faults = self._faults
+        tick = self.tick
+        for i in range(self.n):
+            if self._miss[i] >= self.missed_limit:
+                faults.append(
+                    f"{self._drive(i)}: no feedback (TPDO) for {self._miss[i]} ticks in a row"
+                )
+            if tick - self._last_hb[i] > self.hb_timeout_ticks:
+                faults.append(
+                    f"{self._drive(i)}: heartbeat lost (none for {tick - self._last_hb[i]} ticks, "
+                    f"timeout {self.spec.heartbeat_timeout_ms} ms)"
+                )
+            if running:
+                state = self._steppers[i].state
+                if state != "OPERATION ENABLED":
+                    why = "drive fault" if state in _FAULT_STATES else "left OPERATION ENABLED"
+                    faults.append(
+                        f"{self._drive(i)}: {why} (statusword 0x{self._sw[i]:04X}: {state})"
+                    )
+        if self.sensor is not None and self._sensor_miss >= self.missed_limit:
+            faults.append(
+                f"can: {self.side} torque sensor 0x{self.sensor.cob_id:03X}: no data for "
+                f"{self._sensor_miss} ticks in a row"
+            )
+        if faults:
+            message = "; ".join(dict.fromkeys(faults))
+            faults.clear()
+            raise SafetyStop(message)
+
+    def _drive(self, i: int) -> str:
+        return f"can: {self.side} joint {i} (drive node {self.node_ids[i]})"
+
+    def _send_commands(self, tau) -> None:
+        """One RPDO per drive: the controlword and the target torque (zero unless enabled)."""
+        steppers, pack, send = self._steppers, codec.RPDO1_STRUCT.pack_into, self._send_raw
+        try:
+            for i, msg in enumerate(self._rpdo_msgs):
+                permille = 0
+                if tau is not None and steppers[i].torque_allowed:
+                    permille, saturated = self._units[i].torque_nm_to_permille(tau[i])
+                    if saturated:
+                        self.stats["saturated"] += 1
+                pack(msg.data, 0, self._cw[i], permille)
+                send(msg)
+            if self.tick - self.master_hb_tick >= self.master_hb_ticks:
+                send(self._hb_msg)
+                self.master_hb_tick = self.tick
+        except self._can_error as exc:
+            raise SafetyStop(f"can: {self.side} bus error: {exc}") from None
+        except ValueError as exc:  # a NaN torque: never reaches a drive as a number
+            raise SafetyStop(f"can: {self.side}: {exc}") from None
+
+    def _fill_feedback(self) -> None:
+        fb = self.feedback
+        ql, vl, pos, vel = fb.q_list, fb.v_list, self._pos, self._vel
+        kq, kv, off = self._rad_per_count, self._rad_s_per_unit, self._offset
+        for i in range(self.n):
+            ql[i] = pos[i] * kq[i] + off[i]
+            vl[i] = vel[i] * kv[i]
+        if self.sensor is not None:
+            raw, zero, scale, te = (
+                self._sensor_raw,
+                self._sensor_zero,
+                self._sensor_scale,
+                fb.tau_ext,
+            )
+            for j, c in enumerate(self._sensor_channels):
+                te[j] = (raw[c] - zero[j]) * scale[j]
+        assign(fb.q, ql)
+        assign(fb.v, vl)
+        emu = self.emulator
+        if emu is not None:  # an emulated world: log what it knows, like the sim backend
+            w, ew = self.world, emu.plant.world
+            w.reference[:] = ew.reference
+            w.reference_velocity[:] = ew.reference_velocity
+            w.force[:] = ew.force
+            w.contacts[:] = ew.contacts
+
+    # --- Backend ----------------------------------------------------------------------------------
+    def read(self) -> Feedback:
+        fb = self.feedback
+        if not self._cyclic or self.bus is None:  # not started (or stopped): nothing measured
+            fb.age_ticks = max(fb.age_ticks + 1, self.missed_limit)
+            return fb
+        if self._keepalive is not None:
+            self._join_keepalive()
+        try:
+            self._cycle()
+        except SafetyStop:
+            if self._faulted:  # after the stop: report the sensors unusable, never raise twice
+                fb.age_ticks += 1
+                return fb
+            self._latch_fault()
+            raise
+        steppers, sw, cw = self._steppers, self._sw, self._cw
+        for i in range(self.n):
+            cw[i] = steppers[i].step(sw[i])
+        if self._faulted:
+            self._faults.clear()
+            self._fill_feedback()
+            fb.age_ticks = max(fb.age_ticks, self.missed_limit)
+            return fb
+        try:
+            self._check(running=True)
+        except SafetyStop:
+            self._latch_fault()
+            raise
+        self._fill_feedback()
+        self.stats["ticks"] += 1
+        return fb
+
+    def write(self, tau) -> None:
+        if not self._cyclic or self.bus is None:
+            return
+        try:
+            self._send_commands(None if self._faulted else tau)
+        except SafetyStop:
+            if not self._faulted:
+                self._latch_fault()
+                raise
+
+    def _latch_fault(self) -> None:
+        """This robot raised its SafetyStop: from now on zero torque with quick stop, and
+        ``read`` reports the feedback unusable (``age_ticks``) instead of raising again, so a
+        session's staged stop ends at once with zero torque; ``stop`` then disables."""
+        self._faulted = True
+        for st in self._steppers:
+            st.request_stop()
+        self.feedback.age_ticks = max(self.feedback.age_ticks, self.missed_limit)
+
+    def stop(self) -> None:
+        if self._stopped:
+            return
+        self._stopped = True
+        self.running = False
+        self._join_keepalive()
+        bus = self.bus
+        if bus is None:
+            return
+        try:
+            if self._cyclic:
+                self._stop_drives()
+        finally:
+            self.bus = None
+            bus.shutdown()
+
+    def _stop_drives(self) -> None:
+        """Quick stop with zero torque until SWITCH ON DISABLED (or silent), then disable, then
+        NMT pre-operational. Never raises: what went wrong is kept in ``stop_report``."""
+        for st in self._steppers:
+            st.request_stop()
+        for _ in range(self.spec.stop_ticks):
+            try:
+                self._pace()
+                self._cycle()
+            except SafetyStop as exc:
+                self.stop_report.append(str(exc))
+                break
+            self._faults.clear()
+            done = True
+            for i, st in enumerate(self._steppers):
+                self._cw[i] = st.step(self._sw[i])
+                silent = self._miss[i] >= self.missed_limit
+                if silent:
+                    self._cw[i] = 0x00
+                done = done and (silent or st.state in (_SOD, "FAULT"))
+            try:
+                self._send_commands(None)
+            except SafetyStop as exc:
+                self.stop_report.append(str(exc))
+                break
+            if done:
+                break
+        else:
+            self.stop_report.append(f"can: {self.side}: drives not disabled after stop_ticks")
+        try:
+            self._pace()
+            self._send_raw(self._sync_msg)  # the last (synchronous) RPDO takes effect
+            data = self._nmt_msg.data
+            for node in self.node_ids:
+                data[0], data[1] = 0x80, node  # enter PRE-OPERATIONAL: PDOs off
+                self._send_raw(self._nmt_msg)
+        except self._can_error as exc:
+            self.stop_report.append(f"can: {self.side} bus error at stop: {exc}")
+
+
+@register_backend("can")
+def _make_can(
+    cfg: SessionConfig, side: str, model: RobotModel, operator: object = None
+) -> CanBackend:
+    return CanBackend(cfg, side, model.nv, operator)
