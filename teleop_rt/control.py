@@ -46,6 +46,7 @@ class ComputedTorque:
         self.compensate_friction = compensate_friction
         self.n = model.nv
         self.a_des = np.zeros(model.nv)  # Pinocchio input, preallocated
+        self.a_des_list = [0.0] * model.nv  # the same, for the scalar path (safety tracking)
         self.tau = [0.0] * model.nv
 
     def step(
@@ -59,9 +60,9 @@ class ComputedTorque:
         """Motor torques for the reference acceleration; returns self.tau (updated in place).
 
         q, v (numpy) feed Pinocchio; v_list is the same v as a list for the friction term."""
-        a_des, inv_m = self.a_des, self.inv_mass
+        a_des, a_list, inv_m = self.a_des, self.a_des_list, self.inv_mass
         for j in range(self.n):
-            a_des[j] = a_ref[j] * inv_m[j]
+            a_list[j] = a_des[j] = a_ref[j] * inv_m[j]
         rnea = self.model.rnea(q, v, a_des)
         fric = self.model.friction(v_list) if self.compensate_friction else None
         tau = self.tau

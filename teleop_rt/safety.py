@@ -36,6 +36,22 @@ class RobotLimits:
         ]
         self.velocity = [v if v > 0 else None for v in model.model.velocityLimit.tolist()]
         self.effort = [e if e > 0 else None for e in model.effort_limits.tolist()]
+        # the same as flat lists for the per-tick loop: infinite where there is no limit
+        inf = math.inf
+        self.lo = [b[0] if b else -inf for b in self.position]
+        self.hi = [b[1] if b else inf for b in self.position]
+        self.vmax = [x if x is not None else inf for x in self.velocity]
+        self.emax = [x if x is not None else inf for x in self.effort]
+
+    def disable(self, position: bool, velocity: bool, effort: bool) -> None:
+        """Switch off kinds of checks by making their limits infinite."""
+        n = len(self.lo)
+        if position:
+            self.lo, self.hi = [-math.inf] * n, [math.inf] * n
+        if velocity:
+            self.vmax = [math.inf] * n
+        if effort:
+            self.emax = [math.inf] * n
 
 
 class Tracking:
@@ -77,9 +93,39 @@ class Supervisor:
     def __init__(self, spec: SafetySpec, hsi: RobotModel, to: RobotModel, dt: float = 1e-3) -> None:
         self.spec = spec
         self.limits = {"hsi": RobotLimits(hsi, "hsi"), "to": RobotLimits(to, "to")}
+        for lim in self.limits.values():
+            lim.disable(
+                not spec.position_limits, not spec.velocity_limits, spec.torque_limits == "off"
+            )
         self.tracking = {"hsi": Tracking(hsi.nv, dt), "to": Tracking(to.nv, dt)}
         self.saturated_ticks = 0  # ticks in which at least one torque was saturated
         self.saturated_run = 0  # ... of them in a row, up to this tick
+
+    def step(
+        self,
+        tick: int,
+        hsi: tuple,
+        to: tuple,
+    ) -> None:
+        """All of one tick's checks, in order (the tick path's single call): measurements of
+        both robots, stale feedback and tracking, limits and commands, saturation. ``hsi``
+        and ``to`` are (feedback, measured tau_ext, commanded torque, commanded a)."""
+        if not self.spec.enabled:
+            return
+        fb_h, tau_h, g_h, a_h = hsi
+        fb_t, tau_t, g_t, a_t = to
+        if not math.isfinite(
+            sum(fb_h.q_list) + sum(fb_h.v_list) + sum(tau_h)
+            + sum(fb_t.q_list) + sum(fb_t.v_list) + sum(tau_t)
+        ):  # fmt: skip
+            self.check_measured(tick, "hsi", fb_h.q_list, fb_h.v_list, tau_h)
+            self.check_measured(tick, "to", fb_t.q_list, fb_t.v_list, tau_t)
+        self.check_feedback(tick, "hsi", fb_h.age_ticks, fb_h.v_list, a_h)
+        self.check_feedback(tick, "to", fb_t.age_ticks, fb_t.v_list, a_t)
+        saturated = self.check(tick, "hsi", fb_h.q_list, fb_h.v_list, tau_h, g_h)
+        saturated = self.check(tick, "to", fb_t.q_list, fb_t.v_list, tau_t, g_t) or saturated
+        if saturated or self.saturated_run:
+            self.saturation(tick, saturated)
 
     def check_feedback(
         self, tick: int, name: str, age_ticks: int, v: list[float], a_cmd: list[float]
@@ -124,29 +170,26 @@ class Supervisor:
         tau_ext: list[float],
         tau_cmd: list[float],
     ) -> bool:
-        """Check one robot's tick; saturate tau_cmd in place. True if it saturated."""  # fmt: skip
+        """Check one robot's limits and its commands (its measurements were checked by
+        ``check_measured``); saturate tau_cmd in place. True if it saturated."""
         if not self.spec.enabled:
             return False
-        if not math.isfinite(sum(q) + sum(v) + sum(tau_ext) + sum(tau_cmd)):
-            self._non_finite(tick, name, q, v, tau_ext, tau_cmd)
         lim = self.limits[name]
-        if self.spec.position_limits:
-            for j, bounds in enumerate(lim.position):
-                if bounds is not None and not bounds[0] <= q[j] <= bounds[1]:
-                    self._stop(tick, name, j, f"angle {q[j]:.4g} rad outside [{bounds[0]:g}, "
-                               f"{bounds[1]:g}]")  # fmt: skip
-        if self.spec.velocity_limits:
-            for j, vmax in enumerate(lim.velocity):
-                if vmax is not None and abs(v[j]) > vmax:
-                    self._stop(tick, name, j, f"speed {v[j]:.4g} rad/s above {vmax:g}")
+        lo, hi, vmax, emax = lim.lo, lim.hi, lim.vmax, lim.emax
         saturated = False
-        if self.spec.torque_limits != "off":
-            for j, emax in enumerate(lim.effort):
-                if emax is not None and abs(tau_cmd[j]) > emax:
-                    if self.spec.torque_limits == "stop":
-                        self._stop(tick, name, j, f"torque {tau_cmd[j]:.4g} N m above {emax:g}")
-                    tau_cmd[j] = emax if tau_cmd[j] > 0 else -emax
-                    saturated = True
+        for j in range(len(q)):
+            if not lo[j] <= q[j] <= hi[j]:
+                self._stop(tick, name, j, f"angle {q[j]:.4g} rad outside [{lo[j]:g}, {hi[j]:g}]")
+            if not -vmax[j] <= v[j] <= vmax[j]:
+                self._stop(tick, name, j, f"speed {v[j]:.4g} rad/s above {vmax[j]:g}")
+            c = tau_cmd[j]
+            if not -emax[j] <= c <= emax[j]:  # also NaN
+                if c != c:
+                    self._stop(tick, name, j, "commanded torque is nan")
+                if self.spec.torque_limits == "stop":
+                    self._stop(tick, name, j, f"torque {c:.4g} N m above {emax[j]:g}")
+                tau_cmd[j] = emax[j] if c > 0 else -emax[j]
+                saturated = True
         return saturated
 
     def saturation(self, tick: int, saturated: bool) -> None:

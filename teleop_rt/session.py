@@ -146,15 +146,11 @@ class Session:
         a_ref_t = to.controller.step(err_t)
         g_h = hsi.computed_torque.step(fb_h.q, fb_h.v, a_ref_h, tau_h, v_h)
         g_t = to.computed_torque.step(fb_t.q, fb_t.v, a_ref_t, tau_ext_t, v_t)
-        sup, k = self.supervisor, self.tick  # step 7: nothing unchecked reaches a motor
-        sup.check_measured(k, "hsi", fb_h.q_list, v_h, tau_h)
-        sup.check_measured(k, "to", fb_t.q_list, v_t, tau_ext_t)
-        sup.check_feedback(k, "hsi", fb_h.age_ticks, v_h, hsi.computed_torque.a_des.tolist())
-        sup.check_feedback(k, "to", fb_t.age_ticks, v_t, to.computed_torque.a_des.tolist())
-        sup.saturation(
-            k,
-            sup.check(k, "hsi", fb_h.q_list, v_h, tau_h, g_h)
-            | sup.check(k, "to", fb_t.q_list, v_t, tau_ext_t, g_t),
+        # step 7, safety: nothing unchecked reaches a motor (may saturate g_h, g_t in place)
+        self.supervisor.step(
+            self.tick,
+            (fb_h, tau_h, g_h, hsi.computed_torque.a_des_list),
+            (fb_t, tau_ext_t, g_t, to.computed_torque.a_des_list),
         )
         hsi.backend.write(g_h)
         to.backend.write(g_t)

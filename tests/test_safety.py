@@ -28,7 +28,11 @@ def supervisor(**spec) -> Supervisor:
 def test_non_finite_measurement_is_a_stop_naming_robot_and_joint() -> None:
     sup = supervisor()
     with pytest.raises(SafetyStop, match=r"^tick 7: to joint 1 \(elbow\): measured torque is nan"):
-        sup.check(7, "to", [0.0, 1.0], [0.0, 0.0], [0.0, float("nan")], [0.0, 0.0])
+        sup.check_measured(7, "to", [0.0, 1.0], [0.0, 0.0], [0.0, float("nan")])
+    with pytest.raises(
+        SafetyStop, match=r"^tick 8: hsi joint 0 \(shoulder\): commanded torque is nan"
+    ):
+        sup.check(8, "hsi", [0.0, 1.0], [0.0, 0.0], [0.0, 0.0], [float("nan"), 0.0])
 
 
 def test_limits_from_the_urdf() -> None:
