@@ -36,8 +36,9 @@ class LogPathError(TeleopError):
     exit_code = 2
 
 
-def default_log_path(name: str, directory: Path = DEFAULT_LOG_DIR) -> Path:
+def default_log_path(name: str, directory: Path | None = None) -> Path:
     """logs/<name>-<UTC timestamp>.mcap; a numbered suffix if that exists (never overwrites)."""
+    directory = DEFAULT_LOG_DIR if directory is None else directory
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
     path = directory / f"{name}-{stamp}.mcap"
     i = 1
