@@ -43,6 +43,13 @@ class RobotLimits:
         self.vmax = [x if x is not None else inf for x in self.velocity]
         self.emax = [x if x is not None else inf for x in self.effort]
 
+    def clamp_effort(self, tau: list[float]) -> None:
+        """Clamp torques in place to the URDF effort limits (whatever the safety spec says:
+        the safe-stop reaction uses it)."""
+        for j, emax in enumerate(self.effort):
+            if emax is not None:
+                tau[j] = min(max(tau[j], -emax), emax)
+
     def disable(self, position: bool, velocity: bool, effort: bool) -> None:
         """Switch off kinds of checks by making their limits infinite."""
         n = len(self.lo)

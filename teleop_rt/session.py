@@ -122,10 +122,6 @@ class Session:
         self.metrics = TransparencyAccumulator(n, self.dt)
         self.supervisor = Supervisor(cfg.safety, self.hsi.model, self.to.model, self.dt)
 
-    @property
-    def time_s(self) -> float:
-        return self.tick * self.dt
-
     def step(self) -> None:
         """One control tick: read, channel, controllers, computed torque, write."""
         hsi, to, ch, n = self.hsi, self.to, self.channel, self.n
@@ -219,8 +215,9 @@ class Session:
             self.to.backend.stop()
             if grant:
                 grant.release()
-            summary = self._summary(stats, clock, realtime, notes, wall_start, stop, error)
-            summary.safety_stop = safety_stop
+            summary = self._summary(
+                stats, clock, realtime, notes, wall_start, stop, error, safety_stop
+            )
             if recorder is not None:
                 recorder.close(summary.to_dict())
         if progress is not None:
@@ -253,17 +250,17 @@ class Session:
             ]
             a_t = [-gains[j] * fb_t.v_list[j] for j in range(self.n)]
             g_t = to.computed_torque.step(fb_t.q, fb_t.v, a_t, list(fb_t.tau_ext), fb_t.v_list)
-            for name, g in (("hsi", g_h), ("to", g_t)):
-                for j, emax in enumerate(limits[name].effort):
-                    if emax is not None:
-                        g[j] = min(max(g[j], -emax), emax)
+            limits["hsi"].clamp_effort(g_h)
+            limits["to"].clamp_effort(g_t)
             hsi.backend.write(g_h)
             to.backend.write(g_t)
             if max(abs(x) for x in fb_t.v_list) < 1e-3:
                 return f"TO at rest after {i + 1} ticks, then zero torque"
         return f"TO not at rest after {spec.stop_max_ticks} ticks; zero torque"
 
-    def _summary(self, stats, clock, realtime, notes, wall_start, stop, error) -> Summary:
+    def _summary(
+        self, stats, clock, realtime, notes, wall_start, stop, error, safety_stop
+    ) -> Summary:
         timing = stats.summary()
         timing["wall_s"] = (time.perf_counter_ns() - wall_start) / 1e9
         if realtime and clock.skipped:
@@ -283,5 +280,6 @@ class Session:
             notes=notes,
             stopped_early=stopped,
             stop_signal=stop.signum,
+            safety_stop=safety_stop,
             saturated_ticks=self.supervisor.saturated_ticks,
         )

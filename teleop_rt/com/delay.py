@@ -31,8 +31,3 @@ class DelayLine:
     def sum_of_squares(self) -> float:
         """Sum over all buffered samples and components of x^2 (wave energy bookkeeping)."""
         return sum(x * x for row in self.buffer for x in row)
-
-    def reset(self) -> None:
-        for row in self.buffer:
-            row[:] = [0.0] * len(row)
-        self._slot = 0
