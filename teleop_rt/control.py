@@ -28,6 +28,7 @@ import numpy as np
 
 from teleop_rt.config import ControllerSpec, per_joint
 from teleop_rt.model import RobotModel
+from teleop_rt.scalar import shared_vector
 
 
 class ComputedTorque:
@@ -45,7 +46,7 @@ class ComputedTorque:
         self.inv_mass = [1.0 / float(m) for m in virtual_mass]
         self.compensate_friction = compensate_friction
         self.n = model.nv
-        self.a_des = np.zeros(model.nv)  # Pinocchio input, preallocated
+        self.a_des, self._a_des_view = shared_vector(model.nv)  # Pinocchio input
         self.a_des_list = [0.0] * model.nv  # the same, for the scalar path (safety tracking)
         self.tau = [0.0] * model.nv
 
@@ -60,14 +61,18 @@ class ComputedTorque:
         """Motor torques for the reference acceleration; returns self.tau (updated in place).
 
         q, v (numpy) feed Pinocchio; v_list is the same v as a list for the friction term."""
-        a_des, a_list, inv_m = self.a_des, self.a_des_list, self.inv_mass
+        a_des, a_list, inv_m = self._a_des_view, self.a_des_list, self.inv_mass
         for j in range(self.n):
             a_list[j] = a_des[j] = a_ref[j] * inv_m[j]
-        rnea = self.model.rnea(q, v, a_des)
-        fric = self.model.friction(v_list) if self.compensate_friction else None
+        rnea = self.model.rnea(q, v, self.a_des)
         tau = self.tau
-        for j in range(self.n):
-            tau[j] = rnea[j] - tau_ext[j] + (fric[j] if fric is not None else 0.0)
+        if self.compensate_friction:
+            fric = self.model.friction(v_list)
+            for j in range(self.n):
+                tau[j] = rnea[j] - tau_ext[j] + fric[j]
+        else:
+            for j in range(self.n):
+                tau[j] = rnea[j] - tau_ext[j]
         return tau
 
 
@@ -90,6 +95,7 @@ class Pid:
         self.has_d = any(self.kd)
         self.integral_limit = per_joint(spec.integral_limit, n, f"{key}.integral_limit")
         self.output_limit = per_joint(spec.output_limit, n, f"{key}.output_limit")
+        self.proportional_only = not (self.has_i or self.has_d or self.output_limit)
         self.dt = dt
         # filtered derivative: d_k = a d_{k-1} + (1 - a) (e_k - e_{k-1}) / dt
         self.d_alpha = spec.derivative_filter_s / (spec.derivative_filter_s + dt)
@@ -109,7 +115,7 @@ class Pid:
     def step(self, error: list[float]) -> list[float]:
         """Controller output for this tick's error; returns self.out (updated in place)."""
         out, kp = self.out, self.kp
-        if not (self.has_i or self.has_d or self.output_limit):
+        if self.proportional_only:
             for j in range(self.n):
                 out[j] = kp[j] * error[j]
             return out

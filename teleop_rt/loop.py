@@ -12,9 +12,12 @@ Overrun policy, applied when a tick's work ends after the next deadline:
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import gc
 import os
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -24,6 +27,7 @@ import numpy as np
 from teleop_rt.errors import SafetyStop
 
 OVERRUN_POLICIES = ("catch_up", "skip", "stop")
+MCL_CURRENT, MCL_FUTURE = 1, 2  # <sys/mman.h>
 
 
 class OverrunStop(SafetyStop):
@@ -91,11 +95,15 @@ class TickClock:
 
 
 class TimingStats:
-    """Per-tick compute time and lateness in preallocated arrays; summary in microseconds."""
+    """Per-tick compute time and lateness in preallocated arrays; summary in microseconds.
 
-    def __init__(self, capacity: int) -> None:
+    ``period_ns`` (when known) lets the summary count ticks that started later than a whole
+    period (the deadline of the following tick had already passed)."""
+
+    def __init__(self, capacity: int, period_ns: int | None = None) -> None:
         self.compute_ns = np.zeros(capacity, dtype=np.int64)
         self.lateness_ns = np.zeros(capacity, dtype=np.int64)
+        self.period_ns = period_ns
         self.count = 0
         self.missed = 0
 
@@ -109,21 +117,27 @@ class TimingStats:
 
     def summary(self) -> dict:
         n = self.count
-        out = {"ticks": n, "missed_deadlines": self.missed}
-        for name, arr in (
-            ("compute_us", self.compute_ns[:n]),
-            ("lateness_us", self.lateness_ns[:n]),
-        ):
+        late = self.lateness_ns[:n]
+        out: dict = {"ticks": n, "missed_deadlines": self.missed}
+        if self.period_ns is not None:
+            out["late_over_period"] = int(np.count_nonzero(late > self.period_ns))
+        for name, arr in (("compute_us", self.compute_ns[:n]), ("lateness_us", late)):
             if n:
-                p50, p99 = np.percentile(arr, [50, 99])
+                p50, p99, p999 = np.percentile(arr, [50, 99, 99.9])
                 out[name] = {
                     "p50": float(p50) / 1e3,
                     "p99": float(p99) / 1e3,
+                    "p99.9": float(p999) / 1e3,
                     "max": float(arr.max()) / 1e3,
                 }
             else:
-                out[name] = {"p50": 0.0, "p99": 0.0, "max": 0.0}
+                out[name] = {"p50": 0.0, "p99": 0.0, "p99.9": 0.0, "max": 0.0}
         return out
+
+
+def format_percentiles(stat: dict) -> str:
+    """One line of a summary's percentiles (microseconds), as the summary and metrics print."""
+    return "  ".join(f"{key} {stat[key]:.1f}" for key in ("p50", "p99", "p99.9", "max"))
 
 
 @dataclass
@@ -133,6 +147,8 @@ class RealtimeGrant:
     notes: list[str]
     gc_was_enabled: bool
     old_policy: tuple[int, int] | None = None
+    old_affinity: set[int] | None = None
+    memory_locked: bool = False
 
     def release(self) -> None:
         if self.gc_was_enabled:
@@ -143,10 +159,24 @@ class RealtimeGrant:
                 os.sched_setscheduler(0, policy, os.sched_param(prio))
             except OSError:
                 pass
+        if self.old_affinity is not None:
+            try:
+                os.sched_setaffinity(0, self.old_affinity)
+            except OSError:
+                pass
+        if self.memory_locked:
+            _libc().munlockall()
 
 
-def acquire_realtime(priority: int = 80) -> RealtimeGrant:
-    """Ask for SCHED_FIFO and stop the garbage collector during the loop; report what worked."""
+def _libc() -> ctypes.CDLL:
+    return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+
+
+def acquire_realtime(priority: int = 80, cpu: int | None = -1) -> RealtimeGrant:
+    """Ask the OS for what a 1 kHz loop needs and report what worked: SCHED_FIFO, one CPU of
+    its own (``cpu``: an index into the allowed CPUs, -1 the last one, so the log writer and the
+    OS keep the others; None leaves the affinity alone), memory locked against page faults
+    (mlockall), and the garbage collector frozen for the loop."""
     notes: list[str] = []
     old = None
     if hasattr(os, "sched_setscheduler"):
@@ -162,12 +192,45 @@ def acquire_realtime(priority: int = 80) -> RealtimeGrant:
             )
     else:  # pragma: no cover - non-Linux
         notes.append("SCHED_FIFO is not available on this OS; default scheduler")
+    old_affinity = _pin_cpu(cpu, notes)
+    locked = _lock_memory(notes)
     gc_enabled = gc.isenabled()
     gc.collect()
     gc.freeze()
     gc.disable()
     notes.append("garbage collector frozen for the loop")
-    return RealtimeGrant(notes, gc_enabled, old)
+    return RealtimeGrant(notes, gc_enabled, old, old_affinity, locked)
+
+
+def _pin_cpu(cpu: int | None, notes: list[str]) -> set[int] | None:
+    if cpu is None or not hasattr(os, "sched_setaffinity"):
+        return None
+    allowed = sorted(os.sched_getaffinity(0))
+    if len(allowed) < 2:
+        notes.append(f"CPU affinity left as is (only CPU {allowed} allowed)")
+        return None
+    target = allowed[cpu]
+    try:
+        os.sched_setaffinity(0, {target})
+    except OSError as err:
+        notes.append(f"CPU affinity not granted ({err.strerror or err})")
+        return None
+    notes.append(f"pinned to CPU {target} of {allowed}")
+    return set(allowed)
+
+
+def _lock_memory(notes: list[str]) -> bool:
+    if not sys.platform.startswith("linux"):  # pragma: no cover - non-Linux
+        return False
+    if _libc().mlockall(MCL_CURRENT | MCL_FUTURE) != 0:
+        err = ctypes.get_errno()
+        notes.append(
+            f"memory not locked (mlockall: {os.strerror(err)}; raise RLIMIT_MEMLOCK): page "
+            "faults may add latency"
+        )
+        return False
+    notes.append("memory locked (mlockall)")
+    return True
 
 
 class StopSignals:

@@ -102,12 +102,14 @@ class RobotModel:
 
     # --- kinematics -----------------------------------------------------------------------
     def update_ee(self, q: np.ndarray, v: list[float]) -> None:
-        """Fill ee_pos, ee_vel (world frame, m and m/s) and ee_jac (3 x nv) at (q, v)."""
+        """Fill ee_pos, ee_vel (world frame, m and m/s) and ee_jac (3 x nv) at (q, v).
+
+        One Pinocchio call: computeFrameJacobian runs the forward kinematics and also updates
+        data.oMf of the frame, which ``_ee_translation`` views."""
         jac = pin.computeFrameJacobian(
             self.model, self.data, q, self.ee_frame_id, pin.LOCAL_WORLD_ALIGNED
         )
-        pin.updateFramePlacement(self.model, self.data, self.ee_frame_id)
-        rows = jac.reshape(6, self.nv).tolist()  # (a 1-DoF Jacobian comes back flat)
+        rows = jac.tolist() if self.nv > 1 else [[x] for x in jac.tolist()]  # 1 DoF: flat
         self.ee_jac = rows
         self.ee_pos[:] = self._ee_translation.tolist()
         jx, jy, jz = rows[0], rows[1], rows[2]

@@ -9,6 +9,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from teleop_rt.loop import format_percentiles
 from teleop_rt.session import Summary
 
 
@@ -56,15 +57,14 @@ def print_summary(summary: Summary, console: Console | None = None) -> None:
     )
     timing = summary.timing
     comp, late = timing["compute_us"], timing["lateness_us"]
-    table.add_row(
-        "tick compute (us)", f"p50 {comp['p50']:.1f}  p99 {comp['p99']:.1f}  max {comp['max']:.1f}"
-    )
+    table.add_row("tick compute (us)", format_percentiles(comp))
     if summary.realtime:
+        table.add_row("deadline lateness (us)", format_percentiles(late))
         table.add_row(
-            "deadline lateness (us)",
-            f"p50 {late['p50']:.1f}  p99 {late['p99']:.1f}  max {late['max']:.1f}",
+            "missed deadlines",
+            f"{timing['missed_deadlines']} (ticks started over a period late: "
+            f"{timing.get('late_over_period', 0)})",
         )
-        table.add_row("missed deadlines", str(timing["missed_deadlines"]))
     else:
         rtf = 1e6 * summary.simulated_time_s / max(timing.get("wall_s", 0.0) * 1e6, 1e-9)
         table.add_row("mode", f"fast ({rtf:.0f}x real time)")

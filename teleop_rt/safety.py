@@ -20,6 +20,7 @@ import math
 
 from teleop_rt.config import SafetySpec
 from teleop_rt.errors import SafetyStop
+from teleop_rt.hal.base import Feedback
 from teleop_rt.model import RobotModel
 
 
@@ -61,37 +62,100 @@ class RobotLimits:
             self.emax = [math.inf] * n
 
 
-class Tracking:
-    """Does a joint follow its commanded virtual dynamics? Under computed torque the measured
-    acceleration (v[k] - v[k-1]) / dt equals the one commanded at k-1 (eq 3 / 13); a
-    saturated or blocked actuator, or a wrong model, breaks that."""
+class RobotGuard:
+    """All of one robot's per-tick checks in one pass over its joints: limits, commands and
+    tracking.
 
-    def __init__(self, n: int, dt: float) -> None:
+    Tracking: under computed torque the measured acceleration (v[k] - v[k-1]) / dt equals the
+    one commanded at k-1 (eq 3 / 13); a saturated or blocked actuator, or a wrong model,
+    breaks that for ``tracking_error_ticks`` ticks in a row."""
+
+    def __init__(self, spec: SafetySpec, model: RobotModel, name: str, dt: float) -> None:
+        self.name = name
+        self.limits = RobotLimits(model, name)
+        self.limits.disable(
+            not spec.position_limits, not spec.velocity_limits, spec.torque_limits == "off"
+        )
+        self.stop_on_torque = spec.torque_limits == "stop"
+        self.stale_ticks = spec.stale_ticks
+        self.tolerance = spec.tracking_error_rad_s2
+        self.tracking_ticks = spec.tracking_error_ticks
         self.inv_dt = 1.0 / dt
-        self.valid = False  # prev_v holds a fresh velocity
+        n = model.nv
+        self.tracking_valid = False  # prev_v holds a fresh velocity
         self.prev_v = [0.0] * n
         self.prev_a = [0.0] * n
-        self.run = [0] * n  # ticks in a row above the tolerance
+        self.run = [0] * n  # ticks in a row above the tracking tolerance
 
-    def update(self, v: list[float], a_cmd: list[float], tolerance: float) -> int | None:
-        """Record this tick; return the joint that missed (over ``tolerance``), or None."""
-        worst = None
-        if self.valid:
-            prev_v, prev_a, run, inv_dt = self.prev_v, self.prev_a, self.run, self.inv_dt
-            longest = -1
-            for j, vj in enumerate(v):
+    def check_measured(
+        self, tick: int, q: list[float], v: list[float], tau_ext: list[float]
+    ) -> None:
+        """Finite measurements (checked for both robots before any command is looked at, so a
+        stop names the sensor at fault, not the command it poisoned through the channel)."""
+        if not math.isfinite(sum(q) + sum(v) + sum(tau_ext)):
+            for signal, values in (("angle", q), ("speed", v), ("measured torque", tau_ext)):
+                for j, x in enumerate(values):
+                    if not math.isfinite(x):
+                        self.stop(tick, j, f"{signal} is {x}")
+
+    def check(self, tick: int, fb: Feedback, tau_cmd: list[float], a_cmd: list[float]) -> bool:
+        """Stale feedback, limits, commands and tracking; saturates tau_cmd in place. True if a
+        torque was saturated. a_cmd: the acceleration commanded this tick."""
+        q, v = fb.q_list, fb.v_list
+        track = self.tracking_ticks > 0
+        if fb.age_ticks:
+            self.tracking_valid = track = False  # no fresh velocity: nothing to compare
+            if fb.age_ticks >= self.stale_ticks:
+                raise SafetyStop(
+                    f"tick {tick}: {self.name} feedback stale for {fb.age_ticks} ticks "
+                    "(sensor dropout)"
+                )
+        lim = self.limits
+        lo, hi, vmax, emax = lim.lo, lim.hi, lim.vmax, lim.emax
+        prev_v, prev_a, run = self.prev_v, self.prev_a, self.run
+        compare = track and self.tracking_valid
+        tol, inv_dt = self.tolerance, self.inv_dt
+        saturated = False
+        for j in range(len(q)):
+            if not lo[j] <= q[j] <= hi[j]:
+                self.stop(tick, j, f"angle {q[j]:.4g} rad outside [{lo[j]:g}, {hi[j]:g}]")
+            vj = v[j]
+            if not -vmax[j] <= vj <= vmax[j]:
+                self.stop(tick, j, f"speed {vj:.4g} rad/s above {vmax[j]:g}")
+            if compare:
                 error = (vj - prev_v[j]) * inv_dt - prev_a[j]
-                r = run[j] + 1 if (error > tolerance or error < -tolerance) else 0
-                run[j] = r
-                if r > longest:
-                    worst, longest = j, r
-        self.prev_v[:] = v
-        self.prev_a[:] = a_cmd
-        self.valid = True
-        return worst
+                if error > tol or error < -tol:
+                    run[j] += 1
+                    if run[j] >= self.tracking_ticks:
+                        self.stop(tick, j, self._tracking_reason())
+                else:
+                    run[j] = 0
+            c = tau_cmd[j]
+            if not -emax[j] <= c <= emax[j]:  # also NaN
+                if c != c:
+                    self.stop(tick, j, "commanded torque is nan")
+                if self.stop_on_torque:
+                    self.stop(tick, j, f"torque {c:.4g} N m above {emax[j]:g}")
+                tau_cmd[j] = emax[j] if c > 0 else -emax[j]
+                saturated = True
+        if track:
+            prev_v[:] = v
+            prev_a[:] = a_cmd
+            self.tracking_valid = True
+        return saturated
 
-    def reset(self) -> None:
-        self.valid = False
+    def _tracking_reason(self) -> str:
+        return (
+            f"does not follow its commanded acceleration (off by more than "
+            f"{self.tolerance:g} rad/s^2 for {self.tracking_ticks} ticks: saturated or "
+            "blocked actuator)"
+        )
+
+    def stop(self, tick: int, joint: int, what: str) -> None:
+        """Raise the SafetyStop naming the tick, this robot and the joint."""
+        raise SafetyStop(
+            f"tick {tick}: {self.name} joint {joint} ({self.limits.joint_names[joint]}): {what}"
+        )
 
 
 class Supervisor:
@@ -99,105 +163,44 @@ class Supervisor:
 
     def __init__(self, spec: SafetySpec, hsi: RobotModel, to: RobotModel, dt: float = 1e-3) -> None:
         self.spec = spec
-        self.limits = {"hsi": RobotLimits(hsi, "hsi"), "to": RobotLimits(to, "to")}
-        for lim in self.limits.values():
-            lim.disable(
-                not spec.position_limits, not spec.velocity_limits, spec.torque_limits == "off"
-            )
-        self.tracking = {"hsi": Tracking(hsi.nv, dt), "to": Tracking(to.nv, dt)}
+        self.enabled = spec.enabled
+        self.guards = {
+            "hsi": RobotGuard(spec, hsi, "hsi", dt),
+            "to": RobotGuard(spec, to, "to", dt),
+        }
+        self.limits = {name: guard.limits for name, guard in self.guards.items()}
         self.saturated_ticks = 0  # ticks in which at least one torque was saturated
         self.saturated_run = 0  # ... of them in a row, up to this tick
 
     def step(
         self,
         tick: int,
-        hsi: tuple,
-        to: tuple,
+        fb_h: Feedback,
+        tau_h: list[float],
+        g_h: list[float],
+        a_h: list[float],
+        fb_t: Feedback,
+        tau_t: list[float],
+        g_t: list[float],
+        a_t: list[float],
     ) -> None:
         """All of one tick's checks, in order (the tick path's single call): measurements of
-        both robots, stale feedback and tracking, limits and commands, saturation. ``hsi``
-        and ``to`` are (feedback, measured tau_ext, commanded torque, commanded a)."""
-        if not self.spec.enabled:
+        both robots, then per robot stale feedback, limits, commands and tracking, then
+        saturation. For each robot: feedback, measured tau_ext, commanded torque (saturated in
+        place), commanded acceleration."""
+        if not self.enabled:
             return
-        fb_h, tau_h, g_h, a_h = hsi
-        fb_t, tau_t, g_t, a_t = to
+        guard_h, guard_t = self.guards["hsi"], self.guards["to"]
         if not math.isfinite(
             sum(fb_h.q_list) + sum(fb_h.v_list) + sum(tau_h)
             + sum(fb_t.q_list) + sum(fb_t.v_list) + sum(tau_t)
         ):  # fmt: skip
-            self.check_measured(tick, "hsi", fb_h.q_list, fb_h.v_list, tau_h)
-            self.check_measured(tick, "to", fb_t.q_list, fb_t.v_list, tau_t)
-        self.check_feedback(tick, "hsi", fb_h.age_ticks, fb_h.v_list, a_h)
-        self.check_feedback(tick, "to", fb_t.age_ticks, fb_t.v_list, a_t)
-        saturated = self.check(tick, "hsi", fb_h.q_list, fb_h.v_list, tau_h, g_h)
-        saturated = self.check(tick, "to", fb_t.q_list, fb_t.v_list, tau_t, g_t) or saturated
+            guard_h.check_measured(tick, fb_h.q_list, fb_h.v_list, tau_h)
+            guard_t.check_measured(tick, fb_t.q_list, fb_t.v_list, tau_t)
+        saturated = guard_h.check(tick, fb_h, g_h, a_h)
+        saturated = guard_t.check(tick, fb_t, g_t, a_t) or saturated
         if saturated or self.saturated_run:
             self.saturation(tick, saturated)
-
-    def check_feedback(
-        self, tick: int, name: str, age_ticks: int, v: list[float], a_cmd: list[float]
-    ) -> None:
-        """Stale sensors; a joint not following its commanded acceleration (last tick's)."""
-        if not self.spec.enabled:
-            return
-        tracking = self.tracking[name]
-        if age_ticks:
-            tracking.reset()  # no fresh velocity: nothing to compare
-            if age_ticks >= self.spec.stale_ticks:
-                raise SafetyStop(
-                    f"tick {tick}: {name} feedback stale for {age_ticks} ticks (sensor dropout)"
-                )
-            return
-        ticks = self.spec.tracking_error_ticks
-        if not ticks:
-            return
-        j = tracking.update(v, a_cmd, self.spec.tracking_error_rad_s2)
-        if j is not None and tracking.run[j] >= ticks:
-            self._stop(
-                tick, name, j,
-                f"does not follow its commanded acceleration (off by more than "
-                f"{self.spec.tracking_error_rad_s2:g} rad/s^2 for {ticks} ticks: saturated or "
-                "blocked actuator)",
-            )  # fmt: skip
-
-    def check_measured(
-        self, tick: int, name: str, q: list[float], v: list[float], tau_ext: list[float]
-    ) -> None:
-        """Finite measurements: checked for both robots before any command is looked at, so a
-        stop names the sensor at fault, not the command it poisoned through the channel."""
-        if self.spec.enabled and not math.isfinite(sum(q) + sum(v) + sum(tau_ext)):
-            self._non_finite(tick, name, q, v, tau_ext, [])
-
-    def check(
-        self,
-        tick: int,
-        name: str,
-        q: list[float],
-        v: list[float],
-        tau_ext: list[float],
-        tau_cmd: list[float],
-    ) -> bool:
-        """Check one robot's limits and its commands (its measurements were checked by
-        ``check_measured``); saturate tau_cmd in place. True if it saturated."""
-        if not self.spec.enabled:
-            return False
-        lim = self.limits[name]
-        lo, hi, vmax, emax = lim.lo, lim.hi, lim.vmax, lim.emax
-        saturated = False
-        for j in range(len(q)):
-            if not lo[j] <= q[j] <= hi[j]:
-                self._stop(tick, name, j, f"angle {q[j]:.4g} rad outside [{lo[j]:g}, {hi[j]:g}]")
-            if not -vmax[j] <= v[j] <= vmax[j]:
-                self._stop(tick, name, j, f"speed {v[j]:.4g} rad/s above {vmax[j]:g}")
-            c = tau_cmd[j]
-            if not -emax[j] <= c <= emax[j]:  # also NaN
-                if c != c:
-                    self._stop(tick, name, j, "commanded torque is nan")
-                if self.spec.torque_limits == "stop":
-                    self._stop(tick, name, j, f"torque {c:.4g} N m above {emax[j]:g}")
-                tau_cmd[j] = emax[j] if c > 0 else -emax[j]
-                saturated = True
-        return saturated
 
     def saturation(self, tick: int, saturated: bool) -> None:
         """Count saturated ticks; stop when they last ``saturation_stop_ticks`` in a row."""
@@ -212,14 +215,3 @@ class Supervisor:
                 f"tick {tick}: a motor torque has been at its effort limit for {limit} ticks "
                 "in a row (unstable loop or blocked joint)"
             )
-
-    def _non_finite(self, tick, name, q, v, tau_ext, tau_cmd) -> None:
-        for signal, values in (("angle", q), ("speed", v), ("measured torque", tau_ext),
-                               ("commanded torque", tau_cmd)):  # fmt: skip
-            for j, x in enumerate(values):
-                if not math.isfinite(x):
-                    self._stop(tick, name, j, f"{signal} is {x}")
-
-    def _stop(self, tick: int, name: str, joint: int, what: str) -> None:
-        joint_name = self.limits[name].joint_names[joint]
-        raise SafetyStop(f"tick {tick}: {name} joint {joint} ({joint_name}): {what}")

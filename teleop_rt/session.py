@@ -145,9 +145,9 @@ class Session:
         # step 7, safety: nothing unchecked reaches a motor (may saturate g_h, g_t in place)
         self.supervisor.step(
             self.tick,
-            (fb_h, tau_h, g_h, hsi.computed_torque.a_des_list),
-            (fb_t, tau_ext_t, g_t, to.computed_torque.a_des_list),
-        )
+            fb_h, tau_h, g_h, hsi.computed_torque.a_des_list,
+            fb_t, tau_ext_t, g_t, to.computed_torque.a_des_list,
+        )  # fmt: skip
         hsi.backend.write(g_h)
         to.backend.write(g_t)
         self.metrics.add(fb_h.q_list, fb_t.q_list, tau_h, tau_e)
@@ -171,8 +171,9 @@ class Session:
         log still holds every completed tick.
         """
         total = self.cfg.n_ticks if ticks is None else ticks
-        stats = TimingStats(total)
-        clock = TickClock(int(round(self.dt * 1e9)), realtime, overrun)
+        period_ns = int(round(self.dt * 1e9))
+        stats = TimingStats(total, period_ns)
+        clock = TickClock(period_ns, realtime, overrun)
         grant = acquire_realtime() if realtime else None
         notes = list(grant.notes) if grant else []
         stop = StopSignals()

@@ -103,7 +103,7 @@ def live_summary(layout: LogLayout, rows: np.ndarray, dt: float, name: str, dela
         q_h.tolist(), q_t.tolist(), tau_h.tolist(), tau_ext_t.tolist(), strict=True
     ):
         acc.add(a, b, c, [-x for x in d])
-    stats = TimingStats(len(rows))
+    stats = TimingStats(len(rows), int(round(dt * 1e9)))
     comp = rows[:, field_slice(layout, "/timing", "compute_ns")][:, 0]
     late = rows[:, field_slice(layout, "/timing", "lateness_ns")][:, 0]
     missed = rows[:, field_slice(layout, "/timing", "missed")][:, 0]

@@ -152,7 +152,7 @@ def test_window(tmp_path, capsys):
     assert m["t_p"] != accumulate(log, slice(750, 2000), start=750).t_p
     empty = run_json(capsys, log.path, t_from=10.0)
     assert empty["ticks"] == 0 and empty["t_p"] == [0.0, 0.0]
-    assert empty["timing"]["compute_us"] == {"p50": 0.0, "p99": 0.0, "max": 0.0}
+    assert empty["timing"]["compute_us"] == {"p50": 0.0, "p99": 0.0, "p99.9": 0.0, "max": 0.0}
 
 
 def test_timing_equals_timing_stats(tmp_path):
@@ -165,7 +165,7 @@ def test_timing_equals_timing_stats(tmp_path):
         tmp_path / "a.mcap", ticks, timing_compute_ns=compute, timing_lateness_ns=late,
         timing_missed=missed,
     )  # fmt: skip
-    stats = TimingStats(ticks)
+    stats = TimingStats(ticks, 1_000_000)  # the synthetic log's period (1 kHz)
     for c, la, mi in zip(compute.tolist(), late.tolist(), missed.tolist(), strict=True):
         stats.add(c, la, mi)
     assert log_metrics(read_log(log.path))["timing"] == stats.summary()

@@ -231,7 +231,7 @@ def test_fast_mode_never_sleeps_nor_misses(policy: str) -> None:
 
 # --- timing statistics ------------------------------------------------------------------------
 def test_timing_stats_percentiles_on_known_data() -> None:
-    stats = TimingStats(100)
+    stats = TimingStats(100, period_ns=150_000)
     for us in range(1, 101):
         stats.add(us * 1000, lateness_ns=2 * us * 1000, missed=us % 10 == 0)
     s = stats.summary()
@@ -242,6 +242,8 @@ def test_timing_stats_percentiles_on_known_data() -> None:
     assert s["compute_us"]["max"] == pytest.approx(100.0)
     assert s["lateness_us"]["p50"] == pytest.approx(101.0)
     assert s["lateness_us"]["max"] == pytest.approx(200.0)
+    assert s["lateness_us"]["p99.9"] == pytest.approx(2 * 99.901)
+    assert s["late_over_period"] == 25  # lateness 152 ... 200 us > 150 us
 
 
 def test_timing_stats_use_only_the_filled_part() -> None:
@@ -257,5 +259,5 @@ def test_timing_stats_use_only_the_filled_part() -> None:
 def test_timing_stats_empty() -> None:
     s = TimingStats(10).summary()
     assert s["ticks"] == 0 and s["missed_deadlines"] == 0
-    assert s["compute_us"] == {"p50": 0.0, "p99": 0.0, "max": 0.0}
-    assert s["lateness_us"] == {"p50": 0.0, "p99": 0.0, "max": 0.0}
+    zero = {"p50": 0.0, "p99": 0.0, "p99.9": 0.0, "max": 0.0}
+    assert s["compute_us"] == zero and s["lateness_us"] == zero

@@ -10,6 +10,7 @@ import pytest
 from teleop_rt import config
 from teleop_rt.cli import main
 from teleop_rt.errors import SafetyStop
+from teleop_rt.hal.base import Feedback
 from teleop_rt.recording.reader import read_log
 from teleop_rt.recording.recorder import Recorder
 from teleop_rt.safety import Supervisor
@@ -25,26 +26,56 @@ def supervisor(**spec) -> Supervisor:
     return Supervisor(cfg, session.hsi.model, session.to.model)
 
 
+def feedback(q: list[float], v: list[float], age_ticks: int = 0) -> Feedback:
+    fb = Feedback(len(q))
+    fb.q_list[:], fb.v_list[:], fb.age_ticks = q, v, age_ticks
+    return fb
+
+
 def test_non_finite_measurement_is_a_stop_naming_robot_and_joint() -> None:
-    sup = supervisor()
+    guards = supervisor().guards
     with pytest.raises(SafetyStop, match=r"^tick 7: to joint 1 \(elbow\): measured torque is nan"):
-        sup.check_measured(7, "to", [0.0, 1.0], [0.0, 0.0], [0.0, float("nan")])
+        guards["to"].check_measured(7, [0.0, 1.0], [0.0, 0.0], [0.0, float("nan")])
     with pytest.raises(
         SafetyStop, match=r"^tick 8: hsi joint 0 \(shoulder\): commanded torque is nan"
     ):
-        sup.check(8, "hsi", [0.0, 1.0], [0.0, 0.0], [0.0, 0.0], [float("nan"), 0.0])
+        guards["hsi"].check(8, feedback([0.0, 1.0], [0.0, 0.0]), [float("nan"), 0.0], [0.0] * 2)
 
 
 def test_limits_from_the_urdf() -> None:
-    sup = supervisor()
+    guard = supervisor().guards["hsi"]
+    zero = [0.0, 0.0]
     # scara_2dof.urdf: +-2.6 rad, 6 / 8 rad/s, 20 / 10 N m
     with pytest.raises(SafetyStop, match=r"hsi joint 0 \(shoulder\): angle 2.7 rad outside"):
-        sup.check(0, "hsi", [2.7, 0.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0])
+        guard.check(0, feedback([2.7, 0.0], zero), [0.0, 0.0], zero)
     with pytest.raises(SafetyStop, match=r"joint 1 \(elbow\): speed -8.5 rad/s above 8"):
-        sup.check(0, "hsi", [0.0, 0.0], [0.0, -8.5], [0.0, 0.0], [0.0, 0.0])
+        guard.check(0, feedback(zero, [0.0, -8.5]), [0.0, 0.0], zero)
     cmd = [25.0, -12.0]
-    assert sup.check(0, "hsi", [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], cmd) is True
+    assert guard.check(0, feedback(zero, zero), cmd, zero) is True
     assert cmd == [20.0, -10.0]  # saturated to the effort limits
+
+
+def test_tracking_error_stops_after_its_tick_count_and_resets_on_a_good_tick() -> None:
+    guard = supervisor(tracking_error_rad_s2=20.0, tracking_error_ticks=3).guards["to"]
+    zero = [0.0, 0.0]
+    guard.check(0, feedback(zero, zero), [0.0, 0.0], [100.0, 0.0])  # commands 100 rad/s^2
+    # the joint does not accelerate: 100 rad/s^2 off, twice, then one good tick resets the run
+    guard.check(1, feedback(zero, zero), [0.0, 0.0], [100.0, 0.0])
+    guard.check(2, feedback(zero, zero), [0.0, 0.0], [100.0, 0.0])
+    guard.check(3, feedback(zero, [0.1, 0.0]), [0.0, 0.0], [100.0, 0.0])  # (0.1 / 1 ms = 100)
+    assert guard.run == [0, 0]
+    guard.check(4, feedback(zero, [0.1, 0.0]), [0.0, 0.0], [100.0, 0.0])
+    guard.check(5, feedback(zero, [0.1, 0.0]), [0.0, 0.0], [100.0, 0.0])
+    with pytest.raises(SafetyStop, match=r"^tick 6: to joint 0 .*does not follow"):
+        guard.check(6, feedback(zero, [0.1, 0.0]), [0.0, 0.0], [100.0, 0.0])
+
+
+def test_stale_feedback_is_a_stop_at_stale_ticks() -> None:
+    guard = supervisor(stale_ticks=3).guards["hsi"]
+    zero = [0.0, 0.0]
+    guard.check(0, feedback(zero, zero, age_ticks=2), [0.0, 0.0], zero)
+    with pytest.raises(SafetyStop, match=r"^tick 1: hsi feedback stale for 3 ticks"):
+        guard.check(1, feedback(zero, zero, age_ticks=3), [0.0, 0.0], zero)
 
 
 def test_saturation_that_lasts_is_a_stop() -> None:

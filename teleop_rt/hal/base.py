@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from teleop_rt.errors import ConfigError
+from teleop_rt.scalar import shared_vector
 
 if TYPE_CHECKING:
     from teleop_rt.config import SessionConfig
@@ -25,20 +26,28 @@ if TYPE_CHECKING:
 class Feedback:
     """What a backend measures each tick (SI, joint space), preallocated.
 
-    ``q`` and ``v`` are numpy arrays (Pinocchio's inputs); ``q_list``, ``v_list`` hold the same
-    values as lists for the scalar path; ``tau_ext`` (a list) is the torque the outside world
-    applies to the robot (see teleop_rt.control).
+    ``q_list``, ``v_list`` (lists, for the scalar path) and ``tau_ext`` (a list: the torque the
+    outside world applies to the robot, see teleop_rt.control) are what a backend fills;
+    ``sync_arrays()`` then copies q and v into the numpy arrays ``q``, ``v`` (Pinocchio's inputs).
     """
 
-    __slots__ = ("q", "v", "q_list", "v_list", "tau_ext", "age_ticks")
+    __slots__ = ("q", "v", "q_list", "v_list", "tau_ext", "age_ticks", "_q_view", "_v_view")
 
     def __init__(self, n: int) -> None:
         self.age_ticks = 0  # ticks since the sensors last delivered (0: fresh this tick)
-        self.q = np.zeros(n)
-        self.v = np.zeros(n)
+        self.q, self._q_view = shared_vector(n)
+        self.v, self._v_view = shared_vector(n)
         self.q_list = [0.0] * n
         self.v_list = [0.0] * n
         self.tau_ext = [0.0] * n
+
+    def sync_arrays(self) -> None:
+        """q, v (numpy) = q_list, v_list."""
+        qv, vv = self._q_view, self._v_view
+        for j, x in enumerate(self.q_list):
+            qv[j] = x
+        for j, x in enumerate(self.v_list):
+            vv[j] = x
 
 
 class WorldSnapshot:

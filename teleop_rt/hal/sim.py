@@ -9,13 +9,15 @@ stays deterministic).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from teleop_rt.config import FaultSpec, SessionConfig
 from teleop_rt.errors import ConfigError
 from teleop_rt.hal.base import Backend, Feedback, register_backend
 from teleop_rt.model import RobotModel
-from teleop_rt.scalar import assign
+from teleop_rt.scalar import assign, shared_vector
 from teleop_rt.world import Load, ScriptedHand, build_environment, build_operator
 
 # seeds of the two plants' noise generators differ so their noise is independent
@@ -57,13 +59,14 @@ class SimBackend(Backend):
         # state: lists for the scalar arithmetic, numpy mirrors for Pinocchio
         self.ql = [float(x) for x in q0]
         self.vl = [0.0] * n
-        self.q = np.array(self.ql)
-        self.v = np.zeros(n)
+        self.q, self._q_view = shared_vector(n)  # Pinocchio's inputs, written element-wise
+        self.v, self._v_view = shared_vector(n)
+        self.q[:] = self.ql
         self.t = 0.0
         self.tick = 0
         self.tau_motor = [0.0] * n
         self.tau_load = [0.0] * n  # loads at the current state (what an ideal sensor reads)
-        self._tau = np.zeros(n)
+        self._tau, self._tau_view = shared_vector(n)
         self._qs, self._vs = np.zeros(n), np.zeros(n)
         self.torque_noise_std = torque_noise_std
         self.velocity_noise_std = velocity_noise_std
@@ -71,6 +74,10 @@ class SimBackend(Backend):
         self._noise = np.zeros(n)
         self.faults = list(faults or [])
         self._held: dict[int, float] = {}  # stuck joints: the angle they are held at
+        # the friction law, bound once for the per-sub-step path
+        self._damping = plant.damping
+        self._coulomb = plant.coulomb if plant.has_coulomb else None
+        self._inv_v_s = plant.inv_v_s
         self._eval_loads(self.t, self.q, self.vl)
 
     # --- Backend --------------------------------------------------------------------------
@@ -98,8 +105,7 @@ class SimBackend(Backend):
             self._add_noise(fb.v_list, self.velocity_noise_std)
         if self.faults:
             self._corrupt_sensors(fb)
-        assign(fb.q, fb.q_list)
-        assign(fb.v, fb.v_list)
+        fb.sync_arrays()
         self._snapshot_world()
         return fb
 
@@ -135,14 +141,17 @@ class SimBackend(Backend):
 
     def write(self, tau: list[float] | np.ndarray) -> None:
         self.tau_motor[:] = tau
-        stuck = []
         if self.faults:
-            for f in self._active("saturation"):
-                lim = f.magnitude
-                self.tau_motor[f.joint] = min(max(self.tau_motor[f.joint], -lim), lim)
-            stuck = self._active("stuck")
-            for f in stuck:
-                self._held.setdefault(f.joint, self.ql[f.joint])
+            self._advance_with_faults()
+        elif self.substeps == 1 and not self.rk4:  # the common case, without the loop
+            self._euler_substep()
+        else:
+            self._advance()
+        self.tick += 1
+        self.t = self.tick * self.dt  # no drift from summing sub-steps
+        self._eval_loads(self.t, self.q, self.vl)
+
+    def _advance(self, stuck: list[FaultSpec] = ()) -> None:
         substep = self._rk4_substep if self.rk4 else self._euler_substep
         for i in range(self.substeps):
             if i:  # the loads at the tick's start were evaluated at the end of the last write
@@ -150,11 +159,17 @@ class SimBackend(Backend):
             substep()
             for f in stuck:  # a blocked joint: held in place whatever the torque
                 j = f.joint
-                self.ql[j] = self.q[j] = self._held[j]
-                self.vl[j] = self.v[j] = 0.0
-        self.tick += 1
-        self.t = self.tick * self.dt  # no drift from summing sub-steps
-        self._eval_loads(self.t, self.q, self.vl)
+                self.ql[j] = self._q_view[j] = self._held[j]
+                self.vl[j] = self._v_view[j] = 0.0
+
+    def _advance_with_faults(self) -> None:
+        for f in self._active("saturation"):
+            lim = f.magnitude
+            self.tau_motor[f.joint] = min(max(self.tau_motor[f.joint], -lim), lim)
+        stuck = self._active("stuck")
+        for f in stuck:
+            self._held.setdefault(f.joint, self.ql[f.joint])
+        self._advance(stuck)
 
     def stop(self) -> None:
         self.tau_motor[:] = [0.0] * self.n
@@ -182,12 +197,18 @@ class SimBackend(Backend):
                 tl[j] += jx[j] * fx + jy[j] * fy + jz[j] * fz
 
     def _acceleration(self, q: np.ndarray, v_arr: np.ndarray, v: list[float]) -> list[float]:
-        # M a + n = g + tau_ext - friction
-        fric = self.plant.friction(v)
-        tm, tl, tau = self.tau_motor, self.tau_load, self._tau
-        for j in range(self.n):
-            tau[j] = tm[j] + tl[j] - fric[j]
-        return self.plant.forward_dynamics(q, v_arr, tau)
+        # M a + n = g + tau_ext - friction (the friction law of RobotModel.friction, inlined:
+        # this runs once per plant sub-step)
+        tm, tl, tau, damping = self.tau_motor, self.tau_load, self._tau_view, self._damping
+        if self._coulomb is not None:
+            coulomb, inv_v_s, tanh = self._coulomb, self._inv_v_s, math.tanh
+            for j in range(self.n):
+                vj = v[j]
+                tau[j] = tm[j] + tl[j] - damping[j] * vj - coulomb[j] * tanh(vj * inv_v_s)
+        else:
+            for j in range(self.n):
+                tau[j] = tm[j] + tl[j] - damping[j] * v[j]
+        return self.plant.forward_dynamics(q, v_arr, self._tau)
 
     def _euler_substep(self) -> None:
         # semi-implicit (symplectic) Euler: v first, then q with the new v
@@ -195,7 +216,7 @@ class SimBackend(Backend):
         a = self._acceleration(self.q, self.v, vl)
         for load in self.stateful:
             load.advance(h)
-        q, v = self.q, self.v
+        q, v = self._q_view, self._v_view
         for j in range(self.n):
             vj = vl[j] + h * a[j]
             qj = ql[j] + h * vj
@@ -235,8 +256,8 @@ class SimBackend(Backend):
                     for x, p1, p2, p3, p4 in zip(s0[i], d1[i], d2[i], d3[i], d4[i], strict=True)
                 )
             )
-        assign(self.q, ql)
-        assign(self.v, vl)
+        assign(self._q_view, ql)
+        assign(self._v_view, vl)
         self.t += h
 
 

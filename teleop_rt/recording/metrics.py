@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from teleop_rt.loop import TimingStats
+from teleop_rt.loop import TimingStats, format_percentiles
 from teleop_rt.recording.reader import LogData, LogError, read_log
 
 TOPICS = ("/hsi", "/to", "/channel", "/timing")
@@ -54,7 +54,7 @@ def log_metrics(data: LogData, offset: np.ndarray | None = None) -> dict:
         "t_tau_total": float(sum(t_tau)),
         "channel_energy_j": float(energy[-1]) if n else 0.0,
         "min_channel_energy_j": min(0.0, float(finite.min())) if len(finite) else 0.0,
-        "timing": _timing(timing),
+        "timing": _timing(timing, int(round(dt * 1e9))),
         "first_tick": int(hsi["tick"][0]) if n else None,
         "truncated": data.truncated,
         "cut_reason": data.cut_reason,
@@ -68,8 +68,8 @@ def _sequential_sum(terms: np.ndarray, n: int) -> list[float]:
     return [float(x) for x in np.cumsum(terms, axis=0)[-1]]
 
 
-def _timing(timing: np.ndarray) -> dict:
-    stats = TimingStats(0)
+def _timing(timing: np.ndarray, period_ns: int) -> dict:
+    stats = TimingStats(0, period_ns)
     stats.compute_ns = timing["compute_ns"].astype(np.int64)
     stats.lateness_ns = timing["lateness_ns"].astype(np.int64)
     stats.count = len(timing)
@@ -124,8 +124,9 @@ def format_metrics(m: dict) -> str:
     ]
     for key, what in (("compute_us", "tick compute (us)"), ("lateness_us", "lateness (us)")):
         s = t[key]
-        lines.append(row(what, f"p50 {s['p50']:.1f}  p99 {s['p99']:.1f}  max {s['max']:.1f}"))
+        lines.append(row(what, format_percentiles(s)))
     lines.append(row("missed deadlines", str(t["missed_deadlines"])))
+    lines.append(row("ticks started over a period late", str(t["late_over_period"])))
     agrees = m.get("live_summary_agrees")
     if agrees is not None:
         lines.append(row("live summary", "agrees exactly" if agrees else "DIFFERS from the log"))

@@ -1,0 +1,345 @@
+#!/usr/bin/env python3
+"""Benchmark of the 1 kHz loop: tick cost, recording cost, real-time lateness, scaling.
+
+    python tools/bench.py [CONFIG] [--ticks N] [--repeat R] [--rt-seconds S] [--joints 2,4,8]
+                          [--json OUT]
+
+Prints, from one run on this machine (shared machines are noisy: compare figures of one run,
+and read the medians, not the maxima):
+1. what the OS grants a real-time loop (SCHED_FIFO, CPU affinity, mlockall, frozen GC);
+2. the Pinocchio floor: the per-tick Pinocchio calls alone (2 RNEA, 2 ABA, 2 frame Jacobians);
+3. the full simulated tick (both models, controllers, channel, both plants) without and with
+   recording, and the controller-side tick (what runs against hardware: read, models,
+   controllers, channel, safety, write; the feedback replayed from a simulated run);
+4. real-time mode, S seconds at 1 kHz with recording on: deadline lateness percentiles and
+   the ticks that started more than a whole period late;
+5. how the tick grows with the number of joints (planar chains generated from one template).
+Times are min / median / p99 over R repeats of N ticks (the repeat with the lowest median).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pinocchio as pin
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from teleop_rt import config  # noqa: E402
+from teleop_rt.errors import TeleopError  # noqa: E402
+from teleop_rt.hal.base import Backend, Feedback  # noqa: E402
+from teleop_rt.loop import acquire_realtime  # noqa: E402
+from teleop_rt.recording.recorder import Recorder  # noqa: E402
+from teleop_rt.session import Session  # noqa: E402
+
+PAPER = ROOT / "configs/paper_experiment.yaml"
+
+
+# --- measurement helpers ----------------------------------------------------------------------
+def time_ticks(tick: Callable[[], None], ticks: int) -> np.ndarray:
+    """Per-tick wall time (us) of ``ticks`` calls, garbage collector off."""
+    out = np.zeros(ticks, dtype=np.int64)
+    perf = time.perf_counter_ns
+    gc.collect()
+    gc.disable()
+    try:
+        for k in range(ticks):
+            t0 = perf()
+            tick()
+            out[k] = perf() - t0
+    finally:
+        gc.enable()
+    return out / 1e3
+
+
+def best_of(runs: list[np.ndarray]) -> dict:
+    """min / median / p99 of the repeat with the lowest median, and the spread of medians."""
+    medians = [float(np.median(r)) for r in runs]
+    best = runs[int(np.argmin(medians))]
+    return {
+        "min": float(best.min()),
+        "median": float(np.median(best)),
+        "p99": float(np.percentile(best, 99)),
+        "medians_of_repeats": medians,
+    }
+
+
+def line(label: str, s: dict) -> str:
+    reps = ", ".join(f"{m:.1f}" for m in s["medians_of_repeats"])
+    return (
+        f"  {label:<34} min {s['min']:6.1f}  median {s['median']:6.1f}  p99 {s['p99']:6.1f} us"
+        f"   (medians: {reps})"
+    )
+
+
+# --- the controller side against replayed feedback -------------------------------------------
+class ReplayedFeedback(Backend):
+    """Feeds back the measurements of a simulated run, tick by tick: the session then does
+    exactly what it does against hardware (the commands equal those of the simulated run, so
+    the safety layer's tracking check holds), without a plant."""
+
+    def __init__(self, samples: list[tuple[list[float], list[float], list[float]]]) -> None:
+        super().__init__(len(samples[0][0]))
+        self.samples = samples
+        self.k = 0
+
+    def start(self) -> None:
+        """Nothing to start."""
+
+    def read(self) -> Feedback:
+        fb = self.feedback
+        q, v, tau = self.samples[self.k]
+        fb.q_list[:] = q
+        fb.v_list[:] = v
+        fb.tau_ext[:] = tau
+        fb.sync_arrays()
+        return fb
+
+    def write(self, tau: list[float]) -> None:
+        self.k += 1
+
+    def stop(self) -> None:
+        """Nothing to stop."""
+
+
+def record_feedback(cfg, ticks: int) -> dict[str, list]:
+    session = Session(cfg)
+    samples: dict[str, list] = {"hsi": [], "to": []}
+    for _ in range(ticks):
+        session.step()
+        for side in (session.hsi, session.to):
+            fb = side.backend.feedback
+            samples[side.name].append((list(fb.q_list), list(fb.v_list), list(fb.tau_ext)))
+    return samples
+
+
+def controller_side(cfg, samples: dict[str, list], ticks: int) -> np.ndarray:
+    session = Session(cfg)
+    session.hsi.backend = ReplayedFeedback(samples["hsi"])
+    session.to.backend = ReplayedFeedback(samples["to"])
+    return time_ticks(session.step, ticks)
+
+
+# --- sections --------------------------------------------------------------------------------
+def grant() -> list[str]:
+    g = acquire_realtime()
+    g.release()
+    return g.notes
+
+
+def pinocchio_floor(cfg) -> dict:
+    """The Pinocchio calls of one tick, alone (both robots: RNEA, ABA, frame Jacobian)."""
+    session = Session(cfg)
+    calls = []
+    for side in (session.hsi, session.to):
+        m = side.model
+        q, v, a = side.feedback.q, side.feedback.v, np.zeros(m.nv)
+        calls += [
+            lambda m=m, q=q, v=v, a=a: pin.rnea(m.model, m.data, q, v, a),
+            lambda m=m, q=q, v=v, a=a: pin.aba(m.model, m.data, q, v, a),
+            lambda m=m, q=q: pin.computeFrameJacobian(
+                m.model, m.data, q, m.ee_frame_id, pin.LOCAL_WORLD_ALIGNED
+            ),
+        ]
+
+    def tick() -> None:
+        for c in calls:
+            c()
+
+    return best_of([time_ticks(tick, 5000) for _ in range(3)])
+
+
+def full_tick(cfg, ticks: int, repeat: int, tmp: Path) -> dict:
+    """Without and with recording, alternating (the recorded tick includes the hot-path
+    ``record`` call; its writer process runs beside it, on the other core if there is one)."""
+    plain, logged = [], []
+    for r in range(repeat):
+        plain.append(time_ticks(Session(cfg).step, ticks))
+        session = Session(cfg)
+        recorder = Recorder(session, tmp / f"bench-{r}.mcap")
+        step, record = session.step, recorder.record
+
+        def tick(step=step, record=record) -> None:
+            step()
+            record(0, 0, False)
+
+        try:
+            logged.append(time_ticks(tick, ticks))
+        finally:
+            recorder.close(None)
+    return {"plain": best_of(plain), "recorded": best_of(logged)}
+
+
+def realtime(cfg, seconds: float, tmp: Path) -> dict:
+    session = Session(cfg)
+    recorder = Recorder(session, tmp / "bench-rt.mcap")
+    summary = session.run(ticks=int(seconds * cfg.rate_hz), realtime=True, recorder=recorder)
+    return {"timing": summary.timing, "notes": summary.notes, "stopped": summary.stopped_early}
+
+
+def chain_urdf(n: int) -> str:
+    """A planar serial chain of n revolute z joints, 0.6 m long in all, a tool at its end."""
+    length, mass = 0.6 / n, 2.0 / n
+    inertia = mass * length * length / 12.0
+    parts = ['<robot name="chain">', '<link name="base"/>']
+    parent = "base"
+    for i in range(n):
+        offset = 0.0 if i == 0 else length
+        parts += [
+            f'<link name="l{i}"><inertial><origin xyz="{length / 2} 0 0"/><mass value="{mass}"/>'
+            f'<inertia ixx="1e-5" iyy="{inertia}" izz="{inertia}" ixy="0" ixz="0" iyz="0"/>'
+            "</inertial></link>",
+            f'<joint name="j{i}" type="revolute"><parent link="{parent}"/><child link="l{i}"/>'
+            f'<origin xyz="{offset} 0 0"/><axis xyz="0 0 1"/>'
+            '<limit lower="-3" upper="3" velocity="20" effort="100"/>'
+            '<dynamics damping="0.01" friction="0.0"/></joint>',
+        ]
+        parent = f"l{i}"
+    parts += [
+        '<link name="tool"/>',
+        f'<joint name="tool_joint" type="fixed"><parent link="{parent}"/><child link="tool"/>'
+        f'<origin xyz="{length} 0 0"/></joint>',
+        "</robot>",
+    ]
+    return "\n".join(parts)
+
+
+def chain_config(n: int, tmp: Path) -> Path:
+    """The paper experiment's structure on an n-joint chain: a hand moving the tool 2 cm, a
+    wall out of reach (evaluated every tick, never touched)."""
+    import yaml
+
+    urdf = tmp / f"chain{n}.urdf"
+    urdf.write_text(chain_urdf(n))
+    q0 = [0.3] * n
+    model = pin.buildModelFromUrdf(str(urdf))
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, np.array(q0))
+    x, y, _ = data.oMf[model.getFrameId("tool")].translation.tolist()
+
+    def side(kp: float) -> dict:  # a fresh dict per robot: no YAML aliases in the dump
+        robot = {"urdf": urdf.name, "ee_frame": "tool", "q0_rad": list(q0)}
+        return {"robot": robot, "virtual_mass": 0.1, "controller": {"kind": "p", "kp": kp}}
+
+    spec = {
+        "name": f"chain{n}",
+        "duration_s": 10.0,
+        "hsi": side(2.0),
+        "to": side(20.0),
+        "channel": {"mode": "wave", "delay_ms": 0, "wave_impedance": 2.0},
+        "operator": {"kind": "hand", "waypoints": [{"t_s": 5.0, "position_m": [x + 0.02, y]}]},
+        "environment": [
+            {"kind": "wall", "point_m": [5.0, 0.0], "normal": [-1, 0], "stiffness_n_per_m": 5000}
+        ],
+    }
+    path = tmp / f"chain{n}.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    return path
+
+
+def scaling(joints: list[int], ticks: int, repeat: int, tmp: Path) -> list[dict]:
+    rows = []
+    for n in joints:
+        cfg = config.load(chain_config(n, tmp))
+        runs = [time_ticks(Session(cfg).step, ticks) for _ in range(repeat)]
+        rows.append({"joints": n, **best_of(runs)})
+    return rows
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("config", nargs="?", default=str(PAPER))
+    parser.add_argument("--ticks", type=int, default=10_000, help="ticks per repeat")
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--rt-seconds", type=float, default=60.0, help="0 skips real time")
+    parser.add_argument("--joints", default="2,3,4,6,8,12", help="scaling: joint counts")
+    parser.add_argument("--json", type=Path, help="also write the figures as JSON")
+    args = parser.parse_args()
+    try:
+        joints = [int(x) for x in args.joints.split(",") if x.strip()]
+        if args.ticks < 100 or args.repeat < 1 or any(n < 1 for n in joints):
+            raise ValueError
+    except ValueError:
+        print("bench: error: --ticks >= 100, --repeat >= 1, --joints a list of counts >= 1",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    try:
+        cfg = config.load(Path(args.config))
+        return run(args, cfg, joints)
+    except TeleopError as err:
+        print(f"bench: error: {err}", file=sys.stderr)
+        return 2
+
+
+def run(args, cfg, joints: list[int]) -> int:
+    out: dict = {
+        "machine": {
+            "processor": platform.processor() or platform.machine(),
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+            "pinocchio": pin.__version__,
+            "numpy": np.__version__,
+        }
+    }
+    m = out["machine"]
+    print(f"machine: {m['processor']}, {m['cpus']} CPUs, Python {m['python']}, "
+          f"Pinocchio {m['pinocchio']}, numpy {m['numpy']}")  # fmt: skip
+    print(f"config: {args.config}   ticks: {args.ticks} x {args.repeat}")
+    out["granted"] = grant()
+    print("real-time grant: " + "; ".join(out["granted"]))
+
+    print("\ntick cost (fast mode)")
+    floor = pinocchio_floor(cfg)
+    print(line("Pinocchio calls alone (6 per tick)", floor))
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        full = full_tick(cfg, args.ticks, args.repeat, tmp)
+        samples = record_feedback(cfg, args.ticks)
+        ctrl = best_of([controller_side(cfg, samples, args.ticks) for _ in range(args.repeat)])
+        print(line("full tick, recording off", full["plain"]))
+        print(line("full tick, recording on", full["recorded"]))
+        print(line("controller side (no plant)", ctrl))
+        rec = full["recorded"]["median"] - full["plain"]["median"]
+        print(f"  recording adds {rec:.1f} us per tick (median); fast mode runs "
+              f"{1e3 / full['recorded']['median']:.0f}x real time with recording on")  # fmt: skip
+        out.update(pinocchio_floor_us=floor, full_tick_us=full, controller_side_us=ctrl)
+
+        if args.rt_seconds > 0:
+            print(f"\nreal-time mode: {args.rt_seconds:g} s at {cfg.rate_hz:g} Hz, recording on")
+            rt = realtime(cfg, args.rt_seconds, tmp)
+            t = rt["timing"]
+            late, comp = t["lateness_us"], t["compute_us"]
+            for label, s in (("deadline lateness", late), ("tick compute", comp)):
+                print(f"  {label:<20} p50 {s['p50']:6.1f}  p99 {s['p99']:6.1f}  "
+                      f"p99.9 {s['p99.9']:7.1f}  max {s['max']:8.1f} us")  # fmt: skip
+            print(f"  ticks started over a period late: {t['late_over_period']} of {t['ticks']};"
+                  f" missed deadlines: {t['missed_deadlines']}")  # fmt: skip
+            for note in rt["notes"]:
+                print(f"  note: {note}")
+            out["realtime"] = rt
+
+        print("\nscaling with the number of joints (planar chains, full tick, recording off)")
+        rows = scaling(joints, max(args.ticks // 4, 100), args.repeat, tmp)
+        print(f"  {'joints':>6}  {'min':>6}  {'median':>6}  {'p99':>6}  us   per joint")
+        for r in rows:
+            print(f"  {r['joints']:>6}  {r['min']:6.1f}  {r['median']:6.1f}  {r['p99']:6.1f}"
+                  f"       {r['median'] / r['joints']:5.1f}")  # fmt: skip
+        out["scaling"] = rows
+    if args.json:
+        args.json.write_text(json.dumps(out, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
