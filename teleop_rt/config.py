@@ -4,7 +4,7 @@
 key, a wrong type or an impossible value raises ``ConfigError`` with one line naming the key.
 Per-joint values may be given as one number (used for every joint) or as a list with one entry
 per joint; the lengths are checked against the robot models when a session is built.
-Relative paths (URDFs) are resolved against the directory of the config file.
+Relative paths (URDFs, drive EDS files) are resolved against the directory of the config file.
 """
 
 from __future__ import annotations
@@ -372,6 +372,8 @@ def _resolve_paths(cfg: SessionConfig, base_dir: Path) -> SessionConfig:
         if spec.robot.urdf is not None and not spec.robot.urdf.is_absolute():
             robot = spec.robot.model_copy(update={"urdf": (base_dir / spec.robot.urdf).resolve()})
             sides[side] = spec.model_copy(update={"robot": robot})
+    if cfg.can is not None:  # drive EDS files, like the URDFs
+        sides["can"] = cfg.can.with_paths_resolved(base_dir)
     return cfg.model_copy(update=sides)
 
 

@@ -13,15 +13,20 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 from pathlib import Path
 
+import can
 import pytest
+import yaml
 
 from teleop_rt import config
+from teleop_rt.cli import main
 from teleop_rt.errors import BackendError, ConfigError, SafetyStop
 from teleop_rt.hal.base import create_backend
 from teleop_rt.hal.can.backend import CanBackend
-from teleop_rt.hal.can.emulator import FAULT, OE, SOD, Fault, emulated_bus
+from teleop_rt.hal.can.config import DEFAULT_EDS
+from teleop_rt.hal.can.emulator import FAULT, OE, SOD, DriveEmulator, Fault, emulated_bus
 from teleop_rt.model import RobotModel
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -167,7 +172,12 @@ FAULTS = [
     ("drop_tpdo", 2, r"hsi joint 1 \(drive node 2\): no feedback \(TPDO\) for 3 ticks in a row"),
     ("emcy", 1, r"hsi joint 0 \(drive node 1\): EMCY 0x2310 \(Current\)"),
     ("status_fault", 2, r"hsi joint 1 \(drive node 2\): drive fault \(statusword 0x021[8F]: FAULT"),
-    ("error_frame", None, r"hsi bus: CAN error frame"),
+    (
+        "error_frame",
+        None,
+        r"can: hsi bus \(stepped emulator on Virtual bus channel [^)]+\): CAN error frame 0x004 "
+        r"\(controller problem: RX error passive\)",
+    ),
     ("drop_sensor", None, r"hsi torque sensor 0x18A: no data for 3 ticks in a row"),
 ]
 
@@ -205,10 +215,41 @@ def test_a_bus_error_is_a_safe_stop(started) -> None:
     backend = started()
     run_ticks(backend, 3)
     backend.bus._inner.shutdown()  # the interface goes away under the loop
-    with pytest.raises(SafetyStop, match=r"can: hsi bus error"):
+    with pytest.raises(SafetyStop, match=r"can: hsi bus \(.+\): bus error"):
         run_ticks(backend, 1)
     backend.stop()  # must not raise
     assert backend.stop_report
+
+
+def test_an_error_frame_from_another_node_names_the_bus_and_its_class(started) -> None:
+    backend = started()
+    run_ticks(backend, 3)
+    bus_off = can.Message(arbitration_id=0x040, is_error_frame=True, data=bytes(8))
+    backend.emulator.bus.send(bus_off)  # seen in the drain before the next SYNC
+    with pytest.raises(SafetyStop, match=r"can: hsi bus \(.+\): CAN error frame 0x040 \(bus off\)"):
+        run_ticks(backend, 1)
+    assert_stopped_safely(backend)
+
+
+def test_a_bus_the_interface_reports_in_error_is_a_safe_stop(started, monkeypatch) -> None:
+    backend = started()
+    run_ticks(backend, 5)
+    polls = []
+
+    def state(bus) -> can.BusState:
+        polls.append(backend.tick)
+        return can.BusState.ERROR if len(polls) > 3 else can.BusState.ACTIVE
+
+    monkeypatch.setattr(type(backend.bus), "state", property(state))
+    start = backend.tick
+    with pytest.raises(SafetyStop, match=r"can: hsi bus \(.+\): bus state ERROR") as info:
+        run_ticks(backend, 100)
+    # polled every missed_feedback_ticks (3) ticks, not every tick; stopped at the 4th poll
+    assert [b - a for a, b in zip(polls, polls[1:], strict=False)] == [3, 3, 3]
+    assert 1 <= polls[0] - start <= 3
+    assert backend.tick == polls[-1], info.value
+    monkeypatch.undo()
+    assert_stopped_safely(backend)
 
 
 def test_drives_fault_when_the_master_heartbeat_stops(started) -> None:
@@ -306,3 +347,128 @@ def test_the_emulator_tool_parses_fault_options() -> None:
     for bad in ("emcy:2", "melt:1@3", "emcy:x@1"):
         with pytest.raises(Exception, match="--fault"):
             tool.parse_fault(bad)
+
+
+# --- EDS files ------------------------------------------------------------------------------
+def write_config(folder: Path, eds: str) -> Path:
+    """can_emulated.yaml in ``folder`` with HSI drive 0's EDS at ``eds`` (URDFs made absolute)."""
+    data = yaml.safe_load(CAN_CONFIG.read_text())
+    for side in ("hsi", "to"):
+        robot = data[side]["robot"]
+        robot["urdf"] = str((CAN_CONFIG.parent / robot["urdf"]).resolve())
+    data["can"]["hsi"]["drives"][0]["eds"] = eds
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "session.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_a_relative_eds_path_is_read_from_the_config_folder(tmp_path, monkeypatch) -> None:
+    path = write_config(tmp_path / "cell", "eds/drive.eds")
+    (tmp_path / "cell" / "eds").mkdir()
+    (tmp_path / "cell" / "eds" / "drive.eds").write_text(DEFAULT_EDS.read_text())
+    monkeypatch.chdir(tmp_path)  # eds/drive.eds does not exist relative to the cwd
+    cfg = config.load(path, FAST)
+    assert cfg.can.hsi.drives[0].eds == tmp_path / "cell" / "eds" / "drive.eds"
+    assert cfg.can.hsi.drives[1].eds is None  # the bundled default
+    backend = make_backend(cfg)
+    try:
+        backend.start()  # master and emulator both read it
+        assert backend.running
+    finally:
+        backend.stop()
+
+
+def test_a_missing_eds_is_one_config_error_naming_the_key(tmp_path, capsys) -> None:
+    path = write_config(tmp_path, "vendor.eds")
+    missing = tmp_path / "vendor.eds"
+    cfg = config.load(path, FAST)
+    with pytest.raises(ConfigError, match=rf"^can.hsi.drives.0.eds: no such file: {missing}$"):
+        make_backend(cfg)
+    bus = can.Bus(interface="virtual", channel="eds-missing")
+    try:
+        with pytest.raises(ConfigError, match=r"^can.hsi.drives.0.eds: no such file"):
+            DriveEmulator(bus, cfg, "hsi")
+    finally:
+        bus.shutdown()
+    code = main(["run", str(path), "--set", "can.emulate=true", "--duration", "0.01", "--no-log"])
+    assert code == 2
+    assert f"can.hsi.drives.0.eds: no such file: {missing}" in capsys.readouterr().err
+
+
+# --- between a robot's start and the loop (real time, emulator in a thread) -------------------
+@pytest.fixture
+def free_running(tmp_path):
+    """Start the HSI in real time against an emulator thread on a ``virtual`` bus (the wall
+    clock runs: the drives' 0x1016 watch times out if the master stops SYNC and heartbeat)."""
+    import threading
+
+    stops: list = []
+
+    def start() -> CanBackend:
+        channel = f"free-running-{tmp_path.name}"
+        cfg = make_cfg(
+            "can.emulate=false",
+            f"can.hsi.bus={{interface: virtual, channel: {channel}}}",
+            "can.feedback_window_us=20000",  # the emulator thread shares the GIL (and 2 CPUs)
+            "can.missed_feedback_ticks=20",
+            "can.heartbeat_ms=20",
+            "can.heartbeat_timeout_ms=60",
+        )
+        emu = DriveEmulator(can.Bus(interface="virtual", channel=channel), cfg, "hsi")
+        stop = threading.Event()
+        thread = threading.Thread(target=emu.serve, args=(stop,), daemon=True)
+        thread.start()
+        backend = make_backend(cfg)
+        backend.emu = emu
+        stops.append((backend, stop, thread, emu))
+        backend.start()
+        return backend
+
+    yield start
+    for backend, stop, thread, emu in stops:
+        backend.stop()
+        stop.set()
+        thread.join()
+        emu.bus.shutdown()
+
+
+IDLE_S = 0.5  # the other robot's start-up, > 2x master_heartbeat_timeout_ms (200 ms)
+
+
+@pytest.mark.parametrize("keepalive", [True, False], ids=["keepalive", "without"])
+def test_a_started_robot_stays_guarded_while_the_other_starts(
+    free_running, monkeypatch, keepalive
+) -> None:
+    if not keepalive:  # the control: without it the drives' 0x1016 watch fires
+        monkeypatch.setattr(CanBackend, "_start_keepalive", lambda self: None)
+    backend = free_running()
+    time.sleep(IDLE_S)  # the session starts the TO meanwhile
+    with backend.emu._lock:
+        states = [d.state for d in backend.emu.drives]
+    if keepalive:
+        assert states == [OE, OE]
+        run_ticks(backend, 3)  # the loop takes over without a fault
+    else:
+        assert states == [FAULT, FAULT]
+        with pytest.raises(SafetyStop, match=r"EMCY 0x8130 \(Monitoring\)"):
+            run_ticks(backend, 3)
+
+
+def test_a_fault_while_the_other_robot_starts_stops_this_one_and_is_raised(free_running):
+    backend = free_running()
+    emu = backend.emu
+    drive = emu.drives[0]
+    with emu._lock:
+        seen = len(drive.commands)
+        emu.inject(Fault("emcy", 1))
+    time.sleep(0.2)
+    with pytest.raises(SafetyStop, match=r"hsi joint 0 \(drive node 1\): EMCY 0x2310"):
+        run_ticks(backend, 1)  # the loop's first read
+    backend.stop()
+    with emu._lock:
+        after = [cw for cw, _, _ in drive.commands[seen:]]
+        states = [d.state for d in emu.drives]
+    # quick stop / disable from the fault on: never a fault reset (0x80) and re-enable
+    assert after and set(after) <= {0x02, 0x00}, sorted(set(after))
+    assert states == [FAULT, SOD]

@@ -161,6 +161,29 @@ def test_heartbeat_unknown_state_is_one_clear_line() -> None:
         codec.decode_heartbeat(b"\x02")
 
 
+@pytest.mark.parametrize(
+    ("error_id", "data", "text"),
+    [
+        (0x040, bytes(8), "CAN error frame 0x040 (bus off)"),
+        (0x020, bytes(8), "CAN error frame 0x020 (no ACK on transmission)"),
+        (
+            0x004,
+            b"\x00\x30" + bytes(6),
+            "CAN error frame 0x004 (controller problem: RX error passive, TX error passive)",
+        ),
+        (
+            0x044,
+            b"\x00\x01",
+            "CAN error frame 0x044 (bus off; controller problem: RX buffer overflow)",
+        ),
+        (0x004, b"", "CAN error frame 0x004 (controller problem)"),  # no detail byte
+        (0x000, bytes(8), "CAN error frame 0x000"),  # another interface's code: the number only
+    ],
+)
+def test_error_frames_are_described_by_socketcan_class(error_id: int, data: bytes, text: str):
+    assert codec.describe_error_frame(error_id, data) == text
+
+
 # --- unit conversions ----------------------------------------------------------------------
 # 4096 counts/rev, gear 50: one joint rev = 204800 counts. Rated motor torque 0.1 N m
 # (0x6076 = 100 mN m) -> rated joint torque 0.1 * 50 = 5 N m, so 1 per-mille = 5 mN m joint.

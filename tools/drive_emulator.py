@@ -107,7 +107,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"drive_emulator: error: {side} bus {kwargs}: {exc}", file=sys.stderr)
             return 1
         buses.append(bus)
-        emu = DriveEmulator(bus, cfg, side, sensor_offset_nm=args.sensor_offset)
+        try:
+            emu = DriveEmulator(bus, cfg, side, sensor_offset_nm=args.sensor_offset)
+        except TeleopError as exc:
+            print(f"drive_emulator: error: {exc}", file=sys.stderr)
+            bus.shutdown()
+            return 2
         for fault_side, fault in args.fault:
             if fault_side in (None, side):
                 emu.inject(fault)
@@ -122,7 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.realtime:
         from teleop_rt.loop import acquire_realtime
 
-        notes = acquire_realtime(priority=70).notes
+        # CPU 0: the control loop pins itself to the last CPU
+        notes = acquire_realtime(priority=70, cpu=0).notes
         if not args.quiet:
             print("; ".join(notes), flush=True)
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

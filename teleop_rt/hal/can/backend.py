@@ -20,9 +20,15 @@ Faults end the session with ``SafetyStop`` from ``read()`` or ``write()``, namin
 joint, drive node and reason: a drive's feedback missing ``missed_feedback_ticks`` (3) ticks in
 a row, an EMCY, a drive heartbeat not seen for ``heartbeat_timeout_ms`` (counted in ticks), a
 statusword that leaves OPERATION ENABLED (fault, quick stop, disabled), a drive leaving NMT
-OPERATIONAL, a CAN error frame or a bus error. ``stop()`` then sends zero torque with quick
-stop until each drive reports SWITCH ON DISABLED, then disable voltage, then NMT
-pre-operational.
+OPERATIONAL, a CAN error frame (seen in the frames the cycle reads anyway), a bus the interface
+reports in ``BusState.ERROR`` (polled every ``missed_feedback_ticks`` ticks: a counter check per
+tick, the interface call only then) or a failing send / receive. ``stop()`` then sends zero
+torque with quick stop until each drive reports SWITCH ON DISABLED, then disable voltage, then
+NMT pre-operational.
+
+Between a robot's start and the loop's first ``read`` (while the session starts the other
+robot), a keepalive thread runs the same cycle with zero torque, so the drives keep their SYNC
+and the master's heartbeat (their 0x1016 watch) and faults are still checked.
 
 Transport: the torque sent after the feedback of SYNC k takes effect at SYNC k+1 (synchronous
 RPDO), one tick later than on the simulated backend, whose ``write`` acts on the state it read.
@@ -38,9 +44,10 @@ from teleop_rt.errors import BackendError, ConfigError, SafetyStop
 from teleop_rt.hal.base import Backend, Feedback, register_backend
 from teleop_rt.hal.can import codec
 from teleop_rt.hal.can.config import CanSpec
-from teleop_rt.scalar import assign
 
 if TYPE_CHECKING:
+    import threading
+
     import can
 
     from teleop_rt.config import SessionConfig
@@ -70,6 +77,7 @@ class CanBackend(Backend):
             raise ConfigError(
                 f"{key}.drives: {len(side_spec.drives)} drive(s) but the robot has {n} joints"
             )
+        side_spec.check_eds(key)  # a missing EDS is the config's fault: said before any bus opens
         sensor = side_spec.torque_sensor
         if sensor is not None:
             scale = sensor.scale_nm if isinstance(sensor.scale_nm, list) else [sensor.scale_nm] * n
@@ -130,6 +138,9 @@ class CanBackend(Backend):
         self._stopped = False
         self._faulted = False
         self._keepalive = None
+        self._keepalive_fault: str | None = None  # the first fault the keepalive saw
+        self._next_state_poll = 0  # tick of the next bus.state poll
+        self._bus_name = f"can: {side} bus"
         self.stats = {"ticks": 0, "missed_windows": 0, "late_frames": 0, "saturated": 0}
         self.stop_report: list[str] = []
 
@@ -172,27 +183,54 @@ class CanBackend(Backend):
 
     def _start_keepalive(self) -> None:
         """Until the loop's first ``read``, a thread keeps the cycle going (SYNC, zero torque,
-        heartbeats): the drives watch the master's heartbeat and expect SYNC, and the session
-        starts the other robot's drives in between. Faults it sees are raised by ``read``."""
+        the master's heartbeat): the drives watch the master's heartbeat (0x1016) and expect
+        SYNC, and the session starts the other robot's drives in between (seconds with SDO
+        and sensor zeroing). The first fault it sees quick-stops this robot's drives (never a
+        fault reset and re-enable behind the session's back) and is raised by ``read``; SYNC
+        and heartbeat go on unless the bus itself failed."""
         import threading
 
         stop = threading.Event()
-
-        def run() -> None:
-            while not stop.is_set():
-                self._pace()
-                try:
-                    self._cycle()
-                    for i, st in enumerate(self._steppers):
-                        self._cw[i] = st.step(self._sw[i])
-                    self._send_commands(None)
-                except SafetyStop as exc:
-                    self._faults.append(str(exc))
-                    return
-
-        thread = threading.Thread(target=run, name=f"can-{self.side}-keepalive", daemon=True)
+        name = f"can-{self.side}-keepalive"
+        thread = threading.Thread(target=self._keepalive_loop, args=(stop,), name=name, daemon=True)
         self._keepalive = (stop, thread)
         thread.start()
+
+    def _keepalive_loop(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            self._pace()
+            try:
+                self._cycle()
+                self._step_steppers()
+                if self._keepalive_fault is None:
+                    self._keepalive_check()
+                self._faults.clear()
+                self._send_commands(None)
+            except SafetyStop as exc:  # the bus failed: nothing more to send
+                self._keepalive_fault = self._keepalive_fault or str(exc)
+                return
+
+    def _keepalive_check(self) -> None:
+        try:
+            self._check(running=True)
+        except SafetyStop as exc:
+            self._keepalive_fault = str(exc)
+            for st in self._steppers:
+                st.request_stop()
+            self._step_steppers()  # this tick's controlwords already quick-stop
+
+    def _step_steppers(self) -> None:
+        steppers, sw, cw = self._steppers, self._sw, self._cw
+        for i in range(self.n):
+            cw[i] = steppers[i].step(sw[i])
+
+    def _end_keepalive(self) -> None:
+        """The loop's first ``read``: the keepalive stops; a fault it saw is raised now."""
+        self._join_keepalive()
+        fault, self._keepalive_fault = self._keepalive_fault, None
+        if fault is not None:
+            self._latch_fault()
+            raise SafetyStop(fault)
 
     def _join_keepalive(self) -> None:
         if self._keepalive is not None:
@@ -218,6 +256,13 @@ class CanBackend(Backend):
         except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
             described = ", ".join(f"{k}={v}" for k, v in kwargs.items())
             raise BackendError(f"can: {self.side} bus ({described}): cannot open: {exc}") from None
+
+    def _bus_label(self) -> str:
+        """The bus as the user knows it: interface and channel (the emulator's own name)."""
+        if self.spec.emulate or self.bus is None:
+            return str(getattr(self.bus, "channel_info", "?"))
+        b = self.side_spec.bus
+        return b.interface if b.channel is None else f"{b.interface} {b.channel}"
 
     def _build_routes(self) -> None:
         r = self._routes
@@ -247,6 +292,9 @@ class CanBackend(Backend):
             arbitration_id=codec.COB_ID_NMT, is_extended_id=False, data=bytearray(2)
         )
         self._can_error = can.CanError
+        self._bus_error_state = can.BusState.ERROR
+        self._bus_name = f"can: {self.side} bus ({self._bus_label()})"
+        self._next_state_poll = self.tick + 1
         self._recv = self.bus.recv
         self._send_raw = self.bus.send
         self._next_ns = time.perf_counter_ns()
@@ -319,6 +367,8 @@ class CanBackend(Backend):
         try:
             while (msg := recv(0.0)) is not None:  # late frames of the last window, EMCY, ...
                 on_frame(msg, False)
+            if tick >= self._next_state_poll:
+                self._poll_bus_state()
             self._send_raw(self._sync_msg)
             n = self.n
             expected = (1 << n) - 1
@@ -336,7 +386,7 @@ class CanBackend(Backend):
                     break
                 on_frame(msg, True)
         except self._can_error as exc:
-            raise SafetyStop(f"can: {self.side} bus error: {exc}") from None
+            raise SafetyStop(f"{self._bus_name}: bus error: {exc}") from None
         got = self._got
         missed = False
         for i in range(self.n):
@@ -358,9 +408,19 @@ class CanBackend(Backend):
         else:
             fb.age_ticks = 0
 
+    def _poll_bus_state(self) -> None:
+        """The interface's view of the bus (those without one say ACTIVE): ERROR is bus off or
+        a bus coupling error. Polled every ``missed_feedback_ticks`` ticks: no later than the
+        missing feedback a dead bus causes, and with the reason; some interfaces pay a driver
+        call for it. PASSIVE is not a fault: it means listen-only on some interfaces."""
+        self._next_state_poll = self.tick + self.missed_limit
+        if self.bus.state is self._bus_error_state:
+            self._faults.append(f"{self._bus_name}: bus state ERROR (bus off or coupling error)")
+
     def _on_frame(self, msg: can.Message, fresh: bool) -> None:
         if msg.is_error_frame:
-            self._faults.append(f"can: {self.side} bus: CAN error frame 0x{msg.arbitration_id:X}")
+            what = codec.describe_error_frame(msg.arbitration_id, msg.data)
+            self._faults.append(f"{self._bus_name}: {what}")
             return
         route = self._routes.get(msg.arbitration_id)
         if route is None:
@@ -450,7 +510,7 @@ class CanBackend(Backend):
                 send(self._hb_msg)
                 self.master_hb_tick = self.tick
         except self._can_error as exc:
-            raise SafetyStop(f"can: {self.side} bus error: {exc}") from None
+            raise SafetyStop(f"{self._bus_name}: bus error: {exc}") from None
         except ValueError as exc:  # a NaN torque: never reaches a drive as a number
             raise SafetyStop(f"can: {self.side}: {exc}") from None
 
@@ -470,8 +530,7 @@ class CanBackend(Backend):
             )
             for j, c in enumerate(self._sensor_channels):
                 te[j] = (raw[c] - zero[j]) * scale[j]
-        assign(fb.q, ql)
-        assign(fb.v, vl)
+        fb.sync_arrays()
         emu = self.emulator
         if emu is not None:  # an emulated world: log what it knows, like the sim backend
             w, ew = self.world, emu.plant.world
@@ -487,7 +546,7 @@ class CanBackend(Backend):
             fb.age_ticks = max(fb.age_ticks + 1, self.missed_limit)
             return fb
         if self._keepalive is not None:
-            self._join_keepalive()
+            self._end_keepalive()
         try:
             self._cycle()
         except SafetyStop:
@@ -585,7 +644,7 @@ class CanBackend(Backend):
                 data[0], data[1] = 0x80, node  # enter PRE-OPERATIONAL: PDOs off
                 self._send_raw(self._nmt_msg)
         except self._can_error as exc:
-            self.stop_report.append(f"can: {self.side} bus error at stop: {exc}")
+            self.stop_report.append(f"{self._bus_name}: bus error at stop: {exc}")
 
 
 @register_backend("can")

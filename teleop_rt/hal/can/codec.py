@@ -194,6 +194,42 @@ def decode_heartbeat(data: Buffer) -> str:
     return name
 
 
+# SocketCAN's error classes (linux/can/error.h), which python-can passes on as an error frame's
+# arbitration id; other interfaces use codes of their own, shown as the bare number.
+_ERROR_CLASSES = (
+    (0x040, "bus off"),
+    (0x100, "controller restarted"),
+    (0x020, "no ACK on transmission"),
+    (0x010, "transceiver status"),
+    (0x004, "controller problem"),
+    (0x008, "protocol violation"),
+    (0x080, "bus error"),
+    (0x001, "TX timeout"),
+    (0x002, "lost arbitration"),
+    (0x200, "error counters"),
+)
+_CONTROLLER_PROBLEMS = (  # data[1] of a controller-problem frame
+    (0x01, "RX buffer overflow"),
+    (0x02, "TX buffer overflow"),
+    (0x04, "RX error warning"),
+    (0x08, "TX error warning"),
+    (0x10, "RX error passive"),
+    (0x20, "TX error passive"),
+    (0x40, "back to error active"),
+)
+
+
+def describe_error_frame(error_id: int, data: Buffer) -> str:
+    """One line for a CAN error frame: its id and, read as SocketCAN's, the error classes."""
+    names = [name for bit, name in _ERROR_CLASSES if error_id & bit]
+    if error_id & 0x004 and len(data) > 1:
+        problems = [name for bit, name in _CONTROLLER_PROBLEMS if data[1] & bit]
+        if problems:
+            names[names.index("controller problem")] += f": {', '.join(problems)}"
+    detail = f" ({'; '.join(names)})" if names else ""
+    return f"CAN error frame 0x{error_id:03X}{detail}"
+
+
 # --- units ---------------------------------------------------------------------------------
 VelocityUnit = Literal["rpm", "counts_per_s"]
 _VELOCITY_UNITS = ("rpm", "counts_per_s")

@@ -6,6 +6,11 @@ drive emulator (``udp_multicast`` across processes, ``virtual`` in one process).
 
 Importing this module must stay cheap (teleop_rt.config imports it): pydantic only, no
 python-can, no canopen.
+
+EDS paths: a relative ``eds`` is resolved against the config file's folder when the config is
+loaded (``CanSpec.with_paths_resolved``, like the URDFs); a missing file is a ``ConfigError``
+naming the key when the backend or the emulator is built (``CanSideSpec.check_eds``), so a
+``can:`` section only fails a session that drives CAN.
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from teleop_rt.errors import ConfigError
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -68,7 +75,13 @@ class DriveSpec(_Strict):
     zero_offset_rad: FiniteFloat = 0.0
     rated_torque_unit_nm: PositiveFloat = 1e-3
     max_torque_permille: Annotated[int, Field(ge=1, le=0xFFFF)] | None = None  # 0x6072
-    eds: Path | None = None  # the drive's EDS; default: the bundled generic CiA 402 EDS
+    # the drive's EDS (relative: to the config file's folder); default: the bundled CiA 402 EDS
+    eds: Path | None = None
+
+    def with_eds_resolved(self, base_dir: Path) -> DriveSpec:
+        if self.eds is None or self.eds.is_absolute():
+            return self
+        return self.model_copy(update={"eds": (base_dir / self.eds).resolve()})
 
 
 class TorqueSensorSpec(_Strict):
@@ -113,6 +126,12 @@ class CanSideSpec(_Strict):
             if cob in own or cob == 0x080:
                 raise ValueError(f"torque_sensor.cob_id 0x{cob:03X} collides with a drive's")
         return self
+
+    def check_eds(self, key: str) -> None:
+        """ConfigError naming the first drive whose EDS file is missing (``key``: 'can.hsi')."""
+        for j, d in enumerate(self.drives):
+            if d.eds is not None and not d.eds.is_file():
+                raise ConfigError(f"{key}.drives.{j}.eds: no such file: {d.eds}")
 
 
 _DRIVE_COBS = (
@@ -177,3 +196,12 @@ class CanSpec(_Strict):
 
     def side(self, name: str) -> CanSideSpec:
         return self.hsi if name == "hsi" else self.to
+
+    def with_paths_resolved(self, base_dir: Path) -> CanSpec:
+        """Relative EDS paths resolved against ``base_dir`` (the config file's folder)."""
+        update = {}
+        for name in ("hsi", "to"):
+            side = self.side(name)
+            drives = [d.with_eds_resolved(base_dir) for d in side.drives]
+            update[name] = side.model_copy(update={"drives": drives})
+        return self.model_copy(update=update)

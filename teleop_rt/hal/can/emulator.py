@@ -433,6 +433,7 @@ class DriveEmulator:
         self.side = side
         self.operator = operator
         spec = (cfg.can or CanSpec()).side(side)
+        spec.check_eds(f"can.{side}")
         self.period_us = round(cfg.dt * 1e6)
         self.time_us = 0
         self.network = canopen.Network(bus)  # no notifier: poll() feeds it, one thread
@@ -618,8 +619,8 @@ class DriveEmulator:
                 d.fault("injected EMCY", EMCY_OVERCURRENT)
             elif kind == "status_fault":
                 d.fault("injected statusword fault", None)
-        if kind == "error_frame":
-            self.send(0x004, bytes(8), error_frame=True)
+        if kind == "error_frame":  # SocketCAN's layout: controller problem, RX error passive
+            self.send(0x004, b"\x00\x10" + bytes(6), error_frame=True)
 
     def _active_faults(self) -> list[tuple[str, EmulatedDrive]]:
         if not self.faults:
