@@ -136,6 +136,31 @@ class PlantSpec(Strict):
     faults: list[FaultSpec] = Field(default_factory=list)
 
 
+class WorkspaceBox(Strict):
+    """An axis-aligned box (world frame, m) the robot's tool frame (``ee_frame``) must stay in;
+    2 numbers bound x and y only, 3 also z."""
+
+    lower_m: list[FiniteFloat]
+    upper_m: list[FiniteFloat]
+
+    @model_validator(mode="after")
+    def _box(self) -> WorkspaceBox:
+        _vec3(self.lower_m, "lower_m")
+        _vec3(self.upper_m, "upper_m")
+        if len(self.lower_m) != len(self.upper_m):
+            raise ValueError("lower_m and upper_m need the same number of axes")
+        if any(lo >= hi for lo, hi in zip(self.lower_m, self.upper_m, strict=True)):
+            raise ValueError("every lower_m must be below its upper_m")
+        return self
+
+
+class WorkspaceLimits(Strict):
+    """End-effector workspace boxes per robot (none by default: the joint limits bound it)."""
+
+    hsi: WorkspaceBox | None = None
+    to: WorkspaceBox | None = None
+
+
 class SafetySpec(Strict):
     """The safety layer (teleop_rt/safety.py): limits come from the URDFs."""
 
@@ -153,6 +178,8 @@ class SafetySpec(Strict):
     # blocked actuator, broken model): stop. 0 ticks switches the check off.
     tracking_error_rad_s2: PositiveFloat = 20.0
     tracking_error_ticks: Annotated[int, Field(ge=0)] = 20
+    # the tool frame outside its box is a stop (one forward-kinematics call per boxed robot)
+    workspace: WorkspaceLimits = WorkspaceLimits()
     # the stop itself: the HSI is damped, the TO is brought to rest, then both get zero torque
     stop_damping_nm_s_per_rad: NonNegFloat = 0.5
     stop_max_ticks: Annotated[int, Field(ge=0)] = 500

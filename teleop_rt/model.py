@@ -121,6 +121,11 @@ class RobotModel:
         vel = self.ee_vel
         vel[0], vel[1], vel[2] = x, y, z
 
+    def tool_position(self, q: np.ndarray) -> list[float]:
+        """End-effector position at q (m, world frame) as a list: one Pinocchio call (tick path)."""
+        pin.framesForwardKinematics(self.model, self.data, q)
+        return self._ee_translation.tolist()
+
     def ee_position(self, q: np.ndarray) -> np.ndarray:
         """End-effector position at q (a fresh copy; not for the tick path)."""
         pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))

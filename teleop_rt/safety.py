@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from teleop_rt.config import SafetySpec
 from teleop_rt.errors import SafetyStop
 from teleop_rt.hal.base import Feedback
@@ -86,6 +88,11 @@ class RobotGuard:
         self.prev_v = [0.0] * n
         self.prev_a = [0.0] * n
         self.run = [0] * n  # ticks in a row above the tracking tolerance
+        box = getattr(spec.workspace, name)
+        self.model = model
+        self.workspace = None
+        if box is not None:  # (axis, lower, upper) for each bounded axis
+            self.workspace = list(zip("xyz", box.lower_m, box.upper_m, strict=False))
 
     def check_measured(
         self, tick: int, q: list[float], v: list[float], tau_ext: list[float]
@@ -142,7 +149,20 @@ class RobotGuard:
             prev_v[:] = v
             prev_a[:] = a_cmd
             self.tracking_valid = True
+        if self.workspace is not None:
+            self.check_workspace(tick, fb.q)
         return saturated
+
+    def check_workspace(self, tick: int, q: np.ndarray) -> None:
+        """The tool frame inside its workspace box (forward kinematics at the measured q)."""
+        position = self.model.tool_position(q)
+        for axis, (name, lower, upper) in enumerate(self.workspace):
+            x = position[axis]
+            if not lower <= x <= upper:
+                raise SafetyStop(
+                    f"tick {tick}: {self.name} tool frame '{self.model.ee_frame}' at {name} = "
+                    f"{x:.4g} m, outside its workspace [{lower:g}, {upper:g}] m"
+                )
 
     def _tracking_reason(self) -> str:
         return (

@@ -3,13 +3,14 @@ session with the tick, robot, joint and reason, and the log keeps every tick up 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
 
 from teleop_rt import config
 from teleop_rt.cli import main
-from teleop_rt.errors import SafetyStop
+from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.hal.base import Feedback
 from teleop_rt.recording.reader import read_log
 from teleop_rt.recording.recorder import Recorder
@@ -29,6 +30,7 @@ def supervisor(**spec) -> Supervisor:
 def feedback(q: list[float], v: list[float], age_ticks: int = 0) -> Feedback:
     fb = Feedback(len(q))
     fb.q_list[:], fb.v_list[:], fb.age_ticks = q, v, age_ticks
+    fb.sync_arrays()
     return fb
 
 
@@ -106,3 +108,56 @@ def test_cli_exit_code_3_on_a_safety_stop(capsys) -> None:
     code = main(["run", str(PAPER), "--no-log", "--duration", "3", "--set",
                  "hsi.controller.kp=1e6", "--json"])  # fmt: skip
     assert code == 3
+
+
+# --- end-effector workspace ---------------------------------------------------------------------
+def planar_tool(q1: float, q2: float) -> tuple[float, float]:
+    """scara_2dof.urdf's tool in the plane: links of 0.30 m and 0.25 m (closed form)."""
+    return (
+        0.30 * math.cos(q1) + 0.25 * math.cos(q1 + q2),
+        0.30 * math.sin(q1) + 0.25 * math.sin(q1 + q2),
+    )
+
+
+def test_workspace_box_stops_the_tool_outside_it_and_names_axis_and_bound() -> None:
+    box = {"to": {"lower_m": [0.1, -0.05], "upper_m": [0.6, 0.4]}}
+    guard = supervisor(workspace=box).guards["to"]
+    zero = [0.0, 0.0]
+    inside = [0.3, 0.7]  # tool at (0.4217, 0.2990)
+    assert planar_tool(*inside)[1] == pytest.approx(0.2990, abs=1e-4)
+    guard.check(0, feedback(inside, zero), [0.0, 0.0], zero)
+    outside = [-0.8, 0.9]  # tool at y = 0.30 sin(-0.8) + 0.25 sin(0.1) = -0.190
+    y = planar_tool(*outside)[1]
+    with pytest.raises(SafetyStop) as info:
+        guard.check(5, feedback(outside, zero), [0.0, 0.0], zero)
+    msg = str(info.value)
+    assert msg.startswith("tick 5: to tool frame 'tool' at y = ")
+    assert float(msg.split("y = ")[1].split(" m")[0]) == pytest.approx(y, abs=1e-4)
+    assert "outside its workspace [-0.05, 0.4] m" in msg
+    # the HSI has no box: the same pose passes
+    supervisor(workspace=box).guards["hsi"].check(0, feedback(outside, zero), [0.0, 0.0], zero)
+
+
+def test_workspace_stop_in_a_session_keeps_the_log(tmp_path) -> None:
+    # the paper experiment presses the TO against the wall at y = -0.06: a box ending at
+    # y = -0.05 is left on the way there
+    cfg = config.load(PAPER, ["safety.workspace.to={lower_m: [0.0, -0.05], upper_m: [0.6, 0.6]}"])
+    session = Session(cfg)
+    summary = session.run(recorder=Recorder(session, tmp_path / "ws.mcap"))
+    assert summary.safety_stop
+    assert "to tool frame 'tool' at y = -0.05" in summary.stopped_early
+    assert 7000 < summary.ticks < 10_000  # on the way to the wall (7.5 s to 9 s)
+    assert read_log(tmp_path / "ws.mcap").ticks == summary.ticks
+
+
+@pytest.mark.parametrize(
+    "box",
+    [
+        "{lower_m: [0.5, 0.0], upper_m: [0.1, 0.4]}",  # lower above upper
+        "{lower_m: [0.0], upper_m: [0.4]}",  # one axis
+        "{lower_m: [0.0, 0.0], upper_m: [0.4, 0.4, 0.4]}",  # axes differ
+    ],
+)
+def test_a_contradictory_workspace_box_is_a_config_error(box: str) -> None:
+    with pytest.raises(ConfigError, match=r"safety\.workspace\.to"):
+        config.load(PAPER, [f"safety.workspace.to={box}"])

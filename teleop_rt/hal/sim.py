@@ -177,11 +177,7 @@ class SimBackend(Backend):
     # --- dynamics -------------------------------------------------------------------------
     def _eval_loads(self, t: float, q: np.ndarray, v: list[float]) -> None:
         """tau_load = sum of the loads' joint torques at (t, q, v)."""
-        tl, n = self.tau_load, self.n
-        for j in range(n):
-            tl[j] = 0.0
-        for load in self.joint_loads:
-            load.add_joint_torque(t, q, v, tl)
+        tl = self.tau_load
         if self.cartesian_loads:
             plant = self.plant
             plant.update_ee(q, v)
@@ -193,8 +189,13 @@ class SimBackend(Backend):
                 fy += f[1]
                 fz += f[2]
             jx, jy, jz = plant.ee_jac[0], plant.ee_jac[1], plant.ee_jac[2]
-            for j in range(n):  # tau = J^T F
-                tl[j] += jx[j] * fx + jy[j] * fy + jz[j] * fz
+            for j in range(self.n):  # tau = J^T F
+                tl[j] = jx[j] * fx + jy[j] * fy + jz[j] * fz
+        else:
+            for j in range(self.n):
+                tl[j] = 0.0
+        for load in self.joint_loads:
+            load.add_joint_torque(t, q, v, tl)
 
     def _acceleration(self, q: np.ndarray, v_arr: np.ndarray, v: list[float]) -> list[float]:
         # M a + n = g + tau_ext - friction (the friction law of RobotModel.friction, inlined:
