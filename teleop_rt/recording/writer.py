@@ -66,7 +66,10 @@ def writer_main(
 
 def _write(path, ctrl, ring, layout, period_ns, metadata, attachments, summary_conn) -> None:
     context = foxglove.Context()  # private: no other channel of this process lands in the file
-    options = MCAPWriteOptions(compression=MCAPCompression.Zstd, chunk_size=256 * 1024)
+    # LZ4, not Zstd: half the writer's CPU per tick (about 10 against 20 us for the four
+    # messages), for files about 18 % larger (330 against 280 bytes per tick of the paper
+    # experiment); on a 2-core machine the writer's CPU is taken from the control loop
+    options = MCAPWriteOptions(compression=MCAPCompression.Lz4, chunk_size=256 * 1024)
     writer = foxglove.open_mcap(path, allow_overwrite=True, context=context, writer_options=options)
     channels = [
         foxglove.Channel(
