@@ -204,21 +204,22 @@ class Supervisor:
         g_t: list[float],
         a_t: list[float],
     ) -> None:
-        """All of one tick's checks, in order (the tick path's single call): measurements of
-        both robots, then per robot stale feedback, limits, commands and tracking, then
-        saturation. For each robot: feedback, measured tau_ext, commanded torque (saturated in
-        place), commanded acceleration."""
+        """All of one tick's checks (the tick path's single call): per robot stale feedback,
+        limits, commands and tracking, then saturation. A NaN or inf measurement always trips
+        one of them (comparisons with NaN fail; a NaN torque sensor makes its command NaN), and
+        the stop then names the measurement. For each robot: feedback, measured tau_ext,
+        commanded torque (saturated in place), commanded acceleration."""
         if not self.enabled:
             return
         guard_h, guard_t = self.guards["hsi"], self.guards["to"]
-        if not math.isfinite(
-            sum(fb_h.q_list) + sum(fb_h.v_list) + sum(tau_h)
-            + sum(fb_t.q_list) + sum(fb_t.v_list) + sum(tau_t)
-        ):  # fmt: skip
+        try:  # a non-finite value fails the limit comparisons or makes a command NaN
+            saturated = guard_h.check(tick, fb_h, g_h, a_h)
+            saturated = guard_t.check(tick, fb_t, g_t, a_t) or saturated
+        except SafetyStop:
+            # name the sensor at fault, not the command it poisoned (maybe through the channel)
             guard_h.check_measured(tick, fb_h.q_list, fb_h.v_list, tau_h)
             guard_t.check_measured(tick, fb_t.q_list, fb_t.v_list, tau_t)
-        saturated = guard_h.check(tick, fb_h, g_h, a_h)
-        saturated = guard_t.check(tick, fb_t, g_t, a_t) or saturated
+            raise
         if saturated or self.saturated_run:
             self.saturation(tick, saturated)
 

@@ -41,6 +41,12 @@ class Feedback:
         self.v_list = [0.0] * n
         self.tau_ext = [0.0] * n
 
+    def copy_arrays(self, q: memoryview, v: memoryview) -> None:
+        """q, v (numpy) = q, v given as float64 memoryviews (a memcpy each): for a backend
+        whose state mirrors q_list, v_list in such views (see teleop_rt.scalar.shared_vector)."""
+        self._q_view[:] = q
+        self._v_view[:] = v
+
     def sync_arrays(self) -> None:
         """q, v (numpy) = q_list, v_list."""
         qv, vv = self._q_view, self._v_view

@@ -104,8 +104,11 @@ class SimBackend(Backend):
         if self.velocity_noise_std:
             self._add_noise(fb.v_list, self.velocity_noise_std)
         if self.faults:
-            self._corrupt_sensors(fb)
-        fb.sync_arrays()
+            self._corrupt_sensors(fb)  # (the torque sensors only)
+        if self.velocity_noise_std:
+            fb.sync_arrays()
+        else:  # q_list, v_list equal the plant's state: copy its arrays (a memcpy each)
+            fb.copy_arrays(self._q_view, self._v_view)
         self._snapshot_world()
         return fb
 
