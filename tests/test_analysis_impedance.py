@@ -1,10 +1,18 @@
 """Displayed impedance (Kuschel & Buss Section 3) against the paper's closed forms."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from teleop_rt.analysis.discrete import (
+    continuous_params,
+    displayed_impedance_z,
+    filter_group_delay_s,
+    matched_filter_hz,
+)
 from teleop_rt.analysis.impedance import (
     AnalysisParamError,
     ControllerGains,
@@ -23,6 +31,7 @@ from teleop_rt.analysis.impedance import (
     round_trip_factor,
     time_constant_hsi,
     time_constant_to,
+    wave_filter_tf,
 )
 from teleop_rt.errors import ConfigError
 
@@ -257,3 +266,84 @@ def test_pid_integral_action():
     assert abs(g_omega(1e-6j, M2, C2) - 1) > 1e-9  # P control only has O(s) accuracy
     parts = displayed_impedance_parts(1e-6j, params(0.0, c2=pid, env_stiffness=1000.0))
     assert abs(parts.z_h / parts.z_e - 1) < 1e-4
+
+
+# --- the continuous model of the 1 kHz chain: matched wave-filter cut-off ----------------------
+DT = 1e-3
+
+
+def sampled_filter(omega, cutoff_hz, dt=DT):
+    """F(e^{j omega dt}) of the channel's y += alpha (x - y), alpha = 1 - exp(-2 pi f_c dt)."""
+    alpha = 1.0 - np.exp(-2.0 * np.pi * cutoff_hz * dt)
+    return alpha / (1.0 - (1.0 - alpha) * np.exp(-1j * np.asarray(omega) * dt))
+
+
+@pytest.mark.parametrize("fc", [5.0, 30.0, 100.0])
+def test_matched_cutoff_closed_form(fc):
+    alpha = 1.0 - np.exp(-2.0 * np.pi * fc * DT)
+    matched = matched_filter_hz(fc, DT)
+    assert matched == pytest.approx(alpha / (2.0 * np.pi * (1.0 - alpha) * DT), rel=1e-12)
+    assert matched > fc  # the sampled filter is faster than its nominal continuous namesake
+    # the same DC group delay as the sampled filter: -d arg F / d omega at omega -> 0
+    w = 1e-4
+    group_delay = -np.angle(sampled_filter(w, fc)) / w
+    assert 1.0 / (2.0 * np.pi * matched) == pytest.approx(group_delay, rel=1e-6)
+    assert filter_group_delay_s(fc, DT) == pytest.approx(group_delay, rel=1e-6)
+    # ... half a tick shorter than 1 / (2 pi f_c), to O(f_c dt)
+    half_tick = 1.0 / (2.0 * np.pi * fc) - group_delay
+    assert half_tick == pytest.approx(DT / 2.0, rel=2.0 * np.pi * fc * DT)
+
+
+def test_matched_cutoff_values_and_limits():
+    assert matched_filter_hz(30.0, DT) == pytest.approx(33.014, abs=5e-4)  # 30 Hz at 1 kHz
+    assert filter_group_delay_s(30.0, DT) == pytest.approx(4.82e-3, abs=5e-6)
+    assert matched_filter_hz(None, DT) is None and filter_group_delay_s(None, DT) == 0.0
+    # dt -> 0: the sampled filter becomes the continuous one, f_m = f_c (1 + x/2 + x^2/6 + ...),
+    # x = 2 pi f_c dt
+    x = 2.0 * np.pi * 30.0 * 1e-7
+    assert matched_filter_hz(30.0, 1e-7) == pytest.approx(30.0 * (1 + x / 2 + x**2 / 6), 1e-14)
+    with pytest.raises(AnalysisParamError):
+        matched_filter_hz(0.0, DT)
+
+
+def test_matched_filter_follows_the_sampled_one_to_second_order():
+    # 1/F_z = (1 - (1 - alpha) e^{-j omega dt}) / alpha = 1 + s T_m + ((1 - alpha)/alpha)
+    # (omega dt)^2 / 2 + O((omega dt)^3) with T_m = 1 / (2 pi f_m): the matched continuous filter
+    # is off by that second-order term; the nominal one by omega (1/(2 pi f_c) - T_m) in phase
+    omega = np.array([1.0, 3.0, 10.0])
+    f_z = sampled_filter(omega, 30.0)
+    alpha = 1.0 - np.exp(-2.0 * np.pi * 30.0 * DT)
+    second_order = (1.0 - alpha) / alpha * (omega * DT) ** 2 / 2.0
+    matched = wave_filter_tf(1j * omega, matched_filter_hz(30.0, DT))
+    assert np.all(np.abs(matched / f_z - 1.0) <= 1.05 * second_order)
+    nominal = wave_filter_tf(1j * omega, 30.0)
+    lag = omega * (1.0 / (2.0 * np.pi * 30.0) - filter_group_delay_s(30.0, DT))
+    np.testing.assert_allclose(-np.angle(nominal / f_z), lag, rtol=0.02)
+
+
+def test_continuous_params_of_the_sampled_chain():
+    p = params(0.02, wave_filter_hz=30.0, delay_model="pade")
+    c = continuous_params(p, DT)
+    assert c.delay_model == "exact" and c.wave_filter_hz == matched_filter_hz(30.0, DT)
+    assert (c.m1, c.b, c.delay_s) == (p.m1, p.b, p.delay_s)
+    # zero delay: the channel couples directly, no received waves, no filter
+    assert continuous_params(params(0.0, wave_filter_hz=30.0), DT).wave_filter_hz is None
+
+
+@pytest.mark.parametrize("td", [0.005, 0.02])
+def test_matched_cutoff_closes_the_gap_to_the_sampled_chain(td):
+    # Free space behind T_d with the 30 Hz filter, low frequency: the z-model displays the mass
+    # b (T_d + T_z), T_z the sampled filter's group delay; a continuous model with the nominal
+    # cut-off b (T_d + 1/(2 pi f_c)), too heavy by (1/(2 pi f_c) - T_z) / (T_d + T_z): 4.9 % at
+    # 5 ms, 2.0 % at 20 ms. The matched cut-off removes it (left: O(omega dt), < 0.1 %).
+    p = ImpedanceParams(m1=0.1, m2=0.1, c1=2.0, c2=20.0, z_o=10.0, b=2.0, delay_s=td,
+                        wave_filter_hz=30.0)  # fmt: skip
+    omega = np.array([0.5, 1.0])
+    z = displayed_impedance_z(omega, p, DT)
+    t_z = filter_group_delay_s(30.0, DT)
+    gap = (1.0 / (2.0 * np.pi * 30.0) - t_z) / (td + t_z)
+    nominal = displayed_impedance(1j * omega, replace(p, delay_model="exact"))
+    np.testing.assert_allclose(np.abs(nominal / z) - 1.0, gap, atol=5e-4)
+    matched = displayed_impedance(1j * omega, continuous_params(p, DT))
+    assert np.all(np.abs(np.abs(matched / z) - 1.0) < 1e-3)
+    assert np.all(np.abs(np.angle(matched / z, deg=True)) < 0.1)

@@ -1,7 +1,8 @@
 """Issue 4, items 2-4: the displayed impedance measured on the running blocks (open chain,
-1 kHz) against the exact discrete-time model (0.1 %) and the continuous model (2 % / 2 deg for
-omega <= 10 rad/s), an unsettled chain reported as such, the displayed mass and stiffness
-fitted from time-domain runs, and ``teleop-rt bode --json``."""
+1 kHz) against the exact discrete-time model (0.1 %) and the continuous model with the wave
+filter at its matched cut-off (2 % / 2 deg for omega <= 10 rad/s), unsettled and slowly
+settling chains reported as not settled, the displayed mass and stiffness fitted from
+time-domain runs, and ``teleop-rt bode --json``."""
 
 from __future__ import annotations
 
@@ -14,7 +15,11 @@ import numpy as np
 import pytest
 
 from teleop_rt.analysis.bode import BodeResult, choose_window, measure_displayed_impedance
-from teleop_rt.analysis.discrete import displayed_impedance_z, spectral_radius
+from teleop_rt.analysis.discrete import (
+    displayed_impedance_z,
+    spectral_radius,
+    window_decay,
+)
 from teleop_rt.analysis.displayed import (
     effective_delay,
     fit_displayed_mass,
@@ -31,8 +36,10 @@ PID = dict(
     c2=ControllerGains(kp=20.0, ki=100.0, kd=0.05, derivative_filter_s=0.002),
 )
 
-# (id, chain parameters): delay 0 and 20 ms, free space and a joint spring, filter on and off,
-# plus a mass-damper environment and PID controllers; all settle (spectral radius <= 1)
+# (id, chain parameters): delays 0 to 50 ms, free space, joint springs and masses, filter on and
+# off, PID controllers; all settle (spectral radius <= 1). Behind a delay a joint mass must stay
+# below M2 b / c2 = 0.01 and a soft spring at 50 ms needs c_e >= k_e M2 / c2 (module docs).
+FILTER = dict(wave_filter_hz=30.0)
 CASES = {
     "0ms-free": dict(delay_s=0.0),
     "0ms-spring": dict(delay_s=0.0, env_stiffness=20.0),
@@ -41,6 +48,14 @@ CASES = {
     "20ms-spring-filter": dict(delay_s=0.02, env_stiffness=20.0, wave_filter_hz=30.0),
     "0ms-mass-damper": dict(delay_s=0.0, env_mass=0.005, env_damping=0.5),
     "20ms-spring-pid-filter": dict(delay_s=0.02, env_stiffness=20.0, wave_filter_hz=30.0, **PID),
+    # the nominal 30 Hz continuous filter is 4.9 % off here (test_analysis_impedance)
+    "5ms-free-filter": dict(delay_s=0.005, **FILTER),
+    "5ms-mass-filter": dict(delay_s=0.005, env_mass=0.005, **FILTER),
+    "10ms-spring-filter": dict(delay_s=0.01, env_stiffness=20.0, **FILTER),
+    "10ms-mass-damper-filter": dict(delay_s=0.01, env_mass=0.005, env_damping=0.5, **FILTER),
+    "50ms-mass-filter": dict(delay_s=0.05, env_mass=0.005, **FILTER),
+    "50ms-spring-damper-filter": dict(delay_s=0.05, env_stiffness=20.0, env_damping=0.2, **FILTER),
+    "50ms-stiff-spring-filter": dict(delay_s=0.05, env_stiffness=1000.0, **FILTER),
 }
 
 
@@ -61,6 +76,8 @@ def test_measured_matches_the_discrete_model_to_0_1_percent(case: str) -> None:
     measured, discrete = result.measured, result.discrete
     # 0.1 % of |Z_h| (free space at zero delay displays exactly nothing: Z_h = 0)
     assert np.all(np.abs(measured - discrete) <= 1e-3 * np.abs(discrete) + 1e-12)
+    # each settled with at most 1e-4 of transient left (extrapolated from the slowest mode)
+    assert all(pt.error_bound <= 1e-4 for pt in result.points)
     # the frequencies were moved by at most 1 % to fit whole periods in whole round trips
     assert np.allclose(result.omega, OMEGAS, rtol=0.01)
 
@@ -73,9 +90,9 @@ def test_measured_matches_the_continuous_model_below_10_rad_s(case: str) -> None
     if case == "0ms-free":
         assert np.all(np.abs(measured) < 1e-12) and np.all(np.abs(analytic) < 1e-12)
         return
-    # 2 % and 2 deg (issue 4). The tightest case is free space behind 20 ms with the 30 Hz
-    # filter (1.9 %): the 1 kHz filter's DC group delay is half a tick shorter than its
-    # continuous namesake's, and the displayed mass is b (T_d + filter delay).
+    # 2 % and 2 deg (issue 4); measured here: at most 0.3 % / 0.7 deg (50 ms, damped spring).
+    # The analytic model gives the filter its matched cut-off (33.0 Hz for 30 Hz): with the
+    # nominal one the 5 ms cases would be 4-5 % off.
     assert np.all(np.abs(np.abs(measured) / np.abs(analytic) - 1.0) < 0.02)
     assert np.all(np.abs(np.degrees(np.angle(measured / analytic))) < 2.0)
 
@@ -92,6 +109,41 @@ def test_a_chain_that_rings_up_is_reported_unsettled() -> None:
     doc = result.to_dict()
     assert doc["measured"] == {"re": [None], "im": [None], "settled": [False]}
     assert doc["analytic"]["re"][0] is not None  # the models still give numbers
+
+
+def test_a_chain_with_a_slow_echo_mode_is_not_reported_as_a_number() -> None:
+    # Fig 4's spring (Z_e = 10/s, b = 500, T1 = T2 = 0.05 s) behind 100 ms: an echo mode decays
+    # by 2.4e-5 per tick (a 42 s time constant), 2 % per 0.8 s window. Two windows agreeing to
+    # 1e-4 then leave up to r / (1 - r) = 50 times that in the estimate: before the transient
+    # was extrapolated such a point was reported 0.12 % off the exact model.
+    params = ImpedanceParams(
+        m1=0.1, m2=0.1, c1=0.2, c2=2.0, z_o=10.0, b=500.0, delay_s=0.1, wave_filter_hz=30.0,
+        env_stiffness=10.0,
+    )  # fmt: skip
+    assert spectral_radius(params) <= 1.0 + 1e-9  # stable, but barely damped
+    point = measure_displayed_impedance(params, [500.0], joint=1, max_seconds=40.0).points[0]
+    r = window_decay(params, point.window_ticks)
+    assert 0.97 < r < 1.0 and point.window_ticks == 800
+    assert not point.settled and point.reason in ("changing", "slow")
+    assert math.isnan(point.z.real) and point.error_bound > 1e-4
+
+
+def test_window_decay_closed_forms() -> None:
+    # the P-controlled HSI and TO loops have one mode each, 1 - dt c1 Z_o / M1 = 1 - dt c2 / M2
+    # = 0.8; free space behind 20 ms without the filter adds the lossless echoes z^40 = -1,
+    # periodic over windows of 80 q ticks (then left out) and never decaying otherwise
+    free = ImpedanceParams(**BASE, delay_s=0.02)
+    assert window_decay(free, 80) == pytest.approx(0.8**80, rel=1e-6)
+    assert window_decay(free, 160) == pytest.approx(0.8**160, rel=1e-6)
+    assert window_decay(free, 100) == 1.0
+    # a joint spring at zero delay: the offset mode z = 1 is periodic over any window
+    spring = ImpedanceParams(**BASE, delay_s=0.0, env_stiffness=20.0)
+    assert window_decay(spring, 7) == pytest.approx(0.8**7, rel=1e-9)
+    # with the filter the echoes decay: r < 1 for any window, = |z|max^N
+    echo = ImpedanceParams(**BASE, delay_s=0.02, wave_filter_hz=30.0)
+    rho = spectral_radius(echo)
+    assert 0.99 < rho < 1.0
+    assert window_decay(echo, 100) == pytest.approx(rho**100, rel=1e-9)
 
 
 def test_window_holds_whole_periods_in_whole_round_trips() -> None:
@@ -174,10 +226,21 @@ def test_bode_json_schema_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture
     assert p["z_o_nm_s_per_rad"] == 5.0 and p["z_o_source"] == "operator.damping_nm_s_per_rad"
     assert p["delay_s"] == 0.02 and p["delay_ticks"] == 20 and p["b_nm_s_per_rad"] == 2.0
     assert p["m1_kg_m2"] == 0.1 and p["c2"]["kp"] == 20.0 and p["wave_filter_hz"] == 30.0
+    # the analytic model's filter: the matched cut-off, alpha / (2 pi (1 - alpha) dt)
+    alpha = 1.0 - math.exp(-2.0 * math.pi * 30.0 * 1e-3)
+    matched = alpha / (2.0 * math.pi * (1.0 - alpha) * 1e-3)
+    assert p["wave_filter_matched_hz"] == pytest.approx(matched, rel=1e-12)
     assert p["env_stiffness_nm_per_rad"] == 20.0 and p["env_mass_kg_m2"] == 0.0
     meas = np.array(doc["measured"]["re"]) + 1j * np.array(doc["measured"]["im"])
     disc = np.array(doc["discrete"]["re"]) + 1j * np.array(doc["discrete"]["im"])
     assert np.all(np.abs(meas - disc) <= 1e-3 * np.abs(disc))
+    ana = np.array(doc["analytic"]["re"]) + 1j * np.array(doc["analytic"]["im"])
+    cont = ImpedanceParams(
+        m1=0.1, m2=0.1, c1=2.0, c2=20.0, z_o=5.0, b=2.0, delay_s=0.02, env_stiffness=20.0,
+        wave_filter_hz=matched,
+    )  # fmt: skip
+    expected = displayed_impedance(1j * np.array(doc["omega_rad_s"]), cont)
+    np.testing.assert_allclose(ana, expected, rtol=1e-12)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 

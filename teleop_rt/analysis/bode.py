@@ -15,15 +15,25 @@ windows they do not leak into the estimate). For that the frequency is moved to 
 whose period fits (by at most ``snap_tol``, 1 %); the frequencies actually measured are returned.
 
 Settledness: the chain can ring up (a velocity-controlled TO against a spring has Re Z_t < 0 at
-some frequencies, and with delay the wave reflections grow). A frequency counts as settled only
-when two consecutive windows give estimates that differ by less than ``settle_tol`` (relative)
-AND no monitored signal (tau_h, HSI and TO velocity, tau_e) grows: the part of each signal that
-is neither its mean nor its drive-frequency sine must not be larger (by ``growth_tol``) than in
-the window before. Otherwise more windows are run, up to ``max_seconds`` of simulated time (at
-least the settling time and three windows); a frequency that never qualifies, or whose signals
-blow up, is reported as not settled, with no number (NaN here, null in JSON). A growing mode
-still below ~1e-9 of the signal cannot be seen; ``teleop_rt.analysis.discrete.spectral_radius``
-decides stability from the model instead.
+some frequencies, and with delay the wave reflections grow), or have echo modes that decay over
+tens of seconds. A frequency counts as settled only when
+
+* no monitored signal (tau_h, HSI and TO velocity, tau_e) grows: the part of each signal that
+  is neither its mean nor its drive-frequency sine must not be larger (by ``growth_tol``) than
+  in the window before;
+* two consecutive windows give estimates that differ by at most ``settle_tol`` (relative); and
+* the transient still in the estimate, extrapolated from that change with the slowest mode of
+  the exact discrete model (``discrete.window_decay``: r = |z|^N per window, at most
+  r / (1 - r) times the change), is at most ``settle_tol`` too. Two windows that agree while a
+  mode decays by only 1 % per window say little: without this test such a point passed with
+  0.12 % error. A mode that never decays (r >= 1: a marginal or unstable chain) fails it always.
+
+Otherwise more windows are run, up to ``max_seconds`` of simulated time (at least the settling
+time and three windows); a frequency that never qualifies, or whose signals blow up, is reported
+as not settled, with no number (NaN here, null in JSON), and a reason: "changing", "growing",
+"diverged", "slow" (the extrapolated transient stays above ``settle_tol``) or "marginal" (a mode
+of the model does not decay). The model's modes are those of the linear chain; with friction
+not compensated (``chain_kwargs``) they are an approximation.
 
 Z_e = m s: a mass cannot be measured without a lag on a sampled robot (its torque m a during
 [k, k+1] depends on the command computed from that very measurement), so ``JointMass`` applies
@@ -41,12 +51,18 @@ from __future__ import annotations
 import inspect
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from teleop_rt.analysis.discrete import DT, delay_ticks, displayed_impedance_z
+from teleop_rt.analysis.discrete import (
+    DT,
+    continuous_params,
+    delay_ticks,
+    displayed_impedance_z,
+    window_decay,
+)
 from teleop_rt.analysis.impedance import (
     AnalysisParamError,
     ControllerGains,
@@ -227,7 +243,8 @@ class PointResult:
     window_ticks: int
     simulated_s: float  # simulated time spent on this frequency
     relative_change: float  # between the last two windows (inf if fewer than two)
-    reason: str  # "settled", "changing", "growing", "diverged"
+    reason: str  # "settled", "changing", "growing", "diverged", "slow", "marginal"
+    error_bound: float = math.inf  # extrapolated relative transient left in z (module doc)
 
 
 @dataclass
@@ -255,8 +272,9 @@ class BodeResult:
 
     @property
     def analytic(self) -> np.ndarray:
-        """Continuous-time Z_h (eq 20, exact delay) at the measured frequencies."""
-        return displayed_impedance(1j * self.omega, _exact(self.params, self.dt))
+        """Continuous-time Z_h (eq 20, exact delay, wave filter at its matched cut-off) at the
+        measured frequencies (``discrete.continuous_params``)."""
+        return displayed_impedance(1j * self.omega, continuous_params(self.params, self.dt))
 
     @property
     def discrete(self) -> np.ndarray:
@@ -287,6 +305,8 @@ class BodeResult:
         """Every parameter of the analysis and the measurement, SI units."""
         return {
             **impedance_params_dict(self.params),
+            # the analytic model's cut-off: the sampled filter's DC group delay (null: no filter)
+            "wave_filter_matched_hz": continuous_params(self.params, self.dt).wave_filter_hz,
             "dt_s": self.dt,
             "delay_ticks": delay_ticks(self.params.delay_s, self.dt),
             "joint": self.joint,
@@ -294,13 +314,6 @@ class BodeResult:
             "omega_requested_rad_s": [pt.omega_requested for pt in self.points],
             **self.settings,
         }
-
-
-def _exact(params: ImpedanceParams, dt: float = DT) -> ImpedanceParams:
-    """The continuous model of what the chain implements: exact delay, and no wave filter at
-    zero delay (the channel then couples directly and has no received waves to filter)."""
-    filt = params.wave_filter_hz if delay_ticks(params.delay_s, dt) > 0 else None
-    return replace(params, delay_model="exact", wave_filter_hz=filt)
 
 
 def _gains_dict(c: ControllerGains | float) -> dict:
@@ -405,11 +418,12 @@ def measure_point(
     scale = 1.0 + params.b + params.z_o + params.env_damping
     limit = 1e6 * amplitude_rad_s * (scale + params.env_stiffness / w + params.env_mass * w)
     if run_bounded(chain, amplitude_rad_s * np.sin(w * dt * np.arange(n_settle)), limit) is None:
-        return _unsettled(omega, w, n_win, chain.tick * dt, math.inf, "diverged")
+        return _unsettled(omega, w, n_win, chain.tick * dt, math.inf, "diverged", math.inf)
     z_prev, res_prev = None, None
-    rel = math.inf
+    rel = bound = math.inf
     reason = "changing"
     z_floor = 1e-12 * params.b
+    tail = _tail_factor(window_decay(params, n_win, dt))
     while True:
         k = np.arange(chain.tick, chain.tick + n_win)
         basis = np.exp(-1j * w * dt * k)
@@ -427,20 +441,39 @@ def measure_point(
                 r > rp * (1.0 + growth_tol) + 1e-9 * float(np.abs(x).max())
                 for r, rp, x in zip(res, res_prev, signals, strict=True)
             )
-            if growing:
-                reason = "growing"
-            elif rel <= settle_tol:
-                return PointResult(omega, w, z, True, n_win, chain.tick * dt, rel, "settled")
-            else:
-                reason = "changing"
+            bound = rel * tail if rel > 0 else 0.0  # (0 * inf: nothing left to extrapolate)
+            reason = _verdict(growing, rel, bound, tail, settle_tol)
+            if reason == "settled":
+                seconds = chain.tick * dt
+                return PointResult(omega, w, z, True, n_win, seconds, rel, reason, bound)
         z_prev, res_prev = z, res
         if chain.tick + n_win > max_ticks:
             break
-    return _unsettled(omega, w, n_win, chain.tick * dt, rel, reason)
+    return _unsettled(omega, w, n_win, chain.tick * dt, rel, reason, bound)
 
 
-def _unsettled(omega: float, w: float, n_win: int, seconds: float, rel: float, reason: str):
-    return PointResult(omega, w, complex(math.nan, math.nan), False, n_win, seconds, rel, reason)
+def _tail_factor(r: float) -> float:
+    """Bound on (transient left) / (last change) for a per-window decay r (discrete module doc);
+    at least 1, inf when a mode does not decay."""
+    return math.inf if r >= 1.0 else max(1.0, r / (1.0 - r))
+
+
+def _verdict(growing: bool, rel: float, bound: float, tail: float, settle_tol: float) -> str:
+    """The reason of one window's test (module doc), "settled" if it passes."""
+    if growing:
+        return "growing"
+    if rel > settle_tol:
+        return "changing"
+    if bound <= settle_tol and math.isfinite(tail):
+        return "settled"
+    return "marginal" if math.isinf(tail) else "slow"
+
+
+def _unsettled(
+    omega: float, w: float, n_win: int, seconds: float, rel: float, reason: str, bound: float
+) -> PointResult:
+    nan = complex(math.nan, math.nan)
+    return PointResult(omega, w, nan, False, n_win, seconds, rel, reason, bound)
 
 
 def run_bounded(
@@ -536,14 +569,14 @@ def plot_bode(result: BodeResult, path: str | Path, title: str | None = None) ->
     w = result.omega
     dense = np.geomspace(w.min() / 1.5, w.max() * 1.5, 300)
     dense = dense[dense * result.dt < math.pi]
-    ana = displayed_impedance(1j * dense, _exact(result.params, result.dt))
+    ana = displayed_impedance(1j * dense, continuous_params(result.params, result.dt))
     dis = displayed_impedance_z(dense, result.params, result.dt)
     meas, ok = result.measured, result.settled
     fig = Figure(figsize=(8, 6.5), layout="constrained")
     ax_m = fig.add_subplot(2, 1, 1)
     ax_p = fig.add_subplot(2, 1, 2, sharex=ax_m)
     for ax, f, label in ((ax_m, np.abs, "|Z_h| (N m s/rad)"), (ax_p, _phase_deg, "phase (deg)")):
-        ax.plot(dense, f(ana), "-", color="C0", label="continuous (eq 20)")
+        ax.plot(dense, f(ana), "-", color="C0", label="continuous (eq 20, matched filter)")
         ax.plot(dense, f(dis), "--", color="C1", label="discrete (1 kHz, exact)")
         if ok.any():
             ax.plot(w[ok], f(meas[ok]), "o", color="k", mfc="none", label="measured")
@@ -559,14 +592,15 @@ def plot_bode(result: BodeResult, path: str | Path, title: str | None = None) ->
     fig.suptitle(
         title
         or f"displayed impedance, joint {result.joint}: T_d = {p.delay_s * 1000:g} ms, "
-        f"b = {p.b:g}, filter {_filter_text(p)}, Z_e = {p.env_mass:g} s + "
+        f"b = {p.b:g}, filter {_filter_text(p, result.dt)}, Z_e = {p.env_mass:g} s + "
         f"{p.env_damping:g} + {p.env_stiffness:g}/s"
     )
     FigureCanvasAgg(fig).print_png(str(path))
 
 
-def _filter_text(p: ImpedanceParams) -> str:
-    return f"{p.wave_filter_hz:g} Hz" if p.wave_filter_hz and p.delay_s > 0 else "off"
+def _filter_text(p: ImpedanceParams, dt: float) -> str:
+    matched = continuous_params(p, dt).wave_filter_hz
+    return "off" if matched is None else f"{p.wave_filter_hz:g} Hz (matched {matched:.1f} Hz)"
 
 
 def _phase_deg(z: np.ndarray) -> np.ndarray:

@@ -39,10 +39,12 @@ Two lines: the continuous model with s -> s_f = (z-1)/dt in the plants (G_tau, G
 = (1-1/z)/dt in the environment and the controllers' I/D parts, and e^{-2 T_d s} F(s)^2 replaced
 by z^-2D F(z)^2. Each substitution differs from s by O(omega dt): the continuous model is off
 by a few 0.1 % at 10 rad/s, except through the filter, whose DC group delay (1 - alpha) dt /
-alpha is half a tick shorter than 1 / (2 pi f_c): with the filter on, the continuous model's
-displayed mass b (T_d + 1/(2 pi f_c)) is too large by dt / (2 (T_d + 1/(2 pi f_c))) at every
-frequency (1.9 % at T_d = 20 ms, 4.9 % at 5 ms). A continuous filter with the matched cut-off
-alpha / (2 pi (1 - alpha) dt) (33.0 Hz for 30 Hz) removes it (0.02 % at 10 rad/s).
+alpha is half a tick shorter than 1 / (2 pi f_c): with the filter on, a continuous model with
+the nominal f_c displays the mass b (T_d + 1/(2 pi f_c)), too large by about
+dt / (2 (T_d + 1/(2 pi f_c))) at every frequency (2 % at T_d = 20 ms, 4.9 % at 5 ms). A
+continuous filter with the matched cut-off ``matched_filter_hz`` = alpha / (2 pi (1 - alpha) dt)
+(33.0 Hz for 30 Hz at 1 kHz) has the same DC group delay and removes it (0.02 % at 10 rad/s);
+``continuous_params`` gives the continuous model of the sampled chain with it.
 
 Stability (``spectral_radius``): the open chain's modes are the roots of the HSI loop polynomial
 (denominator of G_tau) and of the channel-TO polynomial
@@ -52,11 +54,18 @@ measurement sees. Found this way (paper gains, b = 2): without the received-wave
 joint spring behind any delay rings up (Re Z_t < 0 and a lossless channel), with the 30 Hz
 filter soft springs can still ring (k_e = 20 N m/rad at 50 ms, 40 at 20 ms) unless damped
 (c_e >= k_e M2 / c2 makes G_omega Z_e passive in continuous time, and these settle).
+
+Settling (``window_decay``): a measurement locks in over windows of N ticks; a mode z adds to
+window k a leak c z^(kN), so the estimate moves by c z^(kN) (z^N - 1) from one window to the
+next and is still c z^(kN) off its limit: at most r / (1 - r) times the last change, with
+r = |z|^N. Modes on the unit circle that are periodic over the window (z^N = 1) leak nothing.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
+from functools import lru_cache
 from typing import NamedTuple
 
 import numpy as np
@@ -89,6 +98,38 @@ def delay_ticks(delay_s: float, dt: float = DT) -> int:
 def filter_alpha(cutoff_hz: float | None, dt: float = DT) -> float | None:
     """alpha of the channel's received-wave low-pass (None: no filter)."""
     return None if cutoff_hz is None else 1.0 - math.exp(-2.0 * math.pi * cutoff_hz * dt)
+
+
+def filter_group_delay_s(cutoff_hz: float | None, dt: float = DT) -> float:
+    """DC group delay (1 - alpha) dt / alpha of the sampled received-wave low-pass, s (0: none).
+
+    Half a tick shorter than the 1 / (2 pi f_c) of the continuous filter of the same cut-off.
+    """
+    alpha = filter_alpha(cutoff_hz, dt)
+    return 0.0 if alpha is None else (1.0 - alpha) * dt / alpha
+
+
+def matched_filter_hz(cutoff_hz: float | None, dt: float = DT) -> float | None:
+    """Cut-off (Hz) of the continuous first-order low-pass with the DC group delay of the sampled
+    one, y += alpha (x - y): alpha / (2 pi (1 - alpha) dt) = (e^(2 pi f_c dt) - 1) / (2 pi dt).
+
+    Why: the continuous model with the nominal f_c delays each wave by half a tick more than the
+    1 kHz filter does, which the displayed mass b (T_d + filter delay) shows as a few per cent
+    (module doc); with this cut-off the two agree to O((omega dt)^2). None: no filter.
+    """
+    if cutoff_hz is None:
+        return None
+    if not cutoff_hz > 0:
+        raise AnalysisParamError(f"wave filter cut-off must be > 0 Hz, got {cutoff_hz}")
+    return math.expm1(2.0 * math.pi * cutoff_hz * dt) / (2.0 * math.pi * dt)
+
+
+def continuous_params(params: ImpedanceParams, dt: float = DT) -> ImpedanceParams:
+    """The continuous model (eq 20) of the chain sampled at dt: exact delay, the wave filter at
+    its matched cut-off, and no filter at zero delay (the channel then couples directly and
+    has no received waves to filter)."""
+    filt = params.wave_filter_hz if delay_ticks(params.delay_s, dt) > 0 else None
+    return replace(params, delay_model="exact", wave_filter_hz=matched_filter_hz(filt, dt))
 
 
 def _gains(c: ControllerGains | float) -> ControllerGains:
@@ -215,6 +256,22 @@ def characteristic_polynomials(params: ImpedanceParams, dt: float = DT) -> list[
     return [hsi, channel]
 
 
+@lru_cache(maxsize=64)
+def _modes(params: ImpedanceParams, dt: float) -> tuple[complex, ...]:
+    roots: list[complex] = []
+    for poly in characteristic_polynomials(params, dt):
+        coef = poly.coef
+        nz = np.flatnonzero(np.abs(coef) > 0)
+        if len(nz) and nz[-1] > nz[0]:
+            roots.extend(Polynomial(coef[nz[0] : nz[-1] + 1]).roots())  # roots at 0 dropped
+    return tuple(complex(z) for z in roots)
+
+
+def chain_modes(params: ImpedanceParams, dt: float = DT) -> np.ndarray:
+    """The open chain's modes: the nonzero roots of ``characteristic_polynomials``."""
+    return np.array(_modes(params, dt), dtype=complex)
+
+
 def spectral_radius(params: ImpedanceParams, dt: float = DT) -> float:
     """Largest |z| of the open chain's modes: > 1 rings up, < 1 settles.
 
@@ -222,13 +279,26 @@ def spectral_radius(params: ImpedanceParams, dt: float = DT) -> float:
     position integrating the imposed velocity (a constant offset), and a lossless channel in
     free space keeps its startup echoes (z^2D = -1); neither disturbs a whole-window lock-in.
     """
-    radius = 0.0
-    for poly in characteristic_polynomials(params, dt):
-        coef = poly.coef
-        nz = np.flatnonzero(np.abs(coef) > 0)
-        if len(nz) == 0 or nz[-1] == 0:
-            continue
-        roots = Polynomial(coef[nz[0] : nz[-1] + 1]).roots()  # roots at 0 dropped
-        if len(roots):
-            radius = max(radius, float(np.abs(roots).max()))
-    return radius
+    modes = chain_modes(params, dt)
+    return float(np.abs(modes).max()) if len(modes) else 0.0
+
+
+# a root this close to the unit circle is on it (root-finding error is ~1e-11 here)
+_ON_CIRCLE = 1e-8
+
+
+def window_decay(params: ImpedanceParams, window_ticks: int, dt: float = DT) -> float:
+    """r = max |z|^N over the modes that leak into a lock-in over whole windows of N ticks.
+
+    Left out: modes on the unit circle that are periodic over the window (z^N = 1: a joint
+    spring's offset at z = 1; a lossless channel's echoes, z^2D = -1, when 4D divides N). A
+    transient then leaves at most r / (1 - r) times the last window-to-window change in the
+    estimate (module doc); r >= 1: a mode that never dies out (marginal or unstable chain).
+    """
+    z = chain_modes(params, dt)
+    radius = np.abs(z)
+    on_circle = np.abs(radius - 1.0) <= _ON_CIRCLE
+    turns = np.angle(z) * window_ticks / (2.0 * np.pi)  # per window
+    periodic = on_circle & (np.abs(turns - np.round(turns)) <= _ON_CIRCLE * window_ticks)
+    radius = np.where(on_circle, 1.0, radius)[~periodic]
+    return float(radius.max() ** window_ticks) if len(radius) else 0.0

@@ -17,7 +17,8 @@ t = tanh(T s) ~ T s in free space, and Z_c = b / t at a rigid termination, i.e. 
 stiffness b / T; against a spring k_e (G_omega -> 1): 1 / k_d = 1 / k_e + T / b. In the
 1 kHz chain T is the effective one-way delay ``effective_delay``: D dt plus, when the
 received-wave filter is on, its group delay at DC, (1 - alpha) dt / alpha (4.82 ms at 30 Hz,
-half a tick less than the 1/(2 pi f_c) = 5.31 ms of its continuous namesake). Hence the ratio
+half a tick less than the 1/(2 pi f_c) = 5.31 ms of its continuous namesake; a continuous
+filter at ``discrete.matched_filter_hz``, 33.0 Hz, has the same). Hence the ratio
 mass / stiffness = T^2 for a rigid wall whatever b is (for a spring k_e it is
 T^2 (1 + b / (k_e T))).
 
@@ -34,7 +35,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from teleop_rt.analysis.bode import OpenChain, run_bounded
-from teleop_rt.analysis.discrete import DT, delay_ticks, filter_alpha
+from teleop_rt.analysis.discrete import DT, delay_ticks, filter_group_delay_s
 from teleop_rt.analysis.impedance import AnalysisParamError, ImpedanceParams
 
 
@@ -72,8 +73,7 @@ class DisplayedFit:
 def effective_delay(params: ImpedanceParams, dt: float = DT) -> float:
     """T of the 1 kHz channel at low frequency: D dt + the filter's DC group delay (s)."""
     d = delay_ticks(params.delay_s, dt)
-    alpha = filter_alpha(params.wave_filter_hz, dt) if d > 0 else None
-    return d * dt + ((1.0 - alpha) * dt / alpha if alpha is not None else 0.0)
+    return d * dt + (filter_group_delay_s(params.wave_filter_hz, dt) if d > 0 else 0.0)
 
 
 def min_jerk_stroke(
