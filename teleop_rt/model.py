@@ -127,9 +127,8 @@ class RobotModel:
         return self._ee_translation.tolist()
 
     def ee_position(self, q: np.ndarray) -> np.ndarray:
-        """End-effector position at q (a fresh copy; not for the tick path)."""
-        pin.framesForwardKinematics(self.model, self.data, np.asarray(q, dtype=float))
-        return self.data.oMf[self.ee_frame_id].translation.copy()
+        """End-effector position at q (a fresh array, from any sequence of angles)."""
+        return np.array(self.tool_position(np.asarray(q, dtype=float)))
 
     # --- limits ---------------------------------------------------------------------------
     @property

@@ -9,7 +9,7 @@ stays deterministic).
 
 from __future__ import annotations
 
-import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -74,10 +74,6 @@ class SimBackend(Backend):
         self._noise = np.zeros(n)
         self.faults = list(faults or [])
         self._held: dict[int, float] = {}  # stuck joints: the angle they are held at
-        # the friction law, bound once for the per-sub-step path
-        self._damping = plant.damping
-        self._coulomb = plant.coulomb if plant.has_coulomb else None
-        self._inv_v_s = plant.inv_v_s
         self._eval_loads(self.t, self.q, self.vl)
 
     # --- Backend --------------------------------------------------------------------------
@@ -154,7 +150,7 @@ class SimBackend(Backend):
         self.t = self.tick * self.dt  # no drift from summing sub-steps
         self._eval_loads(self.t, self.q, self.vl)
 
-    def _advance(self, stuck: list[FaultSpec] = ()) -> None:
+    def _advance(self, stuck: Sequence[FaultSpec] = ()) -> None:
         substep = self._rk4_substep if self.rk4 else self._euler_substep
         for i in range(self.substeps):
             if i:  # the loads at the tick's start were evaluated at the end of the last write
@@ -201,17 +197,11 @@ class SimBackend(Backend):
             load.add_joint_torque(t, q, v, tl)
 
     def _acceleration(self, q: np.ndarray, v_arr: np.ndarray, v: list[float]) -> list[float]:
-        # M a + n = g + tau_ext - friction (the friction law of RobotModel.friction, inlined:
-        # this runs once per plant sub-step)
-        tm, tl, tau, damping = self.tau_motor, self.tau_load, self._tau_view, self._damping
-        if self._coulomb is not None:
-            coulomb, inv_v_s, tanh = self._coulomb, self._inv_v_s, math.tanh
-            for j in range(self.n):
-                vj = v[j]
-                tau[j] = tm[j] + tl[j] - damping[j] * vj - coulomb[j] * tanh(vj * inv_v_s)
-        else:
-            for j in range(self.n):
-                tau[j] = tm[j] + tl[j] - damping[j] * v[j]
+        # M a + n = g + tau_ext - friction
+        fric = self.plant.friction(v)
+        tm, tl, tau = self.tau_motor, self.tau_load, self._tau_view
+        for j in range(self.n):
+            tau[j] = tm[j] + tl[j] - fric[j]
         return self.plant.forward_dynamics(q, v_arr, self._tau)
 
     def _euler_substep(self) -> None:
