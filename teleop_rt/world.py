@@ -140,10 +140,9 @@ class HandTrajectory:
         shape = s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
         rate = 30.0 * s * s * (1.0 - s) * (1.0 - s) / duration
         p0, p1, pos, vel = self.points[i], self.points[i + 1], self.pos, self.vel
-        for r in (0, 1, 2):
-            step = p1[r] - p0[r]
-            pos[r] = p0[r] + step * shape
-            vel[r] = step * rate
+        dx, dy, dz = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
+        pos[0], pos[1], pos[2] = p0[0] + dx * shape, p0[1] + dy * shape, p0[2] + dz * shape
+        vel[0], vel[1], vel[2] = dx * rate, dy * rate, dz * rate
 
 
 class LoggedTrajectory:
