@@ -265,7 +265,7 @@ def main() -> int:
     parser.add_argument("--ticks", type=int, default=10_000, help="ticks per repeat")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--rt-seconds", type=float, default=60.0, help="0 skips real time")
-    parser.add_argument("--joints", default="2,3,4,6,8,12", help="scaling: joint counts")
+    parser.add_argument("--joints", default="2,3,4,6,8,12", help='scaling: joint counts ("" skips)')
     parser.add_argument("--json", type=Path, help="also write the figures as JSON")
     args = parser.parse_args()
     try:
@@ -331,14 +331,15 @@ def run(args, cfg, joints: list[int]) -> int:
                 print(f"  note: {note}")
             out["realtime"] = rt
 
-        print("\nscaling with the number of joints (planar chains, full tick, recording off)")
-        rows = scaling(joints, max(args.ticks // 2, 100), args.repeat, tmp)
-        base = rows[0]["median"]
-        print(f"  {'joints':>6}  {'min':>6}  {'median':>6}  {'p99':>6} us   median / first row")
-        for r in rows:
-            print(f"  {r['joints']:>6}  {r['min']:6.1f}  {r['median']:6.1f}  {r['p99']:6.1f}"
-                  f"      {r['median'] / base:5.2f}")  # fmt: skip
-        out["scaling"] = rows
+        if joints:  # --joints "" skips the scaling table
+            print("\nscaling with the number of joints (planar chains, full tick, recording off)")
+            rows = scaling(joints, max(args.ticks // 2, 100), args.repeat, tmp)
+            base = rows[0]["median"]
+            print(f"  {'joints':>6}  {'min':>6}  {'median':>6}  {'p99':>6} us   median / first row")
+            for r in rows:
+                print(f"  {r['joints']:>6}  {r['min']:6.1f}  {r['median']:6.1f}  {r['p99']:6.1f}"
+                      f"      {r['median'] / base:5.2f}")  # fmt: skip
+            out["scaling"] = rows
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     return 0
