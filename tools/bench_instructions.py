@@ -1,0 +1,176 @@
+#!/usr/bin/env python3
+"""Instructions per tick, counted by valgrind's callgrind: a figure that does not move with the
+machine's load (wall-clock medians on a shared VM swing by 2x; instruction counts repeat).
+
+    python tools/bench_instructions.py [CONFIG] [--ticks N] [--json OUT]
+
+For the full simulated tick (recording off) and the controller-side tick (feedback replayed,
+no plant, as in tools/bench.py) it runs the session twice under callgrind, with N ticks and
+with none after the same set-up and warm-up, and divides the difference by N. The count is
+split by where the instructions ran: the Python interpreter, Pinocchio with its bindings
+(boost.python, eigenpy), numpy, the C library, other extension modules. Use it to judge a
+change to the tick path: a few hundred instructions are visible, where wall-clock timing on
+this machine hides 10 %. Needs valgrind on PATH (Debian package ``valgrind``); about a
+minute per mode.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+from collections import Counter
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = ROOT / "configs/paper_experiment.yaml"
+WARMUP_TICKS = 200
+MODES = {"full": "full tick (recording off)", "controller": "controller side (no plant)"}
+# where instructions ran, by the shared object that holds them (first match wins)
+CATEGORIES = (
+    ("interpreter", ("libpython",)),
+    ("Pinocchio + bindings", ("pinocchio", "boost_python", "eigenpy", "coal", "hpp-fcl")),
+    ("numpy", ("_multiarray", "numpy", "openblas")),
+    ("C library", ("libc.so", "libm.so", "ld-linux")),
+)
+OTHER = "other extension modules"
+
+
+def child(config: Path, mode: str, ticks: int, samples: int) -> None:
+    """The measured process: build the session, warm up, run ``ticks`` ticks. The controller
+    side replays ``samples`` ticks of feedback recorded from a full session (the same number in
+    both runs, so that recording cancels out of the difference)."""
+    sys.path.insert(0, str(ROOT))
+    sys.path.insert(0, str(ROOT / "tools"))
+    from teleop_rt import config as config_module
+    from teleop_rt.session import Session
+
+    cfg = config_module.load(config)
+    session = Session(cfg)
+    if mode == "controller":
+        import bench
+
+        recorded = bench.record_feedback(cfg, samples)
+        session = Session(cfg)
+        session.hsi.backend = bench.ReplayedFeedback(recorded["hsi"])
+        session.to.backend = bench.ReplayedFeedback(recorded["to"])
+    step = session.step
+    for _ in range(WARMUP_TICKS):
+        step()
+    for _ in range(ticks):
+        step()
+
+
+def instructions_by_object(callgrind_out: Path) -> Counter:
+    """Self cost (Ir) per shared object from a callgrind output file (name compression
+    resolved; the inclusive cost lines after ``calls=`` are skipped)."""
+    names: dict[tuple[str, str], str] = {}
+    totals: Counter = Counter()
+    obj = "?"
+    after_call = False
+    pattern = re.compile(r"\((\d+)\)(?: (.*))?")
+    for line in callgrind_out.read_text(errors="replace").splitlines():
+        if not line:
+            continue
+        head = line[0]
+        if head.isdigit() or head in "+-*":
+            if after_call:
+                after_call = False
+                continue
+            parts = line.split()
+            if len(parts) > 1:
+                totals[obj] += int(parts[1])
+        elif line.startswith(("ob=", "cob=")):
+            key, value = line.split("=", 1)
+            m = pattern.match(value)
+            if m:  # "(id) name" defines the id, "(id)" reuses it; ob and cob share ids
+                name = m.group(2) if m.group(2) is not None else names.get(("ob", m.group(1)), "?")
+                names[("ob", m.group(1))] = name
+            else:
+                name = value
+            if key == "ob":
+                obj = name
+        elif line.startswith("calls="):
+            after_call = True
+    return totals
+
+
+def categorise(by_object: Counter) -> Counter:
+    out: Counter = Counter()
+    for obj, count in by_object.items():
+        base = Path(obj).name
+        out[next((c for c, keys in CATEGORIES if any(k in base for k in keys)), OTHER)] += count
+    return out
+
+
+def count(config: Path, mode: str, ticks: int, samples: int, tmp: Path) -> Counter:
+    """Callgrind self cost per category for ``ticks`` ticks of ``mode``."""
+    out = tmp / f"callgrind-{mode}-{ticks}.out"
+    cmd = [
+        "valgrind", "--tool=callgrind", f"--callgrind-out-file={out}",
+        sys.executable, __file__, "--child", mode, "--ticks", str(ticks),
+        "--samples", str(samples), str(config),
+    ]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+        raise RuntimeError(f"{mode} under callgrind failed: {last}")
+    return categorise(instructions_by_object(out))
+
+
+def per_tick(config: Path, mode: str, ticks: int, tmp: Path) -> dict[str, float]:
+    with ThreadPoolExecutor(2) as pool:  # the two runs in parallel (2 cores)
+        samples = WARMUP_TICKS + ticks
+        runs = pool.map(lambda n: count(config, mode, n, samples, tmp), (ticks, 0))
+        with_ticks, without = runs
+    return {k: (with_ticks[k] - without[k]) / ticks for k in with_ticks | without}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("config", nargs="?", type=Path, default=PAPER)
+    parser.add_argument("--ticks", type=int, default=2000)
+    parser.add_argument("--json", type=Path, help="also write the figures as JSON")
+    parser.add_argument("--child", choices=sorted(MODES), help=argparse.SUPPRESS)
+    parser.add_argument("--samples", type=int, default=0, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        child(args.config, args.child, args.ticks, args.samples)
+        return 0
+    if args.ticks < 100:
+        print("bench_instructions: error: --ticks must be >= 100", file=sys.stderr)
+        return 2
+    if not args.config.is_file():
+        print(f"bench_instructions: error: no such config: {args.config}", file=sys.stderr)
+        return 2
+    if shutil.which("valgrind") is None:
+        print("bench_instructions: error: valgrind is not on PATH (apt install valgrind)",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    print(f"config: {args.config}   {args.ticks} ticks after {WARMUP_TICKS} of warm-up, "
+          "under callgrind (instructions per tick)")  # fmt: skip
+    results = {}
+    with tempfile.TemporaryDirectory() as tmp_name:
+        for mode, label in MODES.items():
+            try:
+                results[mode] = per_tick(args.config, mode, args.ticks, Path(tmp_name))
+            except RuntimeError as err:
+                print(f"bench_instructions: error: {err}", file=sys.stderr)
+                return 1
+            total = sum(results[mode].values())
+            print(f"\n{label}: {total:,.0f} instructions per tick")
+            for cat in [c for c, _ in CATEGORIES] + [OTHER]:
+                share = results[mode].get(cat, 0.0)
+                print(f"  {cat:<26} {share:10,.0f}  {100 * share / total:5.1f} %")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
