@@ -216,6 +216,7 @@ class Session:
             self.to.backend.stop()
             if grant:
                 grant.release()
+            notes += self.hsi.backend.notes() + self.to.backend.notes()
             summary = self._summary(
                 stats, clock, realtime, notes, wall_start, stop, error, safety_stop
             )

@@ -11,6 +11,7 @@ pre-operational).
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import time
@@ -227,6 +228,29 @@ def test_an_error_frame_from_another_node_names_the_bus_and_its_class(started) -
     bus_off = can.Message(arbitration_id=0x040, is_error_frame=True, data=bytes(8))
     backend.emulator.bus.send(bus_off)  # seen in the drain before the next SYNC
     with pytest.raises(SafetyStop, match=r"can: hsi bus \(.+\): CAN error frame 0x040 \(bus off\)"):
+        run_ticks(backend, 1)
+    assert_stopped_safely(backend)
+
+
+def test_a_warning_error_frame_is_counted_and_reported_not_a_stop(started) -> None:
+    backend = started()
+    run_ticks(backend, 3)
+    lost_arbitration = can.Message(arbitration_id=0x002, is_error_frame=True, data=bytes(8))
+    warning = can.Message(arbitration_id=0x004, is_error_frame=True, data=b"\x00\x08" + bytes(6))
+    backend.emulator.bus.send(lost_arbitration)
+    backend.emulator.bus.send(warning)
+    run_ticks(backend, 5)  # no SafetyStop
+    assert backend.stats["bus_warnings"] == 2
+    notes = backend.notes()
+    assert len(notes) == 1
+    assert re.fullmatch(
+        r"can: hsi bus \(.+\): 2 warning error frames, not faults \(the last: CAN error frame "
+        r"0x004 \(controller problem: TX error warning\)\)",
+        notes[0],
+    ), notes
+    passive = can.Message(arbitration_id=0x004, is_error_frame=True, data=b"\x00\x20" + bytes(6))
+    backend.emulator.bus.send(passive)  # error passive is a fault again
+    with pytest.raises(SafetyStop, match=r"TX error passive"):
         run_ticks(backend, 1)
     assert_stopped_safely(backend)
 

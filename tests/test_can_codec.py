@@ -184,6 +184,28 @@ def test_error_frames_are_described_by_socketcan_class(error_id: int, data: byte
     assert codec.describe_error_frame(error_id, data) == text
 
 
+@pytest.mark.parametrize(
+    ("error_id", "data", "fault"),
+    [
+        (0x002, bytes(8), False),  # lost arbitration: the controller sends the frame again
+        (0x200, bytes(8), False),  # error counters only
+        (0x004, b"\x00\x04" + bytes(6), False),  # RX error warning
+        (0x004, b"\x00\x48" + bytes(6), False),  # TX error warning, back to error active
+        (0x206, b"\x00\x08" + bytes(6), False),  # all three warnings in one frame
+        (0x004, b"\x00\x10" + bytes(6), True),  # RX error passive
+        (0x004, b"\x00\x05" + bytes(6), True),  # a warning with an RX overflow
+        (0x004, b"\x00\x00" + bytes(6), True),  # unspecified controller problem
+        (0x004, b"", True),  # no detail byte
+        (0x003, bytes(8), True),  # lost arbitration with a TX timeout
+        (0x040, bytes(8), True),  # bus off
+        (0x020, bytes(8), True),  # no ACK
+        (0x000, bytes(8), True),  # another interface's code
+    ],
+)
+def test_only_warning_error_frames_are_not_faults(error_id: int, data: bytes, fault: bool):
+    assert codec.error_frame_is_fault(error_id, data) is fault
+
+
 # --- unit conversions ----------------------------------------------------------------------
 # 4096 counts/rev, gear 50: one joint rev = 204800 counts. Rated motor torque 0.1 N m
 # (0x6076 = 100 mN m) -> rated joint torque 0.1 * 50 = 5 N m, so 1 per-mille = 5 mN m joint.

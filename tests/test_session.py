@@ -68,6 +68,14 @@ def test_channel_energy_is_never_negative_and_the_summary_is_complete() -> None:
     assert s.timing["ticks"] == 6000 and s.timing["missed_deadlines"] == 0
 
 
+def test_what_the_backends_report_at_stop_is_in_the_summary_notes(monkeypatch) -> None:
+    session = Session(config.load(PAPER, ["duration_s=0.01"]))
+    monkeypatch.setattr(session.to.backend, "notes", lambda: ["to: 2 warning error frames"])
+    summary = session.run()
+    assert summary.notes[-1] == "to: 2 warning error frames"
+    assert summary.ticks == 10 and summary.stopped_early is None
+
+
 def _wall_run(*overrides: str):
     session = Session(config.load(CONFIGS / "stiff_wall.yaml", list(overrides)))
     force = []

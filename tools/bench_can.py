@@ -194,6 +194,9 @@ def run(cfg: config.SessionConfig, args: argparse.Namespace) -> int:
     window = cfg.can.feedback_window_us
     print(f"missed feedback windows: {stats['missed_windows']} (window {window} us after SYNC); "
           f"late frames: {stats['late_frames']}")  # fmt: skip
+    if stats["bus_warnings"]:
+        print(f"warning error frames (not faults): {stats['bus_warnings']}, "
+              f"the last: {backend.last_bus_warning}")  # fmt: skip
     worst = cpu.max() if done else float("nan")
     print(f"master CPU per cycle (read + write): p50 {pct(cpu, 50):.0f} us, "
           f"p99 {pct(cpu, 99):.0f} us, max {worst:.0f} us")  # fmt: skip

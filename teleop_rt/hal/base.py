@@ -94,6 +94,11 @@ class Backend(ABC):
     def stop(self) -> None:
         """Leave the hardware safe: zero torque, drives disabled. Must be idempotent."""
 
+    def notes(self) -> list[str]:
+        """What the session summary should say of this backend once it is stopped (what went
+        wrong while stopping, warnings that were not faults); none by default."""
+        return []
+
 
 # factory(config, side, controller model, operator=None): operator replaces the config's
 # operator model on the HSI of a simulated backend (replay drives it from a log)

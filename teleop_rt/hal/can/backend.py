@@ -141,7 +141,10 @@ class CanBackend(Backend):
         self._keepalive_fault: str | None = None  # the first fault the keepalive saw
         self._next_state_poll = 0  # tick of the next bus.state poll
         self._bus_name = f"can: {side} bus"
-        self.stats = {"ticks": 0, "missed_windows": 0, "late_frames": 0, "saturated": 0}
+        self.stats = {
+            "ticks": 0, "missed_windows": 0, "late_frames": 0, "saturated": 0, "bus_warnings": 0
+        }  # fmt: skip
+        self.last_bus_warning: str | None = None  # the last warning error frame, described
         self.stop_report: list[str] = []
 
     # --- start ------------------------------------------------------------------------------
@@ -420,7 +423,11 @@ class CanBackend(Backend):
     def _on_frame(self, msg: can.Message, fresh: bool) -> None:
         if msg.is_error_frame:
             what = codec.describe_error_frame(msg.arbitration_id, msg.data)
-            self._faults.append(f"{self._bus_name}: {what}")
+            if codec.error_frame_is_fault(msg.arbitration_id, msg.data):
+                self._faults.append(f"{self._bus_name}: {what}")
+            else:  # a warning (lost arbitration, error warning level): counted, not a stop
+                self.stats["bus_warnings"] += 1
+                self.last_bus_warning = what
             return
         route = self._routes.get(msg.arbitration_id)
         if route is None:
@@ -606,6 +613,16 @@ class CanBackend(Backend):
         finally:
             self.bus = None
             bus.shutdown()
+
+    def notes(self) -> list[str]:
+        """The stop's problems, and the warning error frames the bus reported (not faults)."""
+        out = list(self.stop_report)
+        if self.stats["bus_warnings"]:
+            out.append(
+                f"{self._bus_name}: {self.stats['bus_warnings']} warning error frames, not "
+                f"faults (the last: {self.last_bus_warning})"
+            )
+        return out
 
     def _stop_drives(self) -> None:
         """Quick stop with zero torque until SWITCH ON DISABLED (or silent), then disable, then

@@ -219,6 +219,27 @@ _CONTROLLER_PROBLEMS = (  # data[1] of a controller-problem frame
 )
 
 
+# What a working bus reports too: a frame that lost arbitration is sent again by the controller
+# itself, the error counters and the error-warning levels (96 errors) say the counters rose
+# while frames still flow. A bus that degrades further reports a class outside these (error
+# passive, bus off, no ACK, ...) or stops delivering feedback, and both stop the session.
+_WARNING_CLASSES = 0x002 | 0x200
+_WARNING_CONTROLLER_PROBLEMS = 0x04 | 0x08 | 0x40
+
+
+def error_frame_is_fault(error_id: int, data: Buffer) -> bool:
+    """False only for an error frame whose every class (read as SocketCAN's) is a warning:
+    lost arbitration, error counters, a controller problem that is only an error warning or
+    back to error active. An unspecified controller problem or a code of another interface
+    (no SocketCAN class) is a fault."""
+    if not error_id or error_id & ~(_WARNING_CLASSES | 0x004):
+        return True
+    if error_id & 0x004:
+        detail = data[1] if len(data) > 1 else 0
+        return not detail or bool(detail & ~_WARNING_CONTROLLER_PROBLEMS)
+    return False
+
+
 def describe_error_frame(error_id: int, data: Buffer) -> str:
     """One line for a CAN error frame: its id and, read as SocketCAN's, the error classes."""
     names = [name for bit, name in _ERROR_CLASSES if error_id & bit]
