@@ -206,14 +206,9 @@ class SimBackend(Backend):
         return self.plant.forward_dynamics(q, v_arr, self._tau)
 
     def _euler_substep(self) -> None:
-        # semi-implicit (symplectic) Euler: v first, then q with the new v; the acceleration
-        # as in _acceleration, inlined (the tick path's most frequent call)
-        h, ql, vl, plant = self.h, self.ql, self.vl, self.plant
-        fric = plant.friction(vl)
-        tm, tl, tau = self.tau_motor, self.tau_load, self._tau_view
-        for j in range(self.n):
-            tau[j] = tm[j] + tl[j] - fric[j]
-        a = plant.forward_dynamics(self.q, self.v, self._tau)
+        # semi-implicit (symplectic) Euler: v first, then q with the new v
+        h, ql, vl = self.h, self.ql, self.vl
+        a = self._acceleration(self.q, self.v, vl)
         for load in self.stateful:
             load.advance(h)
         q, v = self._q_view, self._v_view
