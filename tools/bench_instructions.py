@@ -69,7 +69,7 @@ def child(config: Path, mode: str, ticks: int, samples: int) -> None:
 def instructions_by_object(callgrind_out: Path) -> Counter:
     """Self cost (Ir) per shared object from a callgrind output file (name compression
     resolved; the inclusive cost lines after ``calls=`` are skipped)."""
-    names: dict[tuple[str, str], str] = {}
+    names: dict[str, str] = {}  # compressed object ids (ob= and cob= share them)
     totals: Counter = Counter()
     obj = "?"
     after_call = False
@@ -88,9 +88,9 @@ def instructions_by_object(callgrind_out: Path) -> Counter:
         elif line.startswith(("ob=", "cob=")):
             key, value = line.split("=", 1)
             m = pattern.match(value)
-            if m:  # "(id) name" defines the id, "(id)" reuses it; ob and cob share ids
-                name = m.group(2) if m.group(2) is not None else names.get(("ob", m.group(1)), "?")
-                names[("ob", m.group(1))] = name
+            if m:  # "(id) name" defines the id, "(id)" reuses it
+                name = m.group(2) if m.group(2) is not None else names.get(m.group(1), "?")
+                names[m.group(1)] = name
             else:
                 name = value
             if key == "ob":
