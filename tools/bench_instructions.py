@@ -4,20 +4,22 @@ machine's load (wall-clock medians on a shared VM swing by 2x; instruction count
 
     python tools/bench_instructions.py [CONFIG] [--ticks N] [--json OUT]
 
-For the full simulated tick (recording off) and the controller-side tick (feedback replayed,
-no plant, as in tools/bench.py) it runs the session twice under callgrind, with N ticks and
-with none after the same set-up and warm-up, and divides the difference by N. The count is
+For the full simulated tick (recording off, then on) and the controller-side tick (feedback
+replayed, no plant, as in tools/bench.py) it runs the session twice under callgrind, with N
+ticks and with none after the same set-up and warm-up, and divides the difference by N. The count is
 split by where the instructions ran: the Python interpreter, Pinocchio with its bindings
 (boost.python, eigenpy), numpy, the C library, other extension modules. Use it to judge a
 change to the tick path: a few hundred instructions are visible, where wall-clock timing on
-this machine hides 10 %. Needs valgrind on PATH (Debian package ``valgrind``); about a
-minute per mode.
+this machine hides 10 %. With recording on, only the control process is counted (the hot-path
+``Recorder.record``), not the writer process beside it. Needs valgrind on PATH (Debian package
+``valgrind``); about a minute per mode.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -30,7 +32,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs/paper_experiment.yaml"
 WARMUP_TICKS = 200
-MODES = {"full": "full tick (recording off)", "controller": "controller side (no plant)"}
+MODES = {
+    "full": "full tick (recording off)",
+    "recording": "full tick, recording on (this process; the writer runs in its own)",
+    "controller": "controller side (no plant)",
+}
 # where instructions ran, by the shared object that holds them (first match wins)
 CATEGORIES = (
     ("interpreter", ("libpython",)),
@@ -60,10 +66,24 @@ def child(config: Path, mode: str, ticks: int, samples: int) -> None:
         session.hsi.backend = bench.ReplayedFeedback(recorded["hsi"])
         session.to.backend = bench.ReplayedFeedback(recorded["to"])
     step = session.step
+    if mode == "recording":  # the hot-path call of Session.run with a recorder
+        import tempfile
+
+        from teleop_rt.recording.recorder import Recorder
+
+        recorder = Recorder(session, Path(tempfile.mkdtemp()) / "bench.mcap")
+        record = recorder.record
+
+        def step() -> None:
+            session.step()
+            record(0, 0, False)
+
     for _ in range(WARMUP_TICKS):
         step()
     for _ in range(ticks):
         step()
+    if mode == "recording":
+        recorder.close(None)
 
 
 def instructions_by_object(callgrind_out: Path) -> Counter:
@@ -110,17 +130,21 @@ def categorise(by_object: Counter) -> Counter:
 
 def count(config: Path, mode: str, ticks: int, samples: int, tmp: Path) -> Counter:
     """Callgrind self cost per category for ``ticks`` ticks of ``mode``."""
-    out = tmp / f"callgrind-{mode}-{ticks}.out"
+    # %p: a forked log writer writes its own file; the measured process is the one started
     cmd = [
-        "valgrind", "--tool=callgrind", f"--callgrind-out-file={out}",
+        "valgrind", "--tool=callgrind", f"--callgrind-out-file={tmp}/{mode}-{ticks}.%p.out",
+        "--child-silent-after-fork=yes",
         sys.executable, __file__, "--child", mode, "--ticks", str(ticks),
         "--samples", str(samples), str(config),
     ]  # fmt: skip
-    done = subprocess.run(cmd, capture_output=True, text=True)
-    if done.returncode != 0:
-        last = (done.stderr.strip().splitlines() or ["no output"])[-1]
+    # one OpenBLAS thread: its idle threads spin for a varying number of instructions
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "PYTHONHASHSEED": "0"}
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    _, stderr = proc.communicate()
+    if proc.returncode != 0:
+        last = (stderr.strip().splitlines() or ["no output"])[-1]
         raise RuntimeError(f"{mode} under callgrind failed: {last}")
-    return categorise(instructions_by_object(out))
+    return categorise(instructions_by_object(tmp / f"{mode}-{ticks}.{proc.pid}.out"))
 
 
 def per_tick(config: Path, mode: str, ticks: int, tmp: Path) -> dict[str, float]:
@@ -167,6 +191,9 @@ def main() -> int:
             for cat in [c for c, _ in CATEGORIES] + [OTHER]:
                 share = results[mode].get(cat, 0.0)
                 print(f"  {cat:<26} {share:10,.0f}  {100 * share / total:5.1f} %")
+    added = sum(results["recording"].values()) - sum(results["full"].values())
+    print(f"\nrecording adds {added:,.0f} instructions per tick to the control process "
+          "(Recorder.record; the writer process is not counted)")  # fmt: skip
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0
