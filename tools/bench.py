@@ -24,6 +24,7 @@ import gc
 import json
 import os
 import platform
+import resource
 import sys
 import tempfile
 import time
@@ -163,10 +164,11 @@ def pinocchio_floor(cfg) -> dict:
 def full_tick(cfg, ticks: int, repeat: int, tmp: Path) -> dict:
     """Without and with recording, alternating (the recorded tick includes the hot-path
     ``record`` call; its writer process runs beside it, on the other core if there is one)."""
-    plain, logged = [], []
+    plain, logged, writer_us = [], [], []
     for r in range(repeat):
         plain.append(time_ticks(Session(cfg).step, ticks))
         session = Session(cfg)
+        cpu_before = children_cpu_s()
         recorder = Recorder(session, tmp / f"bench-{r}.mcap")
         step, record = session.step, recorder.record
 
@@ -178,7 +180,14 @@ def full_tick(cfg, ticks: int, repeat: int, tmp: Path) -> dict:
             logged.append(time_ticks(tick, ticks))
         finally:
             recorder.close(None)
-    return {"plain": best_of(plain), "recorded": best_of(logged)}
+        writer_us.append(1e6 * (children_cpu_s() - cpu_before) / max(recorder.published, 1))
+    return {"plain": best_of(plain), "recorded": best_of(logged), "writer_cpu_us": writer_us}
+
+
+def children_cpu_s() -> float:
+    """CPU time (user + system) of this process's finished children: the log writers."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def realtime(cfg, seconds: float, tmp: Path) -> dict:
@@ -315,6 +324,9 @@ def run(args, cfg, joints: list[int]) -> int:
         rec = full["recorded"]["median"] - full["plain"]["median"]
         print(f"  recording adds {rec:.1f} us per tick (median); fast mode runs "
               f"{1e3 / full['recorded']['median']:.0f}x real time with recording on")  # fmt: skip
+        writer = ", ".join(f"{x:.1f}" for x in full["writer_cpu_us"])
+        print(f"  the log writer process used {writer} us of CPU per tick (per run; it runs "
+              "beside the tick, on the other core if there is one)")  # fmt: skip
         out.update(pinocchio_floor_us=floor, full_tick_us=full, controller_side_us=ctrl)
 
         if args.rt_seconds > 0:
