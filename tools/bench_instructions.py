@@ -71,7 +71,8 @@ def child(config: Path, mode: str, ticks: int, samples: int) -> None:
 
         from teleop_rt.recording.recorder import Recorder
 
-        recorder = Recorder(session, Path(tempfile.mkdtemp()) / "bench.mcap")
+        log_dir = Path(tempfile.mkdtemp())
+        recorder = Recorder(session, log_dir / "bench.mcap")
         record = recorder.record
 
         def step() -> None:
@@ -84,6 +85,7 @@ def child(config: Path, mode: str, ticks: int, samples: int) -> None:
         step()
     if mode == "recording":
         recorder.close(None)
+        shutil.rmtree(log_dir)
 
 
 def instructions_by_object(callgrind_out: Path) -> Counter:
