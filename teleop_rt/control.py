@@ -24,59 +24,84 @@ against eq 20-24):
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from teleop_rt.config import ControllerSpec, per_joint
-from teleop_rt.model import RobotModel
-from teleop_rt.scalar import shared_vector
+from teleop_rt.flat import Block, as_floats, jit, vec
+from teleop_rt.model import RobotModel, friction_torque
+
+# ComputedTorque block: vectors, scalars, ints
+INV_MASS, A_DES, TAU, DAMPING, COULOMB = range(5)
+N_CT_VECTORS = 5
+CT_INV_V_S = 0
+CT_COMPENSATE = 0
 
 
-class ComputedTorque:
+class ComputedTorque(Block):
     """Input-output linearisation to diagonal virtual masses (eq 2 / 12).
 
     ``g = M(q) M_v^-1 a_ref + n(q, v) - tau_ext``, evaluated as one RNEA call with the
     acceleration ``M_v^-1 a_ref`` (equal to M a + n, without forming M); the model's joint
-    friction is added when ``compensate_friction`` (it belongs to the paper's n).
+    friction is added when ``compensate_friction`` (it belongs to the paper's n). The tick runs
+    ``ct_prepare`` (a_des), Pinocchio's RNEA on a_des, then ``ct_finish`` (tau).
     """
+
+    VECTORS = ("inv_mass", "a_des", "tau", "damping", "coulomb")
+    SCALARS = ("inv_v_s",)
+    INTS = ("compensate_friction",)
 
     def __init__(
         self, model: RobotModel, virtual_mass: list[float], compensate_friction: bool
     ) -> None:
+        super().__init__(model.nv)
         self.model = model
-        self.inv_mass = [1.0 / float(m) for m in virtual_mass]
-        self.compensate_friction = compensate_friction
-        self.n = model.nv
-        self.a_des, self._a_des_view = shared_vector(model.nv)  # Pinocchio input
-        self.a_des_list = [0.0] * model.nv  # the same, for the scalar path (safety tracking)
-        self.tau = [0.0] * model.nv
+        self.inv_mass[:] = [1.0 / float(m) for m in virtual_mass]
+        self.damping[:] = model.damping
+        self.coulomb[:] = model.coulomb
+        self.inv_v_s = model.inv_v_s
+        self.compensate_friction = int(compensate_friction)
 
-    def step(
-        self,
-        q: np.ndarray,
-        v: np.ndarray,
-        a_ref: list[float],
-        tau_ext: list[float],
-        v_list: list[float],
-    ) -> list[float]:
-        """Motor torques for the reference acceleration; returns self.tau (updated in place).
-
-        q, v (numpy) feed Pinocchio; v_list is the same v as a list for the friction term."""
-        a_des, a_list, inv_m = self._a_des_view, self.a_des_list, self.inv_mass
-        for j in range(self.n):
-            a_list[j] = a_des[j] = a_ref[j] * inv_m[j]
+    def step(self, q: np.ndarray, v: np.ndarray, a_ref, tau_ext) -> np.ndarray:
+        """Motor torques for the reference acceleration; returns self.tau (updated in place)."""
+        ct_prepare(self.f, self.n, as_floats(a_ref))
         rnea = self.model.rnea(q, v, self.a_des)
-        tau = self.tau
-        if self.compensate_friction:
-            fric = self.model.friction(v_list)
-            for j in range(self.n):
-                tau[j] = rnea[j] - tau_ext[j] + fric[j]
-        else:
-            for j in range(self.n):
-                tau[j] = rnea[j] - tau_ext[j]
-        return tau
+        ct_finish(self.f, self.i, self.n, rnea, as_floats(tau_ext), as_floats(v))
+        return self.tau
 
 
-class Pid:
+@jit
+def ct_prepare(f: np.ndarray, n: int, a_ref: np.ndarray) -> None:
+    """a_des = M_v^-1 a_ref: the acceleration RNEA is evaluated at."""
+    inv_m, a_des = vec(f, INV_MASS, n), vec(f, A_DES, n)
+    for j in range(n):
+        a_des[j] = a_ref[j] * inv_m[j]
+
+
+@jit
+def ct_finish(
+    f: np.ndarray, i: np.ndarray, n: int, rnea: np.ndarray, tau_ext: np.ndarray, v: np.ndarray
+) -> None:
+    """tau = RNEA(q, v, a_des) - tau_ext (+ the model's friction at v)."""
+    tau = vec(f, TAU, n)
+    for j in range(n):
+        tau[j] = rnea[j] - tau_ext[j]
+    if i[CT_COMPENSATE]:
+        damping, coulomb = vec(f, DAMPING, n), vec(f, COULOMB, n)
+        inv_v_s = f[N_CT_VECTORS * n + CT_INV_V_S]
+        for j in range(n):
+            tau[j] += friction_torque(damping[j], coulomb[j], inv_v_s, v[j])
+
+
+# Pid block: vectors, scalars, ints
+OUT, KP, KI, KD, INTEGRAL_LIMIT, OUTPUT_LIMIT, INTEGRAL, DERIV, PREV_ERROR, SATURATED = range(10)
+N_PID_VECTORS = 10
+PID_DT, D_ALPHA = range(2)
+PROPORTIONAL_ONLY, HAS_I, HAS_D, STARTED = range(4)
+
+
+class Pid(Block):
     """Per-joint P or PID law on an error signal, discretised with the tick period dt.
 
     ``out = kp e + I + kd D`` where I integrates ``ki e`` (forward Euler) and D is the
@@ -84,67 +109,76 @@ class Pid:
     (a backward difference when 0). Anti-windup: I is clamped to +-integral_limit, and it is
     not integrated further while the output sits at +-output_limit in the direction of e.
     Continuous-time equivalent: C(s) = kp + ki/s + kd s / (1 + derivative_filter_s s).
+    Absent limits are stored as infinite ones.
     """
 
+    VECTORS = (
+        "out", "kp", "ki", "kd", "integral_limit", "output_limit",
+        "integral", "deriv", "prev_error", "saturated",  # saturated: 1.0 where at the limit
+    )  # fmt: skip
+    SCALARS = ("dt", "d_alpha")
+    INTS = ("proportional_only", "has_i", "has_d", "started")
+
     def __init__(self, spec: ControllerSpec, n: int, dt: float, key: str) -> None:
-        self.n = n
-        self.kp = per_joint(spec.kp, n, f"{key}.kp")
-        self.ki = per_joint(spec.ki, n, f"{key}.ki")
-        self.kd = per_joint(spec.kd, n, f"{key}.kd")
-        self.has_i = any(self.ki)
-        self.has_d = any(self.kd)
-        self.integral_limit = per_joint(spec.integral_limit, n, f"{key}.integral_limit")
-        self.output_limit = per_joint(spec.output_limit, n, f"{key}.output_limit")
-        self.proportional_only = not (self.has_i or self.has_d or self.output_limit)
+        super().__init__(n)
+        self.kp[:] = per_joint(spec.kp, n, f"{key}.kp")
+        self.ki[:] = per_joint(spec.ki, n, f"{key}.ki")
+        self.kd[:] = per_joint(spec.kd, n, f"{key}.kd")
+        integral_limit = per_joint(spec.integral_limit, n, f"{key}.integral_limit")
+        output_limit = per_joint(spec.output_limit, n, f"{key}.output_limit")
+        self.integral_limit[:] = integral_limit or [math.inf] * n
+        self.output_limit[:] = output_limit or [math.inf] * n
+        self.has_i = int(self.ki.any())
+        self.has_d = int(self.kd.any())
+        self.proportional_only = int(not (self.has_i or self.has_d or output_limit))
         self.dt = dt
         # filtered derivative: d_k = a d_{k-1} + (1 - a) (e_k - e_{k-1}) / dt
         self.d_alpha = spec.derivative_filter_s / (spec.derivative_filter_s + dt)
-        self.integral = [0.0] * n
-        self.deriv = [0.0] * n
-        self.prev_error = [0.0] * n
-        self.saturated = [False] * n
-        self.out = [0.0] * n
-        self._started = False
 
     def reset(self) -> None:
-        for arr in (self.integral, self.deriv, self.prev_error):
-            arr[:] = [0.0] * self.n
-        self.saturated[:] = [False] * self.n
-        self._started = False
+        for arr in (self.integral, self.deriv, self.prev_error, self.saturated):
+            arr[:] = 0.0
+        self.started = 0
 
-    def step(self, error: list[float]) -> list[float]:
+    def step(self, error) -> np.ndarray:
         """Controller output for this tick's error; returns self.out (updated in place)."""
-        out, kp = self.out, self.kp
-        if self.proportional_only:
-            for j in range(self.n):
-                out[j] = kp[j] * error[j]
-            return out
-        if not self._started:
-            self.prev_error[:] = error
-            self._started = True
-        for j in range(self.n):
-            e = error[j]
-            u = kp[j] * e + self.integral[j]
-            if self.has_d:
-                self.deriv[j] = (
-                    self.d_alpha * self.deriv[j]
-                    + (1.0 - self.d_alpha) * (e - self.prev_error[j]) / self.dt
-                )
-                self.prev_error[j] = e
-                u += self.kd[j] * self.deriv[j]
-            saturated = False
-            if self.output_limit is not None:
-                lim = self.output_limit[j]
-                if u > lim or u < -lim:
-                    saturated = True
-                    u = lim if u > 0 else -lim
-            self.saturated[j] = saturated
-            out[j] = u
-            if self.has_i and not (saturated and (u > 0) == (e > 0)):
-                # conditional integration: hold I while saturated in the direction of e
-                i_new = self.integral[j] + self.ki[j] * e * self.dt
-                if self.integral_limit is not None:
-                    lim = self.integral_limit[j]
-                    i_new = min(max(i_new, -lim), lim)
-                self.integral[j] = i_new
-        return out
+        pid_step(self.f, self.i, self.n, as_floats(error))
+        return self.out
+
+
+@jit
+def pid_step(f: np.ndarray, i: np.ndarray, n: int, error: np.ndarray) -> None:
+    out, kp = vec(f, OUT, n), vec(f, KP, n)
+    if i[PROPORTIONAL_ONLY]:
+        for j in range(n):
+            out[j] = kp[j] * error[j]
+        return
+    ki, kd = vec(f, KI, n), vec(f, KD, n)
+    i_lim, o_lim = vec(f, INTEGRAL_LIMIT, n), vec(f, OUTPUT_LIMIT, n)
+    integral, deriv, prev = vec(f, INTEGRAL, n), vec(f, DERIV, n), vec(f, PREV_ERROR, n)
+    sat = vec(f, SATURATED, n)
+    dt, d_alpha = f[N_PID_VECTORS * n + PID_DT], f[N_PID_VECTORS * n + D_ALPHA]
+    has_i, has_d = i[HAS_I] != 0, i[HAS_D] != 0
+    if not i[STARTED]:
+        for j in range(n):
+            prev[j] = error[j]
+        i[STARTED] = 1
+    for j in range(n):
+        e = error[j]
+        u = kp[j] * e + integral[j]
+        if has_d:
+            deriv[j] = d_alpha * deriv[j] + (1.0 - d_alpha) * (e - prev[j]) / dt
+            prev[j] = e
+            u += kd[j] * deriv[j]
+        saturated = False
+        lim = o_lim[j]
+        if u > lim or u < -lim:
+            saturated = True
+            u = lim if u > 0 else -lim
+        sat[j] = 1.0 if saturated else 0.0
+        out[j] = u
+        if has_i and not (saturated and (u > 0) == (e > 0)):
+            # conditional integration: hold I while saturated in the direction of e
+            i_new = integral[j] + ki[j] * e * dt
+            lim = i_lim[j]
+            integral[j] = min(max(i_new, -lim), lim)

@@ -17,6 +17,14 @@ import pinocchio as pin
 
 from teleop_rt.config import RobotSpec
 from teleop_rt.errors import ModelError
+from teleop_rt.flat import jit
+
+
+@jit
+def friction_torque(damping: float, coulomb: float, inv_v_s: float, v: float) -> float:
+    """One joint's friction torque: viscous plus tanh-smoothed Coulomb (``.py_func``: the same
+    in plain Python, for the plant's scalar path)."""
+    return damping * v + coulomb * math.tanh(v * inv_v_s)
 
 
 class RobotModel:
@@ -73,17 +81,18 @@ class RobotModel:
         """Joint friction torque at velocity v (N m): a list owned by this object."""
         out, damping = self._fric, self.damping
         if self.has_coulomb:
-            coulomb, inv_v_s = self.coulomb, self.inv_v_s
+            coulomb, inv_v_s, torque = self.coulomb, self.inv_v_s, friction_torque.py_func
             for j in range(self.nv):
-                out[j] = damping[j] * v[j] + coulomb[j] * math.tanh(v[j] * inv_v_s)
+                out[j] = torque(damping[j], coulomb[j], inv_v_s, v[j])
         else:
             for j in range(self.nv):
                 out[j] = damping[j] * v[j]
         return out
 
-    def rnea(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> list[float]:
-        """M(q) a + n(q, v) without friction (one RNEA call; n: Coriolis, centrifugal, gravity)."""
-        return pin.rnea(self.model, self.data, q, v, a).tolist()
+    def rnea(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
+        """M(q) a + n(q, v) without friction (one RNEA call; n: Coriolis, centrifugal, gravity).
+        A fresh array from Pinocchio's binding."""
+        return pin.rnea(self.model, self.data, q, v, a)
 
     def forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> list[float]:
         """Joint acceleration for the total joint torque tau (one ABA call)."""

@@ -22,6 +22,7 @@ import numpy as np
 
 from teleop_rt.config import SafetySpec
 from teleop_rt.errors import SafetyStop
+from teleop_rt.flat import Block, as_floats, jit, vec
 from teleop_rt.hal.base import Feedback
 from teleop_rt.model import RobotModel
 
@@ -64,94 +65,87 @@ class RobotLimits:
             self.emax = [math.inf] * n
 
 
-class RobotGuard:
+# RobotGuard block: vectors, scalars, ints
+LO, HI, VMAX, EMAX, PREV_V, PREV_A, RUN = range(7)
+N_GUARD_VECTORS = 7
+TOLERANCE, INV_DT, VALUE = range(3)
+STALE_TICKS, TRACKING_TICKS, STOP_ON_TORQUE, TRACKING_VALID, JOINT, SATURATED = range(6)
+# what a check found (0: nothing); MEASURED_*: a non-finite measurement
+OK, STALE, ANGLE, SPEED, TRACKING, TORQUE_NAN, TORQUE_LIMIT = range(7)
+MEASURED_ANGLE, MEASURED_SPEED, MEASURED_TORQUE = range(7, 10)
+
+
+class RobotGuard(Block):
     """All of one robot's per-tick checks in one pass over its joints: limits, commands and
-    tracking.
+    tracking (compiled: ``guard_check``; this class sets it up and words its findings).
 
     Tracking: under computed torque the measured acceleration (v[k] - v[k-1]) / dt equals the
     one commanded at k-1 (eq 3 / 13); a saturated or blocked actuator, or a wrong model,
     breaks that for ``tracking_error_ticks`` ticks in a row."""
 
+    VECTORS = ("lo", "hi", "vmax", "emax", "prev_v", "prev_a", "run")
+    SCALARS = ("tolerance", "inv_dt", "value")  # value: the offending value of a finding
+    INTS = ("stale_ticks", "tracking_ticks", "stop_on_torque", "tracking_valid", "joint",
+            "saturated")  # fmt: skip
+
     def __init__(self, spec: SafetySpec, model: RobotModel, name: str, dt: float) -> None:
+        super().__init__(model.nv)
         self.name = name
         self.limits = RobotLimits(model, name)
         self.limits.disable(
             not spec.position_limits, not spec.velocity_limits, spec.torque_limits == "off"
         )
-        self.stop_on_torque = spec.torque_limits == "stop"
+        lim = self.limits
+        self.lo[:], self.hi[:], self.vmax[:], self.emax[:] = lim.lo, lim.hi, lim.vmax, lim.emax
+        self.stop_on_torque = int(spec.torque_limits == "stop")
         self.stale_ticks = spec.stale_ticks
         self.tolerance = spec.tracking_error_rad_s2
         self.tracking_ticks = spec.tracking_error_ticks
         self.inv_dt = 1.0 / dt
-        n = model.nv
-        self.tracking_valid = False  # prev_v holds a fresh velocity
-        self.prev_v = [0.0] * n
-        self.prev_a = [0.0] * n
-        self.run = [0] * n  # ticks in a row above the tracking tolerance
         box = getattr(spec.workspace, name)
         self.model = model
         self.workspace = None
         if box is not None:  # (axis, lower, upper) for each bounded axis
             self.workspace = list(zip("xyz", box.lower_m, box.upper_m, strict=False))
 
-    def check_measured(
-        self, tick: int, q: list[float], v: list[float], tau_ext: list[float]
-    ) -> None:
+    def check_measured(self, tick: int, q, v, tau_ext) -> None:
         """Finite measurements (checked for both robots before any command is looked at, so a
         stop names the sensor at fault, not the command it poisoned through the channel)."""
-        if not math.isfinite(sum(q) + sum(v) + sum(tau_ext)):
-            for signal, values in (("angle", q), ("speed", v), ("measured torque", tau_ext)):
-                for j, x in enumerate(values):
-                    if not math.isfinite(x):
-                        self.stop(tick, j, f"{signal} is {x}")
+        q, v, tau_ext = as_floats(q), as_floats(v), as_floats(tau_ext)
+        code = measured_fault(self.f, self.i, self.n, q, v, tau_ext)
+        if code:
+            raise self.stop_for(tick, code, 0)
 
-    def check(self, tick: int, fb: Feedback, tau_cmd: list[float], a_cmd: list[float]) -> bool:
+    def check(self, tick: int, fb: Feedback, tau_cmd, a_cmd) -> bool:
         """Stale feedback, limits, commands and tracking; saturates tau_cmd in place. True if a
         torque was saturated. a_cmd: the acceleration commanded this tick."""
-        q, v = fb.q_list, fb.v_list
-        track = self.tracking_ticks > 0
-        if fb.age_ticks:
-            self.tracking_valid = track = False  # no fresh velocity: nothing to compare
-            if fb.age_ticks >= self.stale_ticks:
-                raise SafetyStop(
-                    f"tick {tick}: {self.name} feedback stale for {fb.age_ticks} ticks "
-                    "(sensor dropout)"
-                )
-        lim = self.limits
-        lo, hi, vmax, emax = lim.lo, lim.hi, lim.vmax, lim.emax
-        prev_v, prev_a, run = self.prev_v, self.prev_a, self.run
-        compare = track and self.tracking_valid
-        tol, inv_dt = self.tolerance, self.inv_dt
-        saturated = False
-        for j in range(len(q)):
-            if not lo[j] <= q[j] <= hi[j]:
-                self.stop(tick, j, f"angle {q[j]:.4g} rad outside [{lo[j]:g}, {hi[j]:g}]")
-            vj = v[j]
-            if not -vmax[j] <= vj <= vmax[j]:
-                self.stop(tick, j, f"speed {vj:.4g} rad/s above {vmax[j]:g}")
-            if compare:
-                error = (vj - prev_v[j]) * inv_dt - prev_a[j]
-                if error > tol or error < -tol:
-                    run[j] += 1
-                    if run[j] >= self.tracking_ticks:
-                        self.stop(tick, j, self._tracking_reason())
-                else:
-                    run[j] = 0
-            c = tau_cmd[j]
-            if not -emax[j] <= c <= emax[j]:  # also NaN
-                if c != c:
-                    self.stop(tick, j, "commanded torque is nan")
-                if self.stop_on_torque:
-                    self.stop(tick, j, f"torque {c:.4g} N m above {emax[j]:g}")
-                tau_cmd[j] = emax[j] if c > 0 else -emax[j]
-                saturated = True
-        if track:
-            prev_v[:] = v
-            prev_a[:] = a_cmd
-            self.tracking_valid = True
+        cmd = as_floats(tau_cmd)
+        code = guard_check(self.f, self.i, self.n, fb.q, fb.v, fb.age_ticks, cmd, as_floats(a_cmd))
+        tau_cmd[:] = cmd
+        if code:
+            raise self.stop_for(tick, code, fb.age_ticks)
         if self.workspace is not None:
             self.check_workspace(tick, fb.q)
-        return saturated
+        return bool(self.saturated)
+
+    def stop_for(self, tick: int, code: int, age_ticks: int) -> SafetyStop:
+        """The SafetyStop that words a finding of the compiled checks."""
+        if code == STALE:
+            return SafetyStop(
+                f"tick {tick}: {self.name} feedback stale for {age_ticks} ticks (sensor dropout)"
+            )
+        j, x, lim = self.joint, self.value, self.limits
+        what = {
+            ANGLE: lambda: f"angle {x:.4g} rad outside [{lim.lo[j]:g}, {lim.hi[j]:g}]",
+            SPEED: lambda: f"speed {x:.4g} rad/s above {lim.vmax[j]:g}",
+            TRACKING: self._tracking_reason,
+            TORQUE_NAN: lambda: "commanded torque is nan",
+            TORQUE_LIMIT: lambda: f"torque {x:.4g} N m above {lim.emax[j]:g}",
+            MEASURED_ANGLE: lambda: f"angle is {x}",
+            MEASURED_SPEED: lambda: f"speed is {x}",
+            MEASURED_TORQUE: lambda: f"measured torque is {x}",
+        }[code]()
+        return SafetyStop(f"tick {tick}: {self.name} joint {j} ({lim.joint_names[j]}): {what}")
 
     def check_workspace(self, tick: int, q: np.ndarray) -> None:
         """The tool frame inside its workspace box (forward kinematics at the measured q)."""
@@ -171,68 +165,205 @@ class RobotGuard:
             "blocked actuator)"
         )
 
-    def stop(self, tick: int, joint: int, what: str) -> None:
-        """Raise the SafetyStop naming the tick, this robot and the joint."""
-        raise SafetyStop(
-            f"tick {tick}: {self.name} joint {joint} ({self.limits.joint_names[joint]}): {what}"
-        )
+
+@jit
+def _found(f: np.ndarray, i: np.ndarray, n: int, code: int, j: int, x: float) -> int:
+    i[JOINT] = j
+    f[N_GUARD_VECTORS * n + VALUE] = x
+    return code
 
 
-class Supervisor:
-    """Checks both robots every tick; saturates torques; raises SafetyStop on a violation."""
+@jit
+def measured_fault(
+    f: np.ndarray, i: np.ndarray, n: int, q: np.ndarray, v: np.ndarray, tau_ext: np.ndarray
+) -> int:
+    """The first non-finite measurement (angle, speed, torque), or OK."""
+    j = _first_non_finite(q, n)
+    if j >= 0:
+        return _found(f, i, n, MEASURED_ANGLE, j, q[j])
+    j = _first_non_finite(v, n)
+    if j >= 0:
+        return _found(f, i, n, MEASURED_SPEED, j, v[j])
+    j = _first_non_finite(tau_ext, n)
+    if j >= 0:
+        return _found(f, i, n, MEASURED_TORQUE, j, tau_ext[j])
+    return OK
+
+
+@jit
+def _first_non_finite(values: np.ndarray, n: int) -> int:
+    for j in range(n):
+        if not math.isfinite(values[j]):
+            return j
+    return -1
+
+
+@jit
+def guard_check(
+    f: np.ndarray,
+    i: np.ndarray,
+    n: int,
+    q: np.ndarray,
+    v: np.ndarray,
+    age_ticks: int,
+    tau_cmd: np.ndarray,
+    a_cmd: np.ndarray,
+) -> int:
+    """One robot's checks; saturates tau_cmd in place (i[SATURATED]: whether it did). Returns
+    the finding (joint and value in the block) or OK."""
+    track = i[TRACKING_TICKS] > 0
+    i[SATURATED] = 0
+    if age_ticks:
+        i[TRACKING_VALID] = 0  # no fresh velocity: nothing to compare
+        track = False
+        if age_ticks >= i[STALE_TICKS]:
+            return STALE
+    lo, hi, vmax, emax = vec(f, LO, n), vec(f, HI, n), vec(f, VMAX, n), vec(f, EMAX, n)
+    prev_v, prev_a, run = vec(f, PREV_V, n), vec(f, PREV_A, n), vec(f, RUN, n)
+    compare = track and i[TRACKING_VALID] != 0
+    s = N_GUARD_VECTORS * n
+    tol, inv_dt = f[s + TOLERANCE], f[s + INV_DT]
+    for j in range(n):
+        qj, vj = q[j], v[j]
+        if not lo[j] <= qj <= hi[j]:
+            return _found(f, i, n, ANGLE, j, qj)
+        if not -vmax[j] <= vj <= vmax[j]:
+            return _found(f, i, n, SPEED, j, vj)
+        if compare:
+            error = (vj - prev_v[j]) * inv_dt - prev_a[j]
+            if error > tol or error < -tol:
+                run[j] += 1.0
+                if run[j] >= i[TRACKING_TICKS]:
+                    return _found(f, i, n, TRACKING, j, error)
+            else:
+                run[j] = 0.0
+        c = tau_cmd[j]
+        if not -emax[j] <= c <= emax[j]:  # also NaN
+            if c != c:
+                return _found(f, i, n, TORQUE_NAN, j, c)
+            if i[STOP_ON_TORQUE]:
+                return _found(f, i, n, TORQUE_LIMIT, j, c)
+            tau_cmd[j] = emax[j] if c > 0 else -emax[j]
+            i[SATURATED] = 1
+    if track:
+        for j in range(n):
+            prev_v[j] = v[j]
+            prev_a[j] = a_cmd[j]
+        i[TRACKING_VALID] = 1
+    return OK
+
+
+# Supervisor ints
+ENABLED, SATURATED_TICKS, SATURATED_RUN, SATURATION_STOP_TICKS, GUARD = range(5)
+SATURATION = 100  # a finding of the supervisor itself: saturated too long
+
+
+class Supervisor(Block):
+    """Checks both robots every tick; saturates torques; raises SafetyStop on a violation.
+
+    The session runs the compiled ``supervise`` inside its tick kernel, the workspace check
+    before it and ``raise_for`` on a finding; ``step`` does all three (standalone use)."""
+
+    INTS = ("enabled", "saturated_ticks", "saturated_run", "saturation_stop_ticks", "guard")
 
     def __init__(self, spec: SafetySpec, hsi: RobotModel, to: RobotModel, dt: float = 1e-3) -> None:
+        super().__init__(hsi.nv)
         self.spec = spec
-        self.enabled = spec.enabled
+        self.enabled = int(spec.enabled)
+        self.saturation_stop_ticks = spec.saturation_stop_ticks
         self.guards = {
             "hsi": RobotGuard(spec, hsi, "hsi", dt),
             "to": RobotGuard(spec, to, "to", dt),
         }
         self.limits = {name: guard.limits for name, guard in self.guards.items()}
-        self.saturated_ticks = 0  # ticks in which at least one torque was saturated
-        self.saturated_run = 0  # ... of them in a row, up to this tick
+        self.workspaces = [g for g in self.guards.values() if g.workspace is not None]
+
+    @property
+    def blocks(self) -> list[Block]:
+        return [self, self.guards["hsi"], self.guards["to"]]
 
     def step(
         self,
         tick: int,
         fb_h: Feedback,
-        tau_h: list[float],
-        g_h: list[float],
-        a_h: list[float],
+        tau_h,
+        g_h: np.ndarray,
+        a_h: np.ndarray,
         fb_t: Feedback,
-        tau_t: list[float],
-        g_t: list[float],
-        a_t: list[float],
+        tau_t,
+        g_t: np.ndarray,
+        a_t: np.ndarray,
     ) -> None:
-        """All of one tick's checks (the tick path's single call): per robot stale feedback,
-        limits, commands and tracking, then saturation. A NaN or inf measurement always trips
-        one of them (comparisons with NaN fail; a NaN torque sensor makes its command NaN), and
-        the stop then names the measurement. For each robot: feedback, measured tau_ext,
-        commanded torque (saturated in place), commanded acceleration."""
+        """All of one tick's checks: per robot stale feedback, limits, commands and tracking,
+        then saturation. For each robot: feedback, measured tau_ext, commanded torque
+        (saturated in place, a float64 array), commanded acceleration."""
+        if self.workspaces:
+            self.check_workspaces(tick, fb_h, fb_t)
+        gh, gt = self.guards["hsi"], self.guards["to"]
+        code = supervise(
+            self.i, gh.f, gh.i, gt.f, gt.i, self.n,
+            fb_h.q, fb_h.v, fb_h.age_ticks, as_floats(tau_h), g_h, as_floats(a_h),
+            fb_t.q, fb_t.v, fb_t.age_ticks, as_floats(tau_t), g_t, as_floats(a_t),
+        )  # fmt: skip
+        if code:
+            self.raise_for(code, tick, fb_h, fb_t)
+
+    def check_workspaces(self, tick: int, fb_h: Feedback, fb_t: Feedback) -> None:
+        """The tool frames inside their workspace boxes (forward kinematics: Pinocchio, outside
+        the compiled checks; a non-finite angle is left to them, which name it)."""
         if not self.enabled:
             return
-        guard_h, guard_t = self.guards["hsi"], self.guards["to"]
-        try:  # a non-finite value fails the limit comparisons or makes a command NaN
-            saturated = guard_h.check(tick, fb_h, g_h, a_h)
-            saturated = guard_t.check(tick, fb_t, g_t, a_t) or saturated
-        except SafetyStop:
-            # name the sensor at fault, not the command it poisoned (maybe through the channel)
-            guard_h.check_measured(tick, fb_h.q_list, fb_h.v_list, tau_h)
-            guard_t.check_measured(tick, fb_t.q_list, fb_t.v_list, tau_t)
-            raise
-        if saturated or self.saturated_run:
-            self.saturation(tick, saturated)
+        for guard in self.workspaces:
+            q = (fb_h if guard.name == "hsi" else fb_t).q
+            if np.isfinite(q).all():
+                guard.check_workspace(tick, q)
 
-    def saturation(self, tick: int, saturated: bool) -> None:
-        """Count saturated ticks; stop when they last ``saturation_stop_ticks`` in a row."""
-        if not saturated:
-            self.saturated_run = 0
-            return
-        self.saturated_ticks += 1
-        self.saturated_run += 1
-        limit = self.spec.saturation_stop_ticks
-        if limit and self.saturated_run >= limit:
+    def raise_for(self, code: int, tick: int, fb_h: Feedback, fb_t: Feedback) -> None:
+        """Raise the SafetyStop for a finding of ``supervise``."""
+        if code == SATURATION:
+            limit = self.saturation_stop_ticks
             raise SafetyStop(
                 f"tick {tick}: a motor torque has been at its effort limit for {limit} ticks "
                 "in a row (unstable loop or blocked joint)"
             )
+        name = "hsi" if self.guard == 0 else "to"
+        fb = fb_h if name == "hsi" else fb_t
+        raise self.guards[name].stop_for(tick, code, fb.age_ticks)
+
+
+@jit
+def supervise(
+    s_i, gh_f, gh_i, gt_f, gt_i, n,
+    q_h, v_h, age_h, tau_h, g_h, a_h,
+    q_t, v_t, age_t, tau_t, g_t, a_t,
+) -> int:  # fmt: skip
+    """Both robots' checks and the saturation count; the finding (s_i[GUARD]: which robot) or
+    OK. A non-finite measurement always trips a check (comparisons with NaN fail; a NaN torque
+    sensor makes its command NaN), and the finding then names the measurement."""
+    if not s_i[ENABLED]:
+        return OK
+    s_i[GUARD] = 0
+    code = guard_check(gh_f, gh_i, n, q_h, v_h, age_h, g_h, a_h)
+    if code == OK:
+        s_i[GUARD] = 1
+        code = guard_check(gt_f, gt_i, n, q_t, v_t, age_t, g_t, a_t)
+    if code != OK:
+        # name the sensor at fault, not the command it poisoned (maybe through the channel)
+        found = measured_fault(gh_f, gh_i, n, q_h, v_h, tau_h)
+        if found:
+            s_i[GUARD] = 0
+            return found
+        found = measured_fault(gt_f, gt_i, n, q_t, v_t, tau_t)
+        if found:
+            s_i[GUARD] = 1
+            return found
+        return code
+    if gh_i[SATURATED] or gt_i[SATURATED]:
+        s_i[SATURATED_TICKS] += 1
+        s_i[SATURATED_RUN] += 1
+        limit = s_i[SATURATION_STOP_TICKS]
+        if limit and s_i[SATURATED_RUN] >= limit:
+            return SATURATION
+    else:
+        s_i[SATURATED_RUN] = 0
+    return OK

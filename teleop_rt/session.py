@@ -6,18 +6,21 @@ One tick k (see ../shared/docs/architecture.md), in this order:
 3. COM: omega_c = v_h and tau_t = -tau_ext_t in, tau_c and omega_t out (eq 9, 10);
 4. controllers: a_ref_h = C1(tau_h - tau_c), a_ref_t = C2(omega_t - v_t) (eq 4, 14);
 5. computed torque: g = M M_v^-1 a_ref + n - tau_ext (eq 2, 12), one RNEA per robot;
-6. write both backends; accumulate T_p, T_tau (eq 18) and timing.
+6. safety checks, then write both backends; accumulate T_p, T_tau (eq 18) and timing.
+
+Steps 3-6 but the RNEA calls are compiled (``teleop_rt.tick``) and run on the blocks' state,
+packed into two flat buffers when the session is built (``teleop_rt.flat``).
 """
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
+import pinocchio as pin
 
 from teleop_rt.analysis.transparency import TransparencyAccumulator
 from teleop_rt.com.direct import DirectChannel
@@ -25,10 +28,12 @@ from teleop_rt.com.wave import WaveChannel
 from teleop_rt.config import SessionConfig, per_joint
 from teleop_rt.control import ComputedTorque, Pid
 from teleop_rt.errors import ConfigError, SafetyStop
+from teleop_rt.flat import Packed
 from teleop_rt.hal.base import Backend, create_backend
 from teleop_rt.loop import StopSignals, TickClock, TimingStats, acquire_realtime
 from teleop_rt.model import RobotModel
 from teleop_rt.safety import Supervisor
+from teleop_rt.tick import BLOCK_ORDER, TickSignals, after_models, before_models
 
 if TYPE_CHECKING:
     from teleop_rt.recording.recorder import Recorder
@@ -51,10 +56,17 @@ class Side:
             self.model, self.virtual_mass, spec.compensate_friction
         )
         self.backend: Backend = create_backend(backend_name, cfg, name, self.model, operator)
-        self.error = [0.0] * n
-        self.a_ref = self.controller.out  # reference acceleration (updated in place)
-        self.tau_cmd = self.computed_torque.tau  # motor torque command (updated in place)
         self.feedback = self.backend.feedback
+
+    @property
+    def a_ref(self) -> np.ndarray:
+        """Reference acceleration times the virtual mass (the controller's output)."""
+        return self.controller.out
+
+    @property
+    def tau_cmd(self) -> np.ndarray:
+        """Motor torque command (after the safety layer's saturation)."""
+        return self.computed_torque.tau
 
 
 @dataclass
@@ -114,43 +126,65 @@ class Session:
         else:
             b = per_joint(cfg.channel.wave_impedance, n, "channel.wave_impedance")
             self.channel = WaveChannel(b, cfg.delay_ticks, self.dt, cfg.channel.wave_filter_hz)
-        # per-tick signals as lists (scalar path); tau_e: torque the TO applies to the
-        # environment, = tau_t of the channel
-        self.tau_h = [0.0] * n
-        self.tau_e = [0.0] * n
+        self.signals = TickSignals(n)
         self.tick = 0
         self.metrics = TransparencyAccumulator(n, self.dt)
         self.supervisor = Supervisor(cfg.safety, self.hsi.model, self.to.model, self.dt)
+        self._pack()
+
+    def _pack(self) -> None:
+        """All blocks into one pair of buffers, for the compiled halves of the tick."""
+        hsi, to, sup = self.hsi, self.to, self.supervisor
+        blocks = {
+            "fb_h": hsi.feedback, "fb_t": to.feedback, "signals": self.signals,
+            "channel": self.channel, "pid_h": hsi.controller, "pid_t": to.controller,
+            "ct_h": hsi.computed_torque, "ct_t": to.computed_torque, "supervisor": sup,
+            "guard_h": sup.guards["hsi"], "guard_t": sup.guards["to"], "metrics": self.metrics,
+            "world_h": hsi.backend.world, "world_t": to.backend.world,
+        }  # fmt: skip
+        self.packed = Packed([blocks[name] for name in BLOCK_ORDER])
+        # what the tick passes on each call, looked up once
+        p = self.packed
+        self._buffers = (p.f, p.i, p.offsets, self.n)
+        self._pin = [
+            (side.model.model, side.model.data, side.feedback.q, side.feedback.v,
+             side.computed_torque.a_des)
+            for side in (hsi, to)
+        ]  # fmt: skip
+        # load (or, on a fresh install, compile) the kernels now, on scratch copies of the
+        # state, not at the first deadline
+        f, i, o, n = self._buffers
+        before_models(f.copy(), i.copy(), o, n)
+        after_models(f.copy(), i.copy(), o, n, np.zeros(n), np.zeros(n))
+
+    @property
+    def tau_h(self) -> np.ndarray:
+        """The operator's torque on the HSI, as measured this tick."""
+        return self.signals.tau_h
+
+    @property
+    def tau_e(self) -> np.ndarray:
+        """The TO's torque on the environment this tick (-tau_ext of the TO)."""
+        return self.signals.tau_e
 
     def step(self) -> None:
-        """One control tick: read, channel, controllers, computed torque, write."""
-        hsi, to, ch, n = self.hsi, self.to, self.channel, self.n
+        """One control tick: read, channel, controllers, computed torque, safety, write."""
+        hsi, to = self.hsi, self.to
         fb_h = hsi.backend.read()
         fb_t = to.backend.read()
-        v_h, v_t = fb_h.v_list, fb_t.v_list
-        tau_h, tau_e = self.tau_h, self.tau_e
-        tau_h[:] = fb_h.tau_ext
-        tau_ext_t = fb_t.tau_ext
-        for j in range(n):
-            tau_e[j] = -tau_ext_t[j]
-        ch.step(v_h, tau_e)
-        err_h, err_t, tau_c, omega_t = hsi.error, to.error, ch.tau_c, ch.omega_t
-        for j in range(n):
-            err_h[j] = tau_h[j] - tau_c[j]
-            err_t[j] = omega_t[j] - v_t[j]
-        a_ref_h = hsi.controller.step(err_h)
-        a_ref_t = to.controller.step(err_t)
-        g_h = hsi.computed_torque.step(fb_h.q, fb_h.v, a_ref_h, tau_h, v_h)
-        g_t = to.computed_torque.step(fb_t.q, fb_t.v, a_ref_t, tau_ext_t, v_t)
-        # step 7, safety: nothing unchecked reaches a motor (may saturate g_h, g_t in place)
-        self.supervisor.step(
-            self.tick,
-            fb_h, tau_h, g_h, hsi.computed_torque.a_des_list,
-            fb_t, tau_ext_t, g_t, to.computed_torque.a_des_list,
-        )  # fmt: skip
-        hsi.backend.write(g_h)
-        to.backend.write(g_t)
-        self.metrics.add(fb_h.q_list, fb_t.q_list, tau_h, tau_e)
+        f, i, o, n = self._buffers
+        before_models(f, i, o, n)
+        (model_h, data_h, q_h, v_h, a_h), (model_t, data_t, q_t, v_t, a_t) = self._pin
+        rnea_h = pin.rnea(model_h, data_h, q_h, v_h, a_h)
+        rnea_t = pin.rnea(model_t, data_t, q_t, v_t, a_t)
+        supervisor = self.supervisor
+        if supervisor.workspaces:
+            supervisor.check_workspaces(self.tick, fb_h, fb_t)
+        code = after_models(f, i, o, n, rnea_h, rnea_t)
+        if code:
+            supervisor.raise_for(code, self.tick, fb_h, fb_t)
+        hsi.backend.write(hsi.computed_torque.tau)
+        to.backend.write(to.computed_torque.tau)
         self.tick += 1
 
     def run(
@@ -243,20 +277,17 @@ class Session:
         limits = self.supervisor.limits
         for i in range(spec.stop_max_ticks):
             fb_h, fb_t = hsi.backend.read(), to.backend.read()
-            values = fb_h.v_list + fb_t.v_list + fb_h.q_list + fb_t.q_list + list(fb_t.tau_ext)
-            if fb_h.age_ticks or fb_t.age_ticks or not all(map(math.isfinite, values)):
+            values = (fb_h.v, fb_t.v, fb_h.q, fb_t.q, fb_t.tau_ext)
+            if fb_h.age_ticks or fb_t.age_ticks or not all(np.isfinite(x).all() for x in values):
                 return f"sensors unusable after {i} ticks: zero torque"
             gravity = hsi.model.rnea(fb_h.q, zeros, zeros)
-            g_h = [
-                gravity[j] - spec.stop_damping_nm_s_per_rad * fb_h.v_list[j] for j in range(self.n)
-            ]
-            a_t = [-gains[j] * fb_t.v_list[j] for j in range(self.n)]
-            g_t = to.computed_torque.step(fb_t.q, fb_t.v, a_t, list(fb_t.tau_ext), fb_t.v_list)
+            g_h = gravity - spec.stop_damping_nm_s_per_rad * fb_h.v
+            g_t = to.computed_torque.step(fb_t.q, fb_t.v, -gains * fb_t.v, fb_t.tau_ext)
             limits["hsi"].clamp_effort(g_h)
             limits["to"].clamp_effort(g_t)
             hsi.backend.write(g_h)
             to.backend.write(g_t)
-            if max(abs(x) for x in fb_t.v_list) < 1e-3:
+            if np.abs(fb_t.v).max() < 1e-3:
                 return f"TO at rest after {i + 1} ticks, then zero torque"
         return f"TO not at rest after {spec.stop_max_ticks} ticks; zero torque"
 
@@ -273,8 +304,8 @@ class Session:
             ticks=stats.count,
             simulated_time_s=stats.count * self.dt,
             delay_ticks=self.cfg.delay_ticks,
-            t_p=list(self.metrics.t_p),
-            t_tau=list(self.metrics.t_tau),
+            t_p=self.metrics.t_p.tolist(),
+            t_tau=self.metrics.t_tau.tolist(),
             channel_energy_j=self.channel.total_energy,
             min_channel_energy_j=self.channel.min_total_energy,
             timing=timing,

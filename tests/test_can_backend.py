@@ -136,9 +136,8 @@ def test_feedback_in_joint_units_and_sensor_zeroed(started) -> None:
     backend.write([0.0, 0.0])
     q0 = backend.cfg.hsi.robot.q0_rad
     count = 2 * 3.141592653589793 / (4096 * 20)
-    assert fb.q_list == pytest.approx(q0, abs=count)
-    assert list(fb.q) == fb.q_list
-    assert fb.v_list == [0.0, 0.0]
+    assert fb.q == pytest.approx(q0, abs=count)
+    assert fb.v.tolist() == [0.0, 0.0]
     # the emulated sensor carries a 0.02 N m bias: zeroing at start-up removed it
     assert fb.tau_ext == pytest.approx([0.0, 0.0], abs=1e-5)
 
@@ -147,9 +146,9 @@ def test_a_torque_moves_the_emulated_joint_one_tick_later(started) -> None:
     backend = started()
     backend.read()
     backend.write([0.2, 0.0])
-    v1 = backend.read().v_list[0]  # SYNC 1: the torque is only now latched
+    v1 = backend.read().v[0]  # SYNC 1: the torque is only now latched
     backend.write([0.2, 0.0])
-    v2 = backend.read().v_list[0]
+    v2 = backend.read().v[0]
     assert v1 == 0.0 and v2 > 0.0
 
 

@@ -11,22 +11,24 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from teleop_rt.analysis.impedance import channel_impedance
-from teleop_rt.com.delay import DelayLine
+from teleop_rt.com.direct import DirectChannel
 from teleop_rt.com.wave import WaveChannel
 from tests.conftest import lock_in
 
 DT = 1e-3
 
 
-def test_delay_line_outputs_zeros_until_filled_then_the_sample_d_ticks_ago() -> None:
-    line = DelayLine(3, 1)
-    out = []
+def test_delay_lines_output_zeros_until_filled_then_the_sample_d_ticks_ago() -> None:
+    ch = DirectChannel(1, 3, DT)
+    forward, backward = [], []
     for k in range(8):
-        out.append(line.pop()[0])
-        line.push([float(k + 1)])
-    assert out == [0.0, 0.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+        ch.step([float(k + 1)], [-float(k + 1)])
+        forward.append(ch.omega_t[0])
+        backward.append(ch.tau_c[0])
+    assert forward == [0.0, 0.0, 0.0, 1.0, 2.0, 3.0, 4.0, 5.0]
+    assert backward == [-x for x in forward]
     with pytest.raises(ValueError):
-        DelayLine(0, 1)
+        DirectChannel(1, -1, DT)
 
 
 def test_zero_delay_couples_directly() -> None:
@@ -35,7 +37,7 @@ def test_zero_delay_couples_directly() -> None:
     for _ in range(100):
         w, tau = rng.normal(size=2).tolist(), rng.normal(size=2).tolist()
         ch.step(w, tau)
-        assert ch.omega_t == w and ch.tau_c == tau
+        assert ch.omega_t.tolist() == w and ch.tau_c.tolist() == tau
     assert ch.total_energy == 0.0
 
 

@@ -33,7 +33,7 @@ def run_linearised(spec: RobotSpec, q0, ticks: int, loads=(), a_ref=a_ref_profil
     for k in range(ticks):
         fb = plant.read()
         velocities.append(fb.v.copy())
-        plant.write(ct.step(fb.q, fb.v, a_ref(k), list(fb.tau_ext), fb.v_list))
+        plant.write(ct.step(fb.q, fb.v, a_ref(k), fb.tau_ext))
     return np.array(velocities)
 
 

@@ -34,9 +34,9 @@ def contact_growth(k_joint: float, ticks: int = 400) -> float:
     for _ in range(ticks):
         fb = plant.read()
         channel.step([0.0, 0.0], [-x for x in fb.tau_ext])
-        a = c2.step([channel.omega_t[j] - fb.v_list[j] for j in range(2)])
-        plant.write(ct.step(fb.q, fb.v, a, list(fb.tau_ext), fb.v_list))
-    return abs(plant.read().q_list[1] - rest[1]) / 0.01
+        a = c2.step([channel.omega_t[j] - fb.v[j] for j in range(2)])
+        plant.write(ct.step(fb.q, fb.v, a, fb.tau_ext))
+    return abs(plant.read().q[1] - rest[1]) / 0.01
 
 
 def test_limit_formula_for_the_default_to() -> None:

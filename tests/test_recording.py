@@ -42,7 +42,7 @@ def test_every_tick_is_recorded_and_decodes_independently(tmp_path: Path) -> Non
     seen = []
     session_summary = session.run(
         observer=lambda s: seen.append(
-            (list(s.hsi.feedback.q_list), list(s.to.feedback.tau_ext), list(s.channel.tau_c))
+            (list(s.hsi.feedback.q), list(s.to.feedback.tau_ext), list(s.channel.tau_c))
         ),
         recorder=Recorder(session, tmp_path / "foam.mcap"),
     )

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from teleop_rt import config
@@ -29,8 +30,7 @@ def supervisor(**spec) -> Supervisor:
 
 def feedback(q: list[float], v: list[float], age_ticks: int = 0) -> Feedback:
     fb = Feedback(len(q))
-    fb.q_list[:], fb.v_list[:], fb.age_ticks = q, v, age_ticks
-    fb.sync_arrays()
+    fb.q[:], fb.v[:], fb.age_ticks = q, v, age_ticks
     return fb
 
 
@@ -65,7 +65,7 @@ def test_tracking_error_stops_after_its_tick_count_and_resets_on_a_good_tick() -
     guard.check(1, feedback(zero, zero), [0.0, 0.0], [100.0, 0.0])
     guard.check(2, feedback(zero, zero), [0.0, 0.0], [100.0, 0.0])
     guard.check(3, feedback(zero, [0.1, 0.0]), [0.0, 0.0], [100.0, 0.0])  # (0.1 / 1 ms = 100)
-    assert guard.run == [0, 0]
+    assert guard.run.tolist() == [0, 0]
     guard.check(4, feedback(zero, [0.1, 0.0]), [0.0, 0.0], [100.0, 0.0])
     guard.check(5, feedback(zero, [0.1, 0.0]), [0.0, 0.0], [100.0, 0.0])
     with pytest.raises(SafetyStop, match=r"^tick 6: to joint 0 .*does not follow"):
@@ -82,13 +82,20 @@ def test_stale_feedback_is_a_stop_at_stale_ticks() -> None:
 
 def test_saturation_that_lasts_is_a_stop() -> None:
     sup = supervisor(saturation_stop_ticks=5)
+    zero = [0.0, 0.0]
+
+    def tick(k: int, saturate: bool) -> None:  # 25 N m: above the HSI shoulder's 20 N m
+        g_h, g_t = np.array([25.0 if saturate else 0.0, 0.0]), np.zeros(2)
+        fb_h, fb_t = feedback(zero, zero), feedback(zero, zero)
+        sup.step(k, fb_h, zero, g_h, zero, fb_t, zero, g_t, zero)
+
     for k in range(4):
-        sup.saturation(k, True)
-    sup.saturation(4, False)  # a break resets the run
+        tick(k, True)
+    tick(4, False)  # a break resets the run
     for k in range(5, 9):
-        sup.saturation(k, True)
+        tick(k, True)
     with pytest.raises(SafetyStop, match="tick 9: .*5 ticks in a row"):
-        sup.saturation(9, True)
+        tick(9, True)
     assert sup.saturated_ticks == 9
 
 

@@ -21,7 +21,7 @@ def wall_run(mode: str, delay_ms: int, seconds: float) -> tuple[float, float]:
     peak = [0.0]
 
     def watch(s: Session) -> None:
-        v = max(abs(x) for x in s.to.feedback.v_list)
+        v = max(abs(x) for x in s.to.feedback.v)
         if v > peak[0]:
             peak[0] = v
 

@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 
 from teleop_rt import config  # noqa: E402
 from teleop_rt.errors import TeleopError  # noqa: E402
-from teleop_rt.hal.base import Backend, Feedback  # noqa: E402
+from teleop_rt.hal.base import Backend, Feedback, register_backend  # noqa: E402
 from teleop_rt.loop import acquire_realtime  # noqa: E402
 from teleop_rt.recording.recorder import Recorder  # noqa: E402
 from teleop_rt.session import Session  # noqa: E402
@@ -92,7 +92,9 @@ class ReplayedFeedback(Backend):
 
     def __init__(self, samples: list[tuple[list[float], list[float], list[float]]]) -> None:
         super().__init__(len(samples[0][0]))
-        self.samples = samples
+        # each tick's q, v, tau_ext as float64 memoryviews: read copies them as a driver's
+        # decoded frames would be copied (three memcpys), not through numpy calls
+        self.samples = [tuple(memoryview(np.array(x, dtype=float)) for x in s) for s in samples]
         self.k = 0
 
     def start(self) -> None:
@@ -101,10 +103,9 @@ class ReplayedFeedback(Backend):
     def read(self) -> Feedback:
         fb = self.feedback
         q, v, tau = self.samples[self.k]
-        fb.q_list[:] = q
-        fb.v_list[:] = v
-        fb.tau_ext[:] = tau
-        fb.sync_arrays()
+        fb.q_mv[:] = q
+        fb.v_mv[:] = v
+        fb.tau_mv[:] = tau
         return fb
 
     def write(self, tau: list[float]) -> None:
@@ -121,15 +122,22 @@ def record_feedback(cfg, ticks: int) -> dict[str, list]:
         session.step()
         for side in (session.hsi, session.to):
             fb = side.backend.feedback
-            samples[side.name].append((list(fb.q_list), list(fb.v_list), list(fb.tau_ext)))
+            samples[side.name].append((list(fb.q), list(fb.v), list(fb.tau_ext)))
     return samples
 
 
+def replayed_session(cfg, samples: dict[str, list]) -> Session:
+    """A session whose backends replay recorded feedback (registered as backend 'replayed')."""
+
+    def make(cfg, side: str, model, operator=None) -> ReplayedFeedback:
+        return ReplayedFeedback(samples[side])
+
+    register_backend("replayed")(make)
+    return Session(cfg.model_copy(update={"backend": "replayed"}))
+
+
 def controller_side(cfg, samples: dict[str, list], ticks: int) -> np.ndarray:
-    session = Session(cfg)
-    session.hsi.backend = ReplayedFeedback(samples["hsi"])
-    session.to.backend = ReplayedFeedback(samples["to"])
-    return time_ticks(session.step, ticks)
+    return time_ticks(replayed_session(cfg, samples).step, ticks)
 
 
 # --- sections --------------------------------------------------------------------------------

@@ -172,7 +172,7 @@ def run(cfg: config.SessionConfig, args: argparse.Namespace) -> int:
             late[k] = clock.wait()
             c0, w0 = thread_ns(), perf_ns()
             fb = backend.read()
-            v = fb.v_list
+            v = fb.v
             for j in range(backend.n):
                 tau[j] = -0.05 * v[j]
             backend.write(tau)

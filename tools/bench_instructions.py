@@ -61,10 +61,7 @@ def child(config: Path, mode: str, ticks: int, samples: int) -> None:
     if mode == "controller":
         import bench
 
-        recorded = bench.record_feedback(cfg, samples)
-        session = Session(cfg)
-        session.hsi.backend = bench.ReplayedFeedback(recorded["hsi"])
-        session.to.backend = bench.ReplayedFeedback(recorded["to"])
+        session = bench.replayed_session(cfg, bench.record_feedback(cfg, samples))
     step = session.step
     if mode == "recording":  # the hot-path call of Session.run with a recorder
         import tempfile

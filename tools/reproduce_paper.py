@@ -378,7 +378,7 @@ def run_experiment(delay_ms: int, duration_s: float, overrides: tuple[str, ...] 
 
     def observe(s: Session) -> None:
         k = s.tick - 1
-        q_h[k], q_t[k], v_h[k] = fb_h.q_list, fb_t.q_list, fb_h.v_list
+        q_h[k], q_t[k], v_h[k] = fb_h.q, fb_t.q, fb_h.v
         tau_h[k], tau_e[k] = s.tau_h, s.tau_e
         ref[k], force[k] = world_h.reference, world_h.force
 

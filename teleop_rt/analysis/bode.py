@@ -206,7 +206,7 @@ class OpenChain:
         others = [i for i in range(n) if i != j]
         hsi, to, channel, c1, c2 = self.hsi, self.to, self.channel, self.c1, self.c2
         ct_h, ct_t = self.ct_h, self.ct_t
-        omega_c, err_h, err_t, tau_t = [0.0] * n, [0.0] * n, [0.0] * n, [0.0] * n
+        omega_c, err_h, err_t, tau_t = (np.zeros(n) for _ in range(4))
         q0_h, q0_t, other = self.q0_h, self.q0_t, self.other_joint_motion
         for k in range(ticks):
             fb_h, fb_t = hsi.read(), to.read()
@@ -215,16 +215,16 @@ class OpenChain:
             for i in range(n):
                 tau_t[i] = -te[i]
             channel.step(omega_c, tau_t)
-            tau_c, omega_t, vt = channel.tau_c, channel.omega_t, fb_t.v_list
+            tau_c, omega_t, vt = channel.tau_c, channel.omega_t, fb_t.v
             for i in range(n):
                 err_h[i] = sign * (th[i] - tau_c[i])
                 err_t[i] = omega_t[i] - vt[i]
             a_h, a_t = c1.step(err_h), c2.step(err_t)
-            tau_h[k], v_h[k], v_t[k], tau_e[k] = th[j], fb_h.v_list[j], vt[j], tau_t[j]
+            tau_h[k], v_h[k], v_t[k], tau_e[k] = th[j], fb_h.v[j], vt[j], tau_t[j]
             for i in others:
-                other = max(other, abs(fb_h.q_list[i] - q0_h[i]), abs(fb_t.q_list[i] - q0_t[i]))
-            hsi.write(ct_h.step(fb_h.q, fb_h.v, a_h, th, fb_h.v_list))
-            to.write(ct_t.step(fb_t.q, fb_t.v, a_t, te, vt))
+                other = max(other, abs(fb_h.q[i] - q0_h[i]), abs(fb_t.q[i] - q0_t[i]))
+            hsi.write(ct_h.step(fb_h.q, fb_h.v, a_h, th))
+            to.write(ct_t.step(fb_t.q, fb_t.v, a_t, te))
         self.tick += ticks
         self.other_joint_motion = other
         arr = np.asarray

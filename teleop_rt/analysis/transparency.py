@@ -10,30 +10,57 @@ from __future__ import annotations
 
 import numpy as np
 
+from teleop_rt.flat import Block, as_floats, jit, vec
 
-class TransparencyAccumulator:
-    """Accumulates T_p and T_tau tick by tick (scalar path, nothing allocated but floats)."""
+T_P, T_TAU, OFFSET = range(3)
+HAS_OFFSET = 0
+
+
+class TransparencyAccumulator(Block):
+    """Accumulates T_p and T_tau tick by tick (compiled ``accumulate``; nothing allocated)."""
+
+    VECTORS = ("t_p", "t_tau", "offset")
+    SCALARS = ("dt",)
+    INTS = ("has_offset",)
 
     def __init__(self, n: int, dt: float, offset: list[float] | None = None) -> None:
+        super().__init__(n)
+        self.dt = dt
         # alpha = angle moved since the first tick: unless given, the offset q_h - q_t is taken
         # there (a log holds that tick too, so metrics from the log use the very same offset)
-        self.offset = offset
-        self.dt = dt
-        self.n = n
-        self.t_p = [0.0] * n
-        self.t_tau = [0.0] * n
+        if offset is not None:
+            self.offset[:] = offset
+            self.has_offset = 1
 
-    def add(
-        self, q_h: list[float], q_t: list[float], tau_h: list[float], tau_e: list[float]
-    ) -> None:
-        if self.offset is None:
-            self.offset = [a - b for a, b in zip(q_h, q_t, strict=True)]
-        dt, t_p, t_tau, offset = self.dt, self.t_p, self.t_tau, self.offset
-        for j in range(self.n):
-            e = q_h[j] - q_t[j] - offset[j]
-            t_p[j] += e * e * dt
-            e = tau_h[j] - tau_e[j]
-            t_tau[j] += e * e * dt
+    def add(self, q_h, q_t, tau_h, tau_e) -> None:
+        accumulate(
+            self.f, self.i, self.n,
+            as_floats(q_h), as_floats(q_t), as_floats(tau_h), as_floats(tau_e),
+        )  # fmt: skip
+
+
+@jit
+def accumulate(
+    f: np.ndarray,
+    i: np.ndarray,
+    n: int,
+    q_h: np.ndarray,
+    q_t: np.ndarray,
+    tau_h: np.ndarray,
+    tau_e: np.ndarray,
+) -> None:
+    """Add one tick's rectangle to T_p and T_tau (eq 18)."""
+    t_p, t_tau, offset = vec(f, T_P, n), vec(f, T_TAU, n), vec(f, OFFSET, n)
+    dt = f[3 * n]  # the scalar after the three vectors
+    if not i[HAS_OFFSET]:
+        for j in range(n):
+            offset[j] = q_h[j] - q_t[j]
+        i[HAS_OFFSET] = 1
+    for j in range(n):
+        e = q_h[j] - q_t[j] - offset[j]
+        t_p[j] += e * e * dt
+        e = tau_h[j] - tau_e[j]
+        t_tau[j] += e * e * dt
 
 
 def transparency(

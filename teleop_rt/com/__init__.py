@@ -1,6 +1,6 @@
-"""The communication channel (COM): delay lines and the wave-variable two-port."""
+"""The communication channel (COM): the wave-variable two-port and a direct delayed channel."""
 
-from teleop_rt.com.delay import DelayLine
+from teleop_rt.com.direct import DirectChannel
 from teleop_rt.com.wave import WaveChannel
 
-__all__ = ["DelayLine", "WaveChannel"]
+__all__ = ["DirectChannel", "WaveChannel"]

@@ -16,58 +16,50 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from teleop_rt.errors import ConfigError
-from teleop_rt.scalar import shared_vector
+from teleop_rt.flat import Block
 
 if TYPE_CHECKING:
     from teleop_rt.config import SessionConfig
     from teleop_rt.model import RobotModel
 
 
-class Feedback:
-    """What a backend measures each tick (SI, joint space), preallocated.
+class Feedback(Block):
+    """What a backend measures each tick (SI, joint space), preallocated: ``q``, ``v`` and
+    ``tau_ext`` (the torque the outside world applies to the robot, see teleop_rt.control),
+    float64 views a backend fills, and ``age_ticks``: ticks since the sensors last delivered
+    (0: fresh this tick). The ``*_mv`` memoryviews of the same memory take element writes and
+    buffer copies at a fraction of numpy's per-call cost."""
 
-    ``q_list``, ``v_list`` (lists, for the scalar path) and ``tau_ext`` (a list: the torque the
-    outside world applies to the robot, see teleop_rt.control) are what a backend fills;
-    ``sync_arrays()`` then copies q and v into the numpy arrays ``q``, ``v`` (Pinocchio's inputs).
-    """
+    VECTORS = ("q", "v", "tau_ext")
+    INTS = ("age_ticks",)
 
-    __slots__ = ("q", "v", "q_list", "v_list", "tau_ext", "age_ticks", "_q_view", "_v_view")
-
-    def __init__(self, n: int) -> None:
-        self.age_ticks = 0  # ticks since the sensors last delivered (0: fresh this tick)
-        self.q, self._q_view = shared_vector(n)
-        self.v, self._v_view = shared_vector(n)
-        self.q_list = [0.0] * n
-        self.v_list = [0.0] * n
-        self.tau_ext = [0.0] * n
+    def _bind(self) -> None:
+        super()._bind()
+        self.q_mv, self.v_mv, self.tau_mv = (memoryview(x) for x in (self.q, self.v, self.tau_ext))
 
     def copy_arrays(self, q: memoryview, v: memoryview) -> None:
-        """q, v (numpy) = q, v given as float64 memoryviews (a memcpy each): for a backend
-        whose state mirrors q_list, v_list in such views (see teleop_rt.scalar.shared_vector)."""
-        self._q_view[:] = q
-        self._v_view[:] = v
-
-    def sync_arrays(self) -> None:
-        """q, v (numpy) = q_list, v_list."""
-        qv, vv = self._q_view, self._v_view
-        for j, x in enumerate(self.q_list):
-            qv[j] = x
-        for j, x in enumerate(self.v_list):
-            vv[j] = x
+        """q, v = q, v given as float64 memoryviews of n entries (a memcpy each)."""
+        self.q_mv[:] = q
+        self.v_mv[:] = v
 
 
-class WorldSnapshot:
+class WorldSnapshot(Block):
     """What a simulated world knows at the tick's read (zeros for real hardware): the operator's
-    hand reference and force (HSI) or the environment force and contacts (TO), for logging and
-    replay. Vectors are 3-lists in the world frame, SI units."""
+    hand reference and force (HSI) or the environment force and contacts (TO: 1.0 in contact),
+    for logging and replay. Vectors of 3 in the world frame, SI units."""
 
-    __slots__ = ("reference", "reference_velocity", "force", "contacts")
+    VECTORS = ("reference", "reference_velocity", "force")
 
     def __init__(self, n_contacts: int = 0) -> None:
-        self.reference = [0.0, 0.0, 0.0]
-        self.reference_velocity = [0.0, 0.0, 0.0]
-        self.force = [0.0, 0.0, 0.0]
-        self.contacts = [0.0] * n_contacts
+        super().__init__(3, tail=n_contacts)
+
+    def _bind_tail(self) -> None:
+        self.contacts = self.f[self.tail_start :]
+        # for a backend's element writes each tick (cheaper than numpy's)
+        self.reference_mv, self.reference_velocity_mv, self.force_mv, self.contacts_mv = (
+            memoryview(x)
+            for x in (self.reference, self.reference_velocity, self.force, self.contacts)
+        )
 
 
 class Backend(ABC):

@@ -93,19 +93,17 @@ class SimBackend(Backend):
             fb.age_ticks += 1  # the sensors did not deliver: the last values stay
             return fb
         fb.age_ticks = 0
-        fb.q_list[:] = self.ql
-        fb.v_list[:] = self.vl
-        fb.tau_ext[:] = self.tau_load
+        # q, v: the plant's state (a memcpy each); tau_ext: what an ideal sensor reads
+        fb.copy_arrays(self._q_view, self._v_view)
+        tau_mv = fb.tau_mv
+        for j, x in enumerate(self.tau_load):
+            tau_mv[j] = x
         if self.torque_noise_std:
-            self._add_noise(fb.tau_ext, self.torque_noise_std)
+            self._add_noise(tau_mv, self.torque_noise_std)
         if self.velocity_noise_std:
-            self._add_noise(fb.v_list, self.velocity_noise_std)
+            self._add_noise(fb.v_mv, self.velocity_noise_std)
         if self.faults:
             self._corrupt_sensors(fb)  # (the torque sensors only)
-        if self.velocity_noise_std:
-            fb.sync_arrays()
-        else:  # q_list, v_list equal the plant's state: copy its arrays (a memcpy each)
-            fb.copy_arrays(self._q_view, self._v_view)
         self._snapshot_world()
         return fb
 
@@ -121,26 +119,29 @@ class SimBackend(Backend):
         # the loads were last evaluated at this tick's time (end of the previous write)
         world = self.world
         if self.hand is not None:
-            world.reference[:] = self.hand.trajectory.pos
-            world.reference_velocity[:] = self.hand.trajectory.vel
-            world.force[:] = self.hand.last_force
+            trajectory, force = self.hand.trajectory, self.hand.last_force
+            world.reference_mv[0], world.reference_mv[1], world.reference_mv[2] = trajectory.pos
+            vel = world.reference_velocity_mv
+            vel[0], vel[1], vel[2] = trajectory.vel
+            world.force_mv[0], world.force_mv[1], world.force_mv[2] = force
         elif self.contact_loads:
             fx = fy = fz = 0.0
+            contacts = world.contacts_mv
             for j, load in enumerate(self.contact_loads):
                 f = load.last_force
                 fx += f[0]
                 fy += f[1]
                 fz += f[2]
-                world.contacts[j] = 1.0 if load.in_contact else 0.0
-            world.force[0], world.force[1], world.force[2] = fx, fy, fz
+                contacts[j] = 1.0 if load.in_contact else 0.0
+            world.force_mv[0], world.force_mv[1], world.force_mv[2] = fx, fy, fz
 
-    def _add_noise(self, values: list[float], std: float) -> None:
+    def _add_noise(self, values: memoryview, std: float) -> None:
         self.rng.standard_normal(out=self._noise)
         for j, x in enumerate(self._noise.tolist()):
             values[j] += std * x
 
     def write(self, tau: list[float] | np.ndarray) -> None:
-        self.tau_motor[:] = tau
+        self.tau_motor[:] = tau.tolist() if isinstance(tau, np.ndarray) else tau
         if self._single_euler_step:  # the common case, without the loop
             self._euler_substep()
         elif self.faults:

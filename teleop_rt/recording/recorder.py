@@ -1,7 +1,7 @@
 """Per-tick recording without blocking the tick.
 
-``Recorder.record`` packs the tick's signals into one row of a shared-memory ring with a
-precompiled ``struct`` (a couple of microseconds) and publishes it; the writer process
+``Recorder.record`` copies the tick's signals from the session's packed state into one row of
+a shared-memory ring (one compiled call) and publishes it; the writer process
 (``teleop_rt.recording.writer``) turns rows into MCAP messages on the other core. The ring holds
 ``capacity`` rows (65 s at 1 kHz by default); the producer waits only if the writer falls a whole
 ring behind, so no row is ever dropped.
@@ -17,10 +17,12 @@ from multiprocessing.shared_memory import SharedMemory
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 import yaml
 
 from teleop_rt import __version__
 from teleop_rt.errors import TeleopError
+from teleop_rt.flat import jit
 from teleop_rt.recording.schema import SCHEMA_VERSION, LogLayout
 from teleop_rt.recording.writer import CLOSED, CONSUMED, CONTROL_BYTES, PUBLISHED, writer_main
 
@@ -72,12 +74,14 @@ class Recorder:
         width = self.layout.row_width
         self.capacity = capacity
         self.row_bytes = width * 8
-        # native byte order, as the writer's numpy view of the ring reads it; struct then copies
-        # each double as it is (the "<" formats convert every value: 7 % of record's cost)
-        self._row = struct.Struct(f"@{width}d")
         self._count = struct.Struct("@q")
         self.shm = SharedMemory(create=True, size=CONTROL_BYTES + capacity * self.row_bytes)
         self.buf = self.shm.buf
+        # the ring as rows of float64 (native order, as the writer reads it), and where each
+        # signal column of a row sits in the session's packed state
+        self.ring = np.ndarray((capacity, width), np.float64, self.shm.buf, CONTROL_BYTES)
+        self.gather = row_sources(session, self.layout)
+        fill_row(np.zeros(width), session.packed.f, self.gather, 0, 0.0, 0, 0, False)  # load
         self.published = 0
         self._consumed_known = 0
         # fork: the writer starts in milliseconds (spawn would re-import numpy and mcap, and
@@ -104,26 +108,15 @@ class Recorder:
         self.closed = False
 
     def record(self, compute_ns: int, lateness_ns: int, missed: bool) -> None:
-        """Pack the tick the session just ran (its tick - 1) into the ring and publish it."""
+        """Copy the tick the session just ran (its tick - 1) into the ring and publish it."""
         s = self.session
         k = s.tick - 1
         i = self.published
         if i - self._consumed_known >= self.capacity:
             self._wait_for_room(i)
-        hsi, to, ch = s.hsi, s.to, s.channel
-        fh, ft, wh, wt = hsi.feedback, to.feedback, hsi.backend.world, to.backend.world
-        self._row.pack_into(
-            self.buf,
-            CONTROL_BYTES + (i % self.capacity) * self.row_bytes,
-            k,
-            k * s.dt,
-            *fh.q_list, *fh.v_list, *fh.tau_ext, *hsi.tau_cmd, *hsi.a_ref,
-            *wh.reference, *wh.reference_velocity, *wh.force,
-            *ft.q_list, *ft.v_list, *ft.tau_ext, *to.tau_cmd, *to.a_ref,
-            *wt.force, *wt.contacts,
-            *ch.omega_c, *ch.tau_c, *ch.omega_t, *ch.tau_t,
-            *ch.u_l, *ch.v_l, *ch.u_r, *ch.v_r, *ch.power, *ch.energy, ch.total_energy,
-            compute_ns, lateness_ns, 1.0 if missed else 0.0,
+        fill_row(
+            self.ring[i % self.capacity], s.packed.f, self.gather, k, k * s.dt,
+            compute_ns, lateness_ns, missed,
         )  # fmt: skip
         self.published = i + 1
         self._count.pack_into(self.buf, PUBLISHED * 8, i + 1)
@@ -151,9 +144,66 @@ class Recorder:
                 self.process.terminate()
                 raise TeleopError(f"log writer for {self.path} did not finish in {timeout_s} s")
         finally:
-            self.buf = None
+            self.buf = self.ring = None
             self.shm.close()
             self.shm.unlink()
+
+
+def row_sources(session: Session, layout: LogLayout) -> np.ndarray:
+    """For each signal column of a log row (between the tick and time and the timing
+    columns), its position in the session's packed state."""
+    packed, hsi, to, ch = session.packed, session.hsi, session.to, session.channel
+    robot = {
+        "q": "feedback.q", "v": "feedback.v", "tau_ext": "feedback.tau_ext",
+        "tau_cmd": "computed_torque.tau", "a_ref": "controller.out",
+    }  # fmt: skip
+    world = {
+        "operator_reference_m": "reference",
+        "operator_reference_velocity_m_s": "reference_velocity",
+        "operator_force_n": "force",
+        "environment_force_n": "force",
+    }
+    out: list[int] = []
+    for topic in layout.topics[:3]:  # /hsi, /to, /channel; /timing is the record's own
+        side = {"/hsi": hsi, "/to": to}.get(topic.name)
+        for field in topic.fields[2:]:
+            if side is None:
+                block, name = ch, field.name
+            elif field.name in robot:
+                owner, name = robot[field.name].split(".")
+                block = getattr(side, owner)
+            elif field.name == "in_contact":  # the world block's tail, right after its force
+                start = packed.index_of(side.backend.world, "force") + 3
+                out += range(start, start + field.count)
+                continue
+            else:
+                block, name = side.backend.world, world[field.name]
+            first = packed.index_of(block, name)
+            out += range(first, first + field.count)
+    return np.array(out, dtype=np.int64)
+
+
+@jit
+def fill_row(
+    row: np.ndarray,
+    f: np.ndarray,
+    gather: np.ndarray,
+    tick: int,
+    t: float,
+    compute_ns: int,
+    lateness_ns: int,
+    missed: bool,
+) -> None:
+    """One log row (``teleop_rt.recording.schema``): tick, time, the signals at the packed
+    positions ``gather``, then the timing columns."""
+    row[0] = tick
+    row[1] = t
+    for c in range(gather.size):
+        row[2 + c] = f[gather[c]]
+    m = gather.size + 2
+    row[m] = compute_ns
+    row[m + 1] = lateness_ns
+    row[m + 2] = 1.0 if missed else 0.0
 
 
 def _metadata(session: Session) -> dict[str, str]:

@@ -523,7 +523,7 @@ class CanBackend(Backend):
 
     def _fill_feedback(self) -> None:
         fb = self.feedback
-        ql, vl, pos, vel = fb.q_list, fb.v_list, self._pos, self._vel
+        ql, vl, pos, vel = fb.q_mv, fb.v_mv, self._pos, self._vel
         kq, kv, off = self._rad_per_count, self._rad_s_per_unit, self._offset
         for i in range(self.n):
             ql[i] = pos[i] * kq[i] + off[i]
@@ -533,11 +533,10 @@ class CanBackend(Backend):
                 self._sensor_raw,
                 self._sensor_zero,
                 self._sensor_scale,
-                fb.tau_ext,
+                fb.tau_mv,
             )
             for j, c in enumerate(self._sensor_channels):
                 te[j] = (raw[c] - zero[j]) * scale[j]
-        fb.sync_arrays()
         emu = self.emulator
         if emu is not None:  # an emulated world: log what it knows, like the sim backend
             w, ew = self.world, emu.plant.world

@@ -475,7 +475,7 @@ class DriveEmulator:
         self.world_tick = 0
         self.tau = [0.0] * len(self.drives)
         fb = self.plant.read()
-        self._q, self._v, self._tau_ext = fb.q_list, fb.v_list, fb.tau_ext
+        self._q, self._v, self._tau_ext = fb.q_mv, fb.v_mv, fb.tau_mv
         self._outbox: list[tuple[int, bytes]] | None = None
         self._silent: set[int] = set()
         self._lazy = False  # True with asynchronous RPDOs (see _on_sync)
@@ -562,7 +562,7 @@ class DriveEmulator:
             self.plant.write(tau)
             self.world_tick += 1
             fb = self.plant.read()
-            self._q, self._v, self._tau_ext = fb.q_list, fb.v_list, fb.tau_ext
+            self._q, self._v, self._tau_ext = fb.q_mv, fb.v_mv, fb.tau_mv
         if advance:
             for d in self.drives:
                 d.advance_state()

@@ -1,0 +1,103 @@
+"""The compiled part of one control tick (steps 3-7 of ../shared/docs/architecture.md), around
+the two Pinocchio calls that Python makes between its halves:
+
+    before_models:  tau_h, tau_e; channel (eq 9, 10); errors; C1, C2 (eq 4, 14); M_v^-1 a_ref
+    (Python)        RNEA of each robot at M_v^-1 a_ref
+    after_models:   computed torque (eq 2, 12); safety checks and saturation; T_p, T_tau (eq 18)
+
+Both take the session's packed buffers (``teleop_rt.flat.Packed``) with its blocks in the order
+``BLOCK_ORDER``: three array arguments reach every signal of the tick.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from teleop_rt.analysis.transparency import accumulate
+from teleop_rt.com.channel import OMEGA_T, TAU_C, channel_step
+from teleop_rt.control import A_DES, OUT, TAU, ct_finish, ct_prepare, pid_step
+from teleop_rt.flat import Block, jit, vec
+from teleop_rt.safety import supervise
+
+BLOCK_ORDER = (
+    "fb_h", "fb_t", "signals", "channel", "pid_h", "pid_t", "ct_h", "ct_t",
+    "supervisor", "guard_h", "guard_t", "metrics", "world_h", "world_t",
+)  # fmt: skip
+FB_H, FB_T, SIGNALS, CHANNEL, PID_H, PID_T, CT_H, CT_T = range(8)
+SUPERVISOR, GUARD_H, GUARD_T, METRICS = range(8, 12)
+# Feedback vectors, TickSignals vectors
+Q, V, TAU_EXT = range(3)
+TAU_H, TAU_E, ERROR_H, ERROR_T = range(4)
+AGE_TICKS = 0
+
+
+class TickSignals(Block):
+    """The session's own per-tick signals: tau_h (the operator's torque on the HSI, as
+    measured), tau_e (the TO's torque on the environment, -tau_ext_t) and the controllers'
+    errors."""
+
+    VECTORS = ("tau_h", "tau_e", "error_h", "error_t")
+
+
+@jit
+def _f(buf: np.ndarray, offsets: np.ndarray, block: int) -> np.ndarray:
+    return buf[offsets[2 * block] :]
+
+
+@jit
+def _i(ints: np.ndarray, offsets: np.ndarray, block: int) -> np.ndarray:
+    return ints[offsets[2 * block + 1] :]
+
+
+@jit
+def before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> None:
+    """From the fresh feedback to the accelerations the models are evaluated at."""
+    fb_h, fb_t, sig = _f(f, o, FB_H), _f(f, o, FB_T), _f(f, o, SIGNALS)
+    tau_h, tau_e, err_h, err_t = (
+        vec(sig, TAU_H, n),
+        vec(sig, TAU_E, n),
+        vec(sig, ERROR_H, n),
+        vec(sig, ERROR_T, n),
+    )
+    tau_ext_h, tau_ext_t, v_h = vec(fb_h, TAU_EXT, n), vec(fb_t, TAU_EXT, n), vec(fb_h, V, n)
+    for j in range(n):
+        tau_h[j] = tau_ext_h[j]
+        tau_e[j] = -tau_ext_t[j]
+    ch = _f(f, o, CHANNEL)
+    channel_step(ch, _i(i, o, CHANNEL), n, v_h, tau_e)
+    tau_c, omega_t, v_t = vec(ch, TAU_C, n), vec(ch, OMEGA_T, n), vec(fb_t, V, n)
+    for j in range(n):
+        err_h[j] = tau_h[j] - tau_c[j]
+        err_t[j] = omega_t[j] - v_t[j]
+    pid_h, pid_t = _f(f, o, PID_H), _f(f, o, PID_T)
+    pid_step(pid_h, _i(i, o, PID_H), n, err_h)
+    pid_step(pid_t, _i(i, o, PID_T), n, err_t)
+    ct_prepare(_f(f, o, CT_H), n, vec(pid_h, OUT, n))
+    ct_prepare(_f(f, o, CT_T), n, vec(pid_t, OUT, n))
+
+
+@jit
+def after_models(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, rnea_h: np.ndarray, rnea_t: np.ndarray
+) -> int:
+    """From the models' RNEA to checked motor torques; the safety finding (0: none)."""
+    fb_h, fb_t, sig = _f(f, o, FB_H), _f(f, o, FB_T), _f(f, o, SIGNALS)
+    ct_h, ct_t = _f(f, o, CT_H), _f(f, o, CT_T)
+    q_h, v_h, tau_h = vec(fb_h, Q, n), vec(fb_h, V, n), vec(fb_h, TAU_EXT, n)
+    q_t, v_t, tau_ext_t = vec(fb_t, Q, n), vec(fb_t, V, n), vec(fb_t, TAU_EXT, n)
+    ct_finish(ct_h, _i(i, o, CT_H), n, rnea_h, tau_h, v_h)
+    ct_finish(ct_t, _i(i, o, CT_T), n, rnea_t, tau_ext_t, v_t)
+    # step 7, safety: nothing unchecked reaches a motor (may saturate the torques in place)
+    code = supervise(
+        _i(i, o, SUPERVISOR), _f(f, o, GUARD_H), _i(i, o, GUARD_H),
+        _f(f, o, GUARD_T), _i(i, o, GUARD_T), n,
+        q_h, v_h, _i(i, o, FB_H)[AGE_TICKS], tau_h, vec(ct_h, TAU, n), vec(ct_h, A_DES, n),
+        q_t, v_t, _i(i, o, FB_T)[AGE_TICKS], tau_ext_t, vec(ct_t, TAU, n), vec(ct_t, A_DES, n),
+    )  # fmt: skip
+    if code:
+        return code
+    accumulate(
+        _f(f, o, METRICS), _i(i, o, METRICS), n,
+        q_h, q_t, vec(sig, TAU_H, n), vec(sig, TAU_E, n),
+    )  # fmt: skip
+    return 0
