@@ -40,7 +40,7 @@ class RobotLimits:
         ]
         self.velocity = [v if v > 0 else None for v in model.model.velocityLimit.tolist()]
         self.effort = [e if e > 0 else None for e in model.effort_limits.tolist()]
-        # the same as flat lists for the per-tick loop: infinite where there is no limit
+        # the same as flat lists (copied into the guard blocks): infinite where there is none
         inf = math.inf
         self.lo = [b[0] if b else -inf for b in self.position]
         self.hi = [b[1] if b else inf for b in self.position]
