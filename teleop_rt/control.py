@@ -34,7 +34,6 @@ from teleop_rt.model import RobotModel, friction_torque
 
 # ComputedTorque block: vectors, scalars, ints
 INV_MASS, A_DES, TAU, DAMPING, COULOMB = range(5)
-N_CT_VECTORS = 5
 CT_INV_V_S = 0
 CT_COMPENSATE = 0
 
@@ -71,6 +70,9 @@ class ComputedTorque(Block):
         return self.tau
 
 
+N_CT_VECTORS = len(ComputedTorque.VECTORS)
+
+
 @jit
 def ct_prepare(f: np.ndarray, n: int, a_ref: np.ndarray) -> None:
     """a_des = M_v^-1 a_ref: the acceleration RNEA is evaluated at."""
@@ -96,7 +98,6 @@ def ct_finish(
 
 # Pid block: vectors, scalars, ints
 OUT, KP, KI, KD, INTEGRAL_LIMIT, OUTPUT_LIMIT, INTEGRAL, DERIV, PREV_ERROR, SATURATED = range(10)
-N_PID_VECTORS = 10
 PID_DT, D_ALPHA = range(2)
 PROPORTIONAL_ONLY, HAS_I, HAS_D, STARTED = range(4)
 
@@ -144,6 +145,9 @@ class Pid(Block):
         """Controller output for this tick's error; returns self.out (updated in place)."""
         pid_step(self.f, self.i, self.n, as_floats(error))
         return self.out
+
+
+N_PID_VECTORS = len(Pid.VECTORS)
 
 
 @jit

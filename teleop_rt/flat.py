@@ -126,13 +126,16 @@ class Packed:
             fo += fs
             io += is_
 
-    def index_of(self, block: Block, vector: str, j: int = 0) -> int:
-        """Position in the packed float buffer of entry j of a block's vector or scalar."""
-        k = self.blocks.index(block)
-        start = int(self.offsets[2 * k])
-        if vector in block.VECTORS:
-            return start + block.VECTORS.index(vector) * block.n + j
-        return start + len(block.VECTORS) * block.n + block.SCALARS.index(vector)
+    def index_of(self, block: Block, name: str) -> int:
+        """Position in the packed float buffer of a block's scalar, or of the first entry of
+        any of its named views (vectors and tail views alike)."""
+        if name in block.SCALARS:
+            start = int(self.offsets[2 * self.blocks.index(block)])
+            return start + len(block.VECTORS) * block.n + block.SCALARS.index(name)
+        view = getattr(block, name)
+        if not np.shares_memory(view, self.f):
+            raise ValueError(f"{name} of {type(block).__name__} is not in these buffers")
+        return (view.ctypes.data - self.f.ctypes.data) // self.f.itemsize
 
 
 def as_floats(x: Sequence[float] | np.ndarray) -> np.ndarray:

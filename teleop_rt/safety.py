@@ -40,12 +40,6 @@ class RobotLimits:
         ]
         self.velocity = [v if v > 0 else None for v in model.model.velocityLimit.tolist()]
         self.effort = [e if e > 0 else None for e in model.effort_limits.tolist()]
-        # the same as flat lists (copied into the guard blocks): infinite where there is none
-        inf = math.inf
-        self.lo = [b[0] if b else -inf for b in self.position]
-        self.hi = [b[1] if b else inf for b in self.position]
-        self.vmax = [x if x is not None else inf for x in self.velocity]
-        self.emax = [x if x is not None else inf for x in self.effort]
 
     def clamp_effort(self, tau: list[float]) -> None:
         """Clamp torques in place to the URDF effort limits (whatever the safety spec says:
@@ -54,20 +48,9 @@ class RobotLimits:
             if emax is not None:
                 tau[j] = min(max(tau[j], -emax), emax)
 
-    def disable(self, position: bool, velocity: bool, effort: bool) -> None:
-        """Switch off kinds of checks by making their limits infinite."""
-        n = len(self.lo)
-        if position:
-            self.lo, self.hi = [-math.inf] * n, [math.inf] * n
-        if velocity:
-            self.vmax = [math.inf] * n
-        if effort:
-            self.emax = [math.inf] * n
-
 
 # RobotGuard block: vectors, scalars, ints
 LO, HI, VMAX, EMAX, PREV_V, PREV_A, RUN = range(7)
-N_GUARD_VECTORS = 7
 TOLERANCE, INV_DT, VALUE = range(3)
 STALE_TICKS, TRACKING_TICKS, STOP_ON_TORQUE, TRACKING_VALID, JOINT, SATURATED = range(6)
 # what a check found (0: nothing); MEASURED_*: a non-finite measurement
@@ -91,12 +74,16 @@ class RobotGuard(Block):
     def __init__(self, spec: SafetySpec, model: RobotModel, name: str, dt: float) -> None:
         super().__init__(model.nv)
         self.name = name
-        self.limits = RobotLimits(model, name)
-        self.limits.disable(
-            not spec.position_limits, not spec.velocity_limits, spec.torque_limits == "off"
-        )
-        lim = self.limits
-        self.lo[:], self.hi[:], self.vmax[:], self.emax[:] = lim.lo, lim.hi, lim.vmax, lim.emax
+        lim = self.limits = RobotLimits(model, name)
+        # the checked limits: infinite where the URDF gives none or the spec switches them off
+        inf = math.inf
+        position = lim.position if spec.position_limits else [None] * self.n
+        self.lo[:] = [b[0] if b else -inf for b in position]
+        self.hi[:] = [b[1] if b else inf for b in position]
+        velocity = lim.velocity if spec.velocity_limits else [None] * self.n
+        self.vmax[:] = [x if x is not None else inf for x in velocity]
+        effort = lim.effort if spec.torque_limits != "off" else [None] * self.n
+        self.emax[:] = [x if x is not None else inf for x in effort]
         self.stop_on_torque = int(spec.torque_limits == "stop")
         self.stale_ticks = spec.stale_ticks
         self.tolerance = spec.tracking_error_rad_s2
@@ -134,18 +121,19 @@ class RobotGuard(Block):
             return SafetyStop(
                 f"tick {tick}: {self.name} feedback stale for {age_ticks} ticks (sensor dropout)"
             )
-        j, x, lim = self.joint, self.value, self.limits
+        j, x = self.joint, self.value
         what = {
-            ANGLE: lambda: f"angle {x:.4g} rad outside [{lim.lo[j]:g}, {lim.hi[j]:g}]",
-            SPEED: lambda: f"speed {x:.4g} rad/s above {lim.vmax[j]:g}",
+            ANGLE: lambda: f"angle {x:.4g} rad outside [{self.lo[j]:g}, {self.hi[j]:g}]",
+            SPEED: lambda: f"speed {x:.4g} rad/s above {self.vmax[j]:g}",
             TRACKING: self._tracking_reason,
             TORQUE_NAN: lambda: "commanded torque is nan",
-            TORQUE_LIMIT: lambda: f"torque {x:.4g} N m above {lim.emax[j]:g}",
+            TORQUE_LIMIT: lambda: f"torque {x:.4g} N m above {self.emax[j]:g}",
             MEASURED_ANGLE: lambda: f"angle is {x}",
             MEASURED_SPEED: lambda: f"speed is {x}",
             MEASURED_TORQUE: lambda: f"measured torque is {x}",
         }[code]()
-        return SafetyStop(f"tick {tick}: {self.name} joint {j} ({lim.joint_names[j]}): {what}")
+        joint_name = self.limits.joint_names[j]
+        return SafetyStop(f"tick {tick}: {self.name} joint {j} ({joint_name}): {what}")
 
     def check_workspace(self, tick: int, q: np.ndarray) -> None:
         """The tool frame inside its workspace box (forward kinematics at the measured q)."""
@@ -164,6 +152,9 @@ class RobotGuard(Block):
             f"{self.tolerance:g} rad/s^2 for {self.tracking_ticks} ticks: saturated or "
             "blocked actuator)"
         )
+
+
+N_GUARD_VECTORS = len(RobotGuard.VECTORS)
 
 
 @jit

@@ -53,12 +53,8 @@ def _i(ints: np.ndarray, offsets: np.ndarray, block: int) -> np.ndarray:
 def before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> None:
     """From the fresh feedback to the accelerations the models are evaluated at."""
     fb_h, fb_t, sig = _f(f, o, FB_H), _f(f, o, FB_T), _f(f, o, SIGNALS)
-    tau_h, tau_e, err_h, err_t = (
-        vec(sig, TAU_H, n),
-        vec(sig, TAU_E, n),
-        vec(sig, ERROR_H, n),
-        vec(sig, ERROR_T, n),
-    )
+    tau_h, tau_e = vec(sig, TAU_H, n), vec(sig, TAU_E, n)
+    err_h, err_t = vec(sig, ERROR_H, n), vec(sig, ERROR_T, n)
     tau_ext_h, tau_ext_t, v_h = vec(fb_h, TAU_EXT, n), vec(fb_t, TAU_EXT, n), vec(fb_h, V, n)
     for j in range(n):
         tau_h[j] = tau_ext_h[j]

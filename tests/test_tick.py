@@ -24,9 +24,9 @@ def test_packing_keeps_state_and_views_alias_the_packed_buffers() -> None:
     np.testing.assert_array_equal(ch.i, before[1])
     np.testing.assert_array_equal(pid.f, before[2])
     assert np.shares_memory(ch.tau_c, packed.f) and np.shares_memory(pid.out, packed.f)
-    assert packed.f[packed.index_of(pid, "kp", 1)] == 2.0
+    assert packed.f[packed.index_of(pid, "kp") + 1] == 2.0
     assert packed.f[packed.index_of(ch, "alpha")] == ch.alpha
-    packed.f[packed.index_of(ch, "b", 1)] = 7.0
+    packed.f[packed.index_of(ch, "b") + 1] = 7.0
     assert ch.b[1] == 7.0
 
 

@@ -39,6 +39,9 @@ class TransparencyAccumulator(Block):
         )  # fmt: skip
 
 
+N_VECTORS = len(TransparencyAccumulator.VECTORS)
+
+
 @jit
 def accumulate(
     f: np.ndarray,
@@ -51,7 +54,7 @@ def accumulate(
 ) -> None:
     """Add one tick's rectangle to T_p and T_tau (eq 18)."""
     t_p, t_tau, offset = vec(f, T_P, n), vec(f, T_TAU, n), vec(f, OFFSET, n)
-    dt = f[3 * n]  # the scalar after the three vectors
+    dt = f[N_VECTORS * n]  # the one scalar, after the vectors
     if not i[HAS_OFFSET]:
         for j in range(n):
             offset[j] = q_h[j] - q_t[j]

@@ -14,10 +14,8 @@ from teleop_rt.flat import Block, as_floats, jit, vec
 OMEGA_C, TAU_C, OMEGA_T, TAU_T, U_L, V_L, U_R, V_R, POWER, ENERGY, B, SQRT_2B, SQRT_2_OVER_B = (
     range(13)
 )
-N_VECTORS = 13
 # scalars, after the vectors
 TOTAL_ENERGY, MIN_TOTAL_ENERGY, ALPHA, DT = range(4)
-N_SCALARS = 4
 # ints
 MODE, DELAY, SLOT, FILTERED = range(4)
 DIRECT, WAVE = 0, 1
@@ -25,7 +23,7 @@ DIRECT, WAVE = 0, 1
 
 class ChannelBlock(Block):
     """The COM two-port's signals for n joints and a one-way delay of D ticks (the two delay
-    lines, D x n each, are the block's tail)."""
+    lines, forward then backward, D x n each, are the block's tail)."""
 
     VECTORS = (
         "omega_c", "tau_c", "omega_t", "tau_t",  # port variables
@@ -47,12 +45,6 @@ class ChannelBlock(Block):
         self.mode, self.delay_ticks, self.dt = mode, delay_ticks, dt
         self.alpha = 1.0
 
-    def _bind_tail(self) -> None:
-        d, n, start = self.tail // (2 * self.n), self.n, self.tail_start
-        # forward line (HSI -> TO) and backward line, D x n each
-        self.forward_line = self.f[start : start + d * n].reshape(d, n)
-        self.backward_line = self.f[start + d * n : start + 2 * d * n].reshape(d, n)
-
     def stored_energy(self) -> float:
         """Energy held in the lines: dt/2 * sum(u^2 + v^2) for waves; 0 for a direct channel,
         which has no such notion (it is not passive)."""
@@ -64,6 +56,9 @@ class ChannelBlock(Block):
     def step(self, omega_c: list[float] | np.ndarray, tau_t: list[float] | np.ndarray) -> None:
         """One tick: take the HSI velocity and the TO torque, produce tau_c and omega_t."""
         channel_step(self.f, self.i, self.n, as_floats(omega_c), as_floats(tau_t))
+
+
+N_VECTORS, N_SCALARS = len(ChannelBlock.VECTORS), len(ChannelBlock.SCALARS)
 
 
 @jit

@@ -162,6 +162,7 @@ def row_sources(session: Session, layout: LogLayout) -> np.ndarray:
         "operator_reference_velocity_m_s": "reference_velocity",
         "operator_force_n": "force",
         "environment_force_n": "force",
+        "in_contact": "contacts",
     }
     out: list[int] = []
     for topic in layout.topics[:3]:  # /hsi, /to, /channel; /timing is the record's own
@@ -172,10 +173,6 @@ def row_sources(session: Session, layout: LogLayout) -> np.ndarray:
             elif field.name in robot:
                 owner, name = robot[field.name].split(".")
                 block = getattr(side, owner)
-            elif field.name == "in_contact":  # the world block's tail, right after its force
-                start = packed.index_of(side.backend.world, "force") + 3
-                out += range(start, start + field.count)
-                continue
             else:
                 block, name = side.backend.world, world[field.name]
             first = packed.index_of(block, name)
