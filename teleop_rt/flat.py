@@ -22,12 +22,27 @@ import numpy as np
 
 # compiled once per machine and cached beside the sources (the first run pays a few seconds)
 jit = numba.njit(cache=True, nogil=True)
+# for the small helpers that slice the buffers: inlined where they are called, a slice costs
+# nothing (a call returning a view pays for the view's reference counting, tens of ns)
+jit_inline = numba.njit(cache=True, nogil=True, inline="always")
 
 
-@jit
+@jit_inline
 def vec(f: np.ndarray, k: int, n: int) -> np.ndarray:
     """Vector k of a block's float buffer (a view; compiled code only)."""
     return f[k * n : (k + 1) * n]
+
+
+@jit_inline
+def floats_of(f: np.ndarray, offsets: np.ndarray, block: int) -> np.ndarray:
+    """Block ``block``'s float buffer within packed buffers (compiled code only)."""
+    return f[offsets[2 * block] :]
+
+
+@jit_inline
+def ints_of(i: np.ndarray, offsets: np.ndarray, block: int) -> np.ndarray:
+    """Block ``block``'s int buffer within packed buffers (compiled code only)."""
+    return i[offsets[2 * block + 1] :]
 
 
 class Block:
@@ -78,6 +93,9 @@ class Block:
 
     def __init_subclass__(cls) -> None:
         super().__init_subclass__()
+        taken = {"f", "i", "n", "tail"} & {*cls.VECTORS, *cls.SCALARS, *cls.INTS}
+        if taken:
+            raise TypeError(f"{cls.__name__}: {sorted(taken)} name the block's own attributes")
         base = len(cls.VECTORS)
         for k, name in enumerate(cls.SCALARS):
             setattr(cls, name, _scalar_property(base, k))

@@ -22,8 +22,7 @@ from teleop_rt.flat import jit
 
 @jit
 def friction_torque(damping: float, coulomb: float, inv_v_s: float, v: float) -> float:
-    """One joint's friction torque: viscous plus tanh-smoothed Coulomb (``.py_func``: the same
-    in plain Python, for the plant's scalar path)."""
+    """One joint's friction torque: viscous plus tanh-smoothed Coulomb."""
     return damping * v + coulomb * math.tanh(v * inv_v_s)
 
 
@@ -59,7 +58,6 @@ class RobotModel:
         self.coulomb = [float(x) for x in model.friction]
         self.has_coulomb = any(self.coulomb)
         self.inv_v_s = 1.0 / coulomb_smoothing_rad_s
-        self._fric = [0.0] * self.nv
         # A view into data.oMf: updated in place by Pinocchio, read without a binding call.
         self._ee_translation = self.data.oMf[self.ee_frame_id].translation
         # End-effector kinematics filled by update_ee(): position (m), velocity (m/s) and the
@@ -77,18 +75,6 @@ class RobotModel:
         return cls(model, spec.ee_frame, name, coulomb_smoothing_rad_s)
 
     # --- dynamics -------------------------------------------------------------------------
-    def friction(self, v: list[float]) -> list[float]:
-        """Joint friction torque at velocity v (N m): a list owned by this object."""
-        out, damping = self._fric, self.damping
-        if self.has_coulomb:
-            coulomb, inv_v_s, torque = self.coulomb, self.inv_v_s, friction_torque.py_func
-            for j in range(self.nv):
-                out[j] = torque(damping[j], coulomb[j], inv_v_s, v[j])
-        else:
-            for j in range(self.nv):
-                out[j] = damping[j] * v[j]
-        return out
-
     def rnea(self, q: np.ndarray, v: np.ndarray, a: np.ndarray) -> np.ndarray:
         """M(q) a + n(q, v) without friction (one RNEA call; n: Coriolis, centrifugal, gravity).
         A fresh array from Pinocchio's binding."""

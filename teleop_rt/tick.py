@@ -16,7 +16,7 @@ import numpy as np
 from teleop_rt.analysis.transparency import accumulate
 from teleop_rt.com.channel import OMEGA_T, TAU_C, channel_step
 from teleop_rt.control import A_DES, OUT, TAU, ct_finish, ct_prepare, pid_step
-from teleop_rt.flat import Block, jit, vec
+from teleop_rt.flat import Block, floats_of, ints_of, jit, vec
 from teleop_rt.safety import supervise
 
 BLOCK_ORDER = (
@@ -40,36 +40,26 @@ class TickSignals(Block):
 
 
 @jit
-def _f(buf: np.ndarray, offsets: np.ndarray, block: int) -> np.ndarray:
-    return buf[offsets[2 * block] :]
-
-
-@jit
-def _i(ints: np.ndarray, offsets: np.ndarray, block: int) -> np.ndarray:
-    return ints[offsets[2 * block + 1] :]
-
-
-@jit
 def before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> None:
     """From the fresh feedback to the accelerations the models are evaluated at."""
-    fb_h, fb_t, sig = _f(f, o, FB_H), _f(f, o, FB_T), _f(f, o, SIGNALS)
+    fb_h, fb_t, sig = floats_of(f, o, FB_H), floats_of(f, o, FB_T), floats_of(f, o, SIGNALS)
     tau_h, tau_e = vec(sig, TAU_H, n), vec(sig, TAU_E, n)
     err_h, err_t = vec(sig, ERROR_H, n), vec(sig, ERROR_T, n)
     tau_ext_h, tau_ext_t, v_h = vec(fb_h, TAU_EXT, n), vec(fb_t, TAU_EXT, n), vec(fb_h, V, n)
     for j in range(n):
         tau_h[j] = tau_ext_h[j]
         tau_e[j] = -tau_ext_t[j]
-    ch = _f(f, o, CHANNEL)
-    channel_step(ch, _i(i, o, CHANNEL), n, v_h, tau_e)
+    ch = floats_of(f, o, CHANNEL)
+    channel_step(ch, ints_of(i, o, CHANNEL), n, v_h, tau_e)
     tau_c, omega_t, v_t = vec(ch, TAU_C, n), vec(ch, OMEGA_T, n), vec(fb_t, V, n)
     for j in range(n):
         err_h[j] = tau_h[j] - tau_c[j]
         err_t[j] = omega_t[j] - v_t[j]
-    pid_h, pid_t = _f(f, o, PID_H), _f(f, o, PID_T)
-    pid_step(pid_h, _i(i, o, PID_H), n, err_h)
-    pid_step(pid_t, _i(i, o, PID_T), n, err_t)
-    ct_prepare(_f(f, o, CT_H), n, vec(pid_h, OUT, n))
-    ct_prepare(_f(f, o, CT_T), n, vec(pid_t, OUT, n))
+    pid_h, pid_t = floats_of(f, o, PID_H), floats_of(f, o, PID_T)
+    pid_step(pid_h, ints_of(i, o, PID_H), n, err_h)
+    pid_step(pid_t, ints_of(i, o, PID_T), n, err_t)
+    ct_prepare(floats_of(f, o, CT_H), n, vec(pid_h, OUT, n))
+    ct_prepare(floats_of(f, o, CT_T), n, vec(pid_t, OUT, n))
 
 
 @jit
@@ -77,23 +67,23 @@ def after_models(
     f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, rnea_h: np.ndarray, rnea_t: np.ndarray
 ) -> int:
     """From the models' RNEA to checked motor torques; the safety finding (0: none)."""
-    fb_h, fb_t, sig = _f(f, o, FB_H), _f(f, o, FB_T), _f(f, o, SIGNALS)
-    ct_h, ct_t = _f(f, o, CT_H), _f(f, o, CT_T)
+    fb_h, fb_t, sig = floats_of(f, o, FB_H), floats_of(f, o, FB_T), floats_of(f, o, SIGNALS)
+    ct_h, ct_t = floats_of(f, o, CT_H), floats_of(f, o, CT_T)
     q_h, v_h, tau_h = vec(fb_h, Q, n), vec(fb_h, V, n), vec(fb_h, TAU_EXT, n)
     q_t, v_t, tau_ext_t = vec(fb_t, Q, n), vec(fb_t, V, n), vec(fb_t, TAU_EXT, n)
-    ct_finish(ct_h, _i(i, o, CT_H), n, rnea_h, tau_h, v_h)
-    ct_finish(ct_t, _i(i, o, CT_T), n, rnea_t, tau_ext_t, v_t)
+    ct_finish(ct_h, ints_of(i, o, CT_H), n, rnea_h, tau_h, v_h)
+    ct_finish(ct_t, ints_of(i, o, CT_T), n, rnea_t, tau_ext_t, v_t)
     # step 7, safety: nothing unchecked reaches a motor (may saturate the torques in place)
     code = supervise(
-        _i(i, o, SUPERVISOR), _f(f, o, GUARD_H), _i(i, o, GUARD_H),
-        _f(f, o, GUARD_T), _i(i, o, GUARD_T), n,
-        q_h, v_h, _i(i, o, FB_H)[AGE_TICKS], tau_h, vec(ct_h, TAU, n), vec(ct_h, A_DES, n),
-        q_t, v_t, _i(i, o, FB_T)[AGE_TICKS], tau_ext_t, vec(ct_t, TAU, n), vec(ct_t, A_DES, n),
+        ints_of(i, o, SUPERVISOR), floats_of(f, o, GUARD_H), ints_of(i, o, GUARD_H),
+        floats_of(f, o, GUARD_T), ints_of(i, o, GUARD_T), n,
+        q_h, v_h, ints_of(i, o, FB_H)[AGE_TICKS], tau_h, vec(ct_h, TAU, n), vec(ct_h, A_DES, n),
+        q_t, v_t, ints_of(i, o, FB_T)[AGE_TICKS], tau_ext_t, vec(ct_t, TAU, n), vec(ct_t, A_DES, n),
     )  # fmt: skip
     if code:
         return code
     accumulate(
-        _f(f, o, METRICS), _i(i, o, METRICS), n,
+        floats_of(f, o, METRICS), ints_of(i, o, METRICS), n,
         q_h, q_t, vec(sig, TAU_H, n), vec(sig, TAU_E, n),
     )  # fmt: skip
     return 0

@@ -1,20 +1,24 @@
 """Operator and environment models acting on the simulated robots.
 
-Every model is a *load*. A joint load adds the joint torque it applies to the robot in
-``add_joint_torque(t, q, v, out)`` (``tau_ext`` in the sign of ``teleop_rt.control``: torque
-applied TO the robot). A Cartesian load returns the force on the end-effector point in
-``force(t, x, xd)``; the plant maps it to joints with the translational Jacobian,
-``tau = J^T F``. Stateful loads (a pushed mass) advance their own state in ``advance(dt)``.
-Vectors are plain 3-lists and tuples: these run in the plant's inner loop.
+Every model is a *load*, and every load is a flat state block (``teleop_rt.flat``): its
+parameters and state live in its buffers, and its physics is a compiled function on them, so
+that the simulated plant (``teleop_rt.hal.sim``) evaluates all of its loads in one compiled call.
+``load_kind`` (the block's int 0) says which function applies.
 
-Half-plane geometry: a plane through ``point_m`` with unit normal ``n`` pointing to free space;
+A joint load adds the joint torque it applies to the robot (``tau_ext`` in the sign of
+``teleop_rt.control``: torque applied TO the robot). A Cartesian load applies a force at the
+end-effector point (``force(t, x, xd)``); the plant maps the sum to joints with the
+translational Jacobian, ``tau = J^T F``. Stateful loads (a pushed mass) advance their own state
+once per integration step.
+
+Half-space geometry: a plane through ``p0`` with unit normal ``normal`` pointing to free space;
 penetration ``d = (p0 - x) . n`` (> 0 inside), penetration rate ``dd = -xdot . n``.
 """
 
 from __future__ import annotations
 
-import bisect
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -27,72 +31,73 @@ from teleop_rt.config import (
     WallSpec,
     per_joint,
 )
+from teleop_rt.flat import Block, jit
 from teleop_rt.model import RobotModel
 
+# load_kind codes; a hand's trajectory is the block right after the hand
+JOINT_DAMPER, JOINT_SPRING_DAMPER, JOINT_MASS, HAND, HALF_SPACE = range(5)
+MIN_JERK, LOGGED = range(2)  # trajectory_kind codes
+KIND = 0  # every load's and trajectory's int 0
 
-class Load:
+
+def _scalar_index(cls: type[Block], name: str, n: int = 3) -> int:
+    """Where a block's scalar sits in its float buffer (for the compiled functions)."""
+    return len(cls.VECTORS) * n + cls.SCALARS.index(name)
+
+
+class Load(Block):
     """Something that pushes on a robot."""
 
     cartesian = False
     stateful = False
     is_operator = False  # operators load the HSI; everything else is environment
-    in_contact = False
+    INTS = ("load_kind",)
 
-    def advance(self, dt: float) -> None:
-        """Advance internal state by dt (stateful loads only; semi-implicit Euler)."""
-
-    # RK4 needs the state itself: stateful loads also implement these three
-    def state(self) -> tuple[float, ...]:
-        return ()
-
-    def set_state(self, state: tuple[float, ...]) -> None:
-        """Set the internal state (RK4 stages)."""
-
-    def derivative(self) -> tuple[float, ...]:
-        """d(state)/dt with the force of the last ``force`` call."""
-        return ()
+    @property
+    def in_contact(self) -> bool:
+        return True
 
 
 class JointLoad(Load):
-    def add_joint_torque(self, t: float, q: np.ndarray, v: list[float], out: list[float]) -> None:
-        raise NotImplementedError
+    """A load in joint space: vectors of one entry per joint."""
 
 
 class CartesianLoad(Load):
+    """A force at the tool; ``last_force`` (3, world frame) is the last one applied."""
+
     cartesian = True
 
-    def __init__(self) -> None:
-        self.last_force = (0.0, 0.0, 0.0)  # for recording
-
-    def force(self, t: float, x: list[float], xd: list[float]) -> tuple[float, float, float]:
-        raise NotImplementedError
+    def __init__(self, tail: int = 0) -> None:
+        super().__init__(3, tail)
 
 
-def _vec(v: list[float]) -> tuple[float, float, float]:
+def _vec(v: Sequence[float]) -> list[float]:
     a = [0.0, 0.0, 0.0]
     a[: len(v)] = v
-    return (a[0], a[1], a[2])
+    return a
 
 
-def _unit(v: list[float]) -> tuple[float, float, float]:
+def _xyz(v: Sequence[float]) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def _unit(v: Sequence[float]) -> list[float]:
     x, y, z = _vec(v)
     norm = math.sqrt(x * x + y * y + z * z)
-    return (x / norm, y / norm, z / norm)
+    return [x / norm, y / norm, z / norm]
 
 
-# --- operators (HSI side) ---------------------------------------------------------------------
+# --- joint loads ------------------------------------------------------------------------------
 class JointDamperOperator(JointLoad):
     """The paper's operator Z_o: a joint damper to the ground, tau = -Z_o v."""
 
     is_operator = True
+    VECTORS = ("damping",)
 
     def __init__(self, spec: DamperOperatorSpec, n: int) -> None:
-        self.damping = per_joint(spec.damping_nm_s_per_rad, n, "operator.damping_nm_s_per_rad")
-        self.in_contact = True
-
-    def add_joint_torque(self, t, q, v, out):  # noqa: D102 - see JointLoad
-        for j, d in enumerate(self.damping):
-            out[j] -= d * v[j]
+        super().__init__(n)
+        self.load_kind = JOINT_DAMPER
+        self.damping[:] = per_joint(spec.damping_nm_s_per_rad, n, "operator.damping_nm_s_per_rad")
 
 
 class JointSpringDamper(JointLoad):
@@ -100,96 +105,177 @@ class JointSpringDamper(JointLoad):
     tau_ext = -(k (q - q_rest) + c v). The displayed-impedance analysis (eq 19-32) is per joint;
     this load realises its environment exactly on a simulated joint."""
 
+    VECTORS = ("k", "c", "q_rest")
+
     def __init__(self, stiffness: list[float], damping: list[float], q_rest: list[float]) -> None:
-        self.k, self.c, self.q_rest = list(stiffness), list(damping), list(q_rest)
-        self.in_contact = True
-
-    def add_joint_torque(self, t, q, v, out):  # noqa: D102 - see JointLoad
-        for j in range(len(out)):
-            out[j] -= self.k[j] * (q[j] - self.q_rest[j]) + self.c[j] * v[j]
+        super().__init__(len(stiffness))
+        self.load_kind = JOINT_SPRING_DAMPER
+        self.k[:], self.c[:], self.q_rest[:] = stiffness, damping, q_rest
 
 
-class HandTrajectory:
-    """Minimum-jerk segments through waypoints, from ``start`` at t = 0; holds the last one."""
+class JointMass(JointLoad):
+    """Z_e = m s per joint as a sampled sensor sees a rigid payload (``teleop_rt.analysis.bode``):
+    tau_ext = -m (v[k] - v[k-1]) / dt, held over the tick. The velocity is remembered per
+    distinct evaluation time, so repeated evaluations at one time (sub-steps) agree."""
+
+    VECTORS = ("mass", "v_now", "v_before")
+    SCALARS = ("dt", "t_last")
+    INTS = ("load_kind", "started")
+
+    def __init__(self, mass: list[float], dt: float) -> None:
+        super().__init__(len(mass))
+        self.load_kind = JOINT_MASS
+        self.mass[:] = mass
+        self.dt = dt
+
+
+@jit
+def joint_load_torque(
+    f: np.ndarray, i: np.ndarray, fo: int, io: int, n: int, t: float, q: int, v: int, out: int
+) -> None:
+    """f[out:out+n] -= the torque of the joint load at f[fo:], i[io:] at time t and joint state
+    f[q:q+n], f[v:v+n] (one buffer holds them all: index arithmetic, no slices, is what keeps
+    a compiled call of this size in tens of ns)."""
+    kind = i[io + KIND]
+    if kind == JOINT_DAMPER:
+        for j in range(n):
+            f[out + j] -= f[fo + j] * f[v + j]
+    elif kind == JOINT_SPRING_DAMPER:
+        k, c, q_rest = fo, fo + n, fo + 2 * n
+        for j in range(n):
+            f[out + j] -= f[k + j] * (f[q + j] - f[q_rest + j]) + f[c + j] * f[v + j]
+    elif kind == JOINT_MASS:
+        mass, v_now, v_before, dt, t_last = fo, fo + n, fo + 2 * n, fo + 3 * n, fo + 3 * n + 1
+        started = io + 1
+        if i[started] == 0 or t != f[t_last]:  # a new time: the velocity a tick ago moves back
+            for j in range(n):
+                f[v_before + j] = f[v_now + j] if i[started] else f[v + j]
+                f[v_now + j] = f[v + j]
+            f[t_last] = t
+            i[started] = 1
+        inv_dt = 1.0 / f[dt]
+        for j in range(n):
+            f[out + j] -= f[mass + j] * (f[v_now + j] - f[v_before + j]) * inv_dt
+
+
+# --- hand trajectories ------------------------------------------------------------------------
+class Trajectory(Block):
+    """A hand reference: ``pos`` (m) and ``vel`` (m/s) at the time of the last ``evaluate``."""
+
+    VECTORS = ("pos", "vel")
+
+    def evaluate(self, t: float) -> None:
+        """Fill pos and vel at time t (s)."""
+        evaluate_trajectory(self.f, self.i, 0, 0, t)
+
+
+class HandTrajectory(Trajectory):
+    """Minimum-jerk segments through waypoints, from ``start`` at t = 0; holds the last one.
+
+    Tail: the segment start times, then the points (3 each), with a sentinel segment at
+    t = inf that holds the last point."""
+
+    INTS = ("trajectory_kind", "segment", "count")
 
     def __init__(self, start: list[float], times: list[float], points: list[list[float]]) -> None:
-        self.times = [0.0, *times]
+        self.times = [0.0, *times, math.inf]
         self.points = [list(start), *[list(p) for p in points]]
-        self.pos = list(start)
-        self.vel = [0.0, 0.0, 0.0]
-        # the segment of the last evaluation, followed forward tick by tick; a sentinel time
-        # after the last waypoint lets the final hold use the same check
-        self._segment = 0
-        self.times.append(math.inf)
-        self.points.append(self.points[-1])
-
-    def evaluate(self, t: float) -> None:
-        """Fill pos (m) and vel (m/s) at time t (s)."""
-        times = self.times
-        i = self._segment
-        if not times[i] <= t < times[i + 1]:  # time moved to another segment (rarely)
-            i = bisect.bisect_right(times, t) - 1
-            if i >= len(times) - 1:
-                self.pos[:] = self.points[-1]
-                self.vel[:] = [0.0, 0.0, 0.0]
-                return
-            self._segment = i
-        t0 = times[i]
-        duration = times[i + 1] - t0
-        s = (t - t0) / duration
-        shape = s * s * s * (10.0 - 15.0 * s + 6.0 * s * s)
-        rate = 30.0 * s * s * (1.0 - s) * (1.0 - s) / duration
-        p0, p1, pos, vel = self.points[i], self.points[i + 1], self.pos, self.vel
-        dx, dy, dz = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
-        pos[0], pos[1], pos[2] = p0[0] + dx * shape, p0[1] + dy * shape, p0[2] + dz * shape
-        vel[0], vel[1], vel[2] = dx * rate, dy * rate, dz * rate
+        count = len(self.times)
+        super().__init__(3, tail=4 * count)
+        self.trajectory_kind = MIN_JERK
+        self.count = count
+        self.pos[:] = start
+        tail = self.f[self.tail_start :]
+        tail[:count] = self.times
+        tail[count:] = [x for p in (*self.points, self.points[-1]) for x in p]
 
 
-class LoggedTrajectory:
-    """A hand reference replayed from a log, tick-locked: at tick times it returns the logged
-    samples exactly; between ticks (sub-steps) it interpolates linearly; after the last sample
-    it holds the last position at rest."""
+class LoggedTrajectory(Trajectory):
+    """A hand reference replayed from a log, tick-locked: at tick times the logged samples
+    exactly; between ticks (sub-steps) linear interpolation; after the last sample the last
+    position at rest. Tail: the positions, then the velocities (3 per sample)."""
+
+    SCALARS = ("dt",)
+    INTS = ("trajectory_kind", "last")
 
     def __init__(self, pos: np.ndarray, vel: np.ndarray, dt: float) -> None:
-        self.samples_pos = np.asarray(pos, dtype=float)
-        self.samples_vel = np.asarray(vel, dtype=float)
+        pos, vel = np.asarray(pos, dtype=float), np.asarray(vel, dtype=float)
+        super().__init__(3, tail=pos.size + vel.size)
+        self.trajectory_kind = LOGGED
         self.dt = dt
-        self.last = len(self.samples_pos) - 1
-        self.pos = self.samples_pos[0].tolist()
-        self.vel = self.samples_vel[0].tolist()
+        self.last = len(pos) - 1
+        self.f[self.tail_start :] = np.concatenate([pos.ravel(), vel.ravel()])
+        self.pos[:], self.vel[:] = pos[0], vel[0]
 
-    def evaluate(self, t: float) -> None:
-        x = t / self.dt
-        k = round(x)
-        if abs(x - k) < 1e-9:  # on a tick: the logged sample itself
-            if k > self.last:
-                self.pos[:] = self.samples_pos[self.last].tolist()
-                self.vel[:] = [0.0, 0.0, 0.0]
-            else:
-                self.pos[:] = self.samples_pos[k].tolist()
-                self.vel[:] = self.samples_vel[k].tolist()
+
+@jit
+def evaluate_trajectory(f: np.ndarray, i: np.ndarray, fo: int, io: int, t: float) -> None:
+    """pos, vel (the trajectory block's first six floats, at f[fo:]) at time t."""
+    if i[io + KIND] == MIN_JERK:
+        _min_jerk(f, i, fo, io, t)
+    else:
+        _logged(f, i, fo, io, t)
+
+
+@jit
+def _min_jerk(f: np.ndarray, i: np.ndarray, fo: int, io: int, t: float) -> None:
+    count = i[io + 2]
+    times, points = fo + 6, fo + 6 + count
+    s = i[io + 1]  # the segment of the last evaluation, followed forward tick by tick
+    if not f[times + s] <= t < f[times + s + 1]:  # time moved to another segment (rarely)
+        s = np.searchsorted(f[times : times + count], t, side="right") - 1
+        if s >= count - 1:  # t = inf
+            for a in range(3):
+                f[fo + a] = f[points + 3 * (count - 1) + a]
+                f[fo + 3 + a] = 0.0
             return
-        k0 = min(int(x), self.last)
-        k1 = min(k0 + 1, self.last)
-        w = x - int(x)
-        self.pos[:] = ((1 - w) * self.samples_pos[k0] + w * self.samples_pos[k1]).tolist()
-        self.vel[:] = ((1 - w) * self.samples_vel[k0] + w * self.samples_vel[k1]).tolist()
+        i[io + 1] = s
+    t0 = f[times + s]
+    duration = f[times + s + 1] - t0
+    u = (t - t0) / duration
+    shape = u * u * u * (10.0 - 15.0 * u + 6.0 * u * u)
+    rate = 30.0 * u * u * (1.0 - u) * (1.0 - u) / duration
+    for a in range(3):
+        p0 = f[points + 3 * s + a]
+        d = f[points + 3 * s + 3 + a] - p0
+        f[fo + a] = p0 + d * shape
+        f[fo + 3 + a] = d * rate
 
 
+@jit
+def _logged(f: np.ndarray, i: np.ndarray, fo: int, io: int, t: float) -> None:
+    last = i[io + 1]
+    pos = fo + 7
+    vel = pos + 3 * (last + 1)
+    x = t / f[fo + 6]
+    k = int(np.rint(x))
+    if abs(x - k) < 1e-9:  # on a tick: the logged sample itself
+        for a in range(3):
+            f[fo + a] = f[pos + 3 * min(k, last) + a]
+            f[fo + 3 + a] = f[vel + 3 * k + a] if k <= last else 0.0
+        return
+    k0 = min(int(x), last)
+    k1 = min(k0 + 1, last)
+    w = x - int(x)
+    for a in range(3):
+        f[fo + a] = (1 - w) * f[pos + 3 * k0 + a] + w * f[pos + 3 * k1 + a]
+        f[fo + 3 + a] = (1 - w) * f[vel + 3 * k0 + a] + w * f[vel + 3 * k1 + a]
+
+
+# --- Cartesian loads --------------------------------------------------------------------------
 class ScriptedHand(CartesianLoad):
     """An active operator: F = K (x_ref - x) + D (xd_ref - xd) at the tool. The reference is a
     script (``from_spec``: minimum-jerk waypoints) or a log (``LoggedTrajectory``, replay)."""
 
     is_operator = True
+    VECTORS = ("last_force",)
+    SCALARS = ("k", "d")
 
-    def __init__(
-        self, trajectory: HandTrajectory | LoggedTrajectory, stiffness: float, damping: float
-    ) -> None:
+    def __init__(self, trajectory: Trajectory, stiffness: float, damping: float) -> None:
         super().__init__()
+        self.load_kind = HAND
         self.trajectory = trajectory
-        self.k = stiffness
-        self.d = damping
-        self.in_contact = True
+        self.k, self.d = stiffness, damping
 
     @classmethod
     def from_spec(cls, spec: HandOperatorSpec, start: list[float]) -> ScriptedHand:
@@ -201,53 +287,65 @@ class ScriptedHand(CartesianLoad):
         trajectory = HandTrajectory(start, [w.t_s for w in spec.waypoints], points)
         return cls(trajectory, spec.stiffness_n_per_m, spec.damping_n_s_per_m)
 
-    @property
-    def reference(self) -> list[float]:
-        return self.trajectory.pos
-
-    def force(self, t, x, xd):  # noqa: D102 - see CartesianLoad
+    def force(self, t: float, x: Sequence[float], xd: Sequence[float]) -> tuple[float, ...]:
+        """The force on the tool at (t, x, xd), N (also kept in ``last_force``)."""
         traj = self.trajectory
-        traj.evaluate(t)
-        k, d, p, pv = self.k, self.d, traj.pos, traj.vel
-        f = (
-            k * (p[0] - x[0]) + d * (pv[0] - xd[0]),
-            k * (p[1] - x[1]) + d * (pv[1] - xd[1]),
-            k * (p[2] - x[2]) + d * (pv[2] - xd[2]),
-        )
-        self.last_force = f
-        return f
+        hand_force(self.f, 0, traj.f, traj.i, 0, 0, t, *_xyz(x), *_xyz(xd))
+        return tuple(self.last_force.tolist())
 
 
-# --- environments (TO side) -------------------------------------------------------------------
-class HalfPlaneContact(CartesianLoad):
-    """Spring-damper along the normal of a plane: unilateral (wall, foam) or bilateral (spring,
-    damper). The unilateral force never pulls (f >= 0), so a fast retreat does not stick."""
+_HAND_K, _HAND_D = (_scalar_index(ScriptedHand, s) for s in ScriptedHand.SCALARS)
+
+
+@jit
+def hand_force(
+    f: np.ndarray, fo: int, tf: np.ndarray, ti: np.ndarray, to: int, tio: int, t: float,
+    x: float, y: float, z: float, vx: float, vy: float, vz: float,
+) -> None:  # fmt: skip
+    """The hand's force (block at f[fo:]) into its ``last_force``, its trajectory (at tf[to:],
+    ti[tio:]) evaluated at t first; the tool at (x, y, z) moving at (vx, vy, vz)."""
+    evaluate_trajectory(tf, ti, to, tio, t)
+    k, d = f[fo + _HAND_K], f[fo + _HAND_D]
+    f[fo] = k * (tf[to] - x) + d * (tf[to + 3] - vx)
+    f[fo + 1] = k * (tf[to + 1] - y) + d * (tf[to + 4] - vy)
+    f[fo + 2] = k * (tf[to + 2] - z) + d * (tf[to + 5] - vz)
+
+
+class HalfSpaceLoad(CartesianLoad):
+    """Spring-damper along the normal of a plane; the plane moves by ``s`` along -n when a
+    mass is behind it (``PushedMass``), else it stays put (s = 0). Unilateral loads never
+    pull (f >= 0), so a fast retreat does not stick."""
+
+    VECTORS = ("p0", "normal", "last_force")
+    SCALARS = ("k", "c", "unilateral", "s", "s_dot", "normal_force", "mass")
+    INTS = ("load_kind", "contact")
+
+    def __init__(self, point: Sequence[float], normal: Sequence[float], unilateral: bool) -> None:
+        super().__init__()
+        self.load_kind = HALF_SPACE
+        self.p0[:], self.normal[:] = _vec(point), _unit(normal)
+        self.unilateral = float(unilateral)
+        self.contact = int(not unilateral)
+
+    @property
+    def in_contact(self) -> bool:
+        return bool(self.contact)
+
+    def force(self, t: float, x: Sequence[float], xd: Sequence[float]) -> tuple[float, ...]:
+        """The force on the tool at (x, xd), N (also kept in ``last_force``)."""
+        half_space_force(self.f, self.i, 0, 0, *_xyz(x), *_xyz(xd))
+        return tuple(self.last_force.tolist())
+
+
+class HalfPlaneContact(HalfSpaceLoad):
+    """A fixed plane: unilateral (wall, foam) or bilateral (spring, damper)."""
 
     def __init__(self, spec: WallSpec | SpringSpec) -> None:
-        super().__init__()
-        self.kind = spec.kind
-        self.p0 = _vec(spec.point_m)
-        self.n = _unit(spec.normal)
-        self.k = spec.stiffness_n_per_m
-        self.c = spec.damping_n_s_per_m
-        self.unilateral = spec.kind in ("wall", "foam")
-        self.in_contact = not self.unilateral
-
-    def force(self, t, x, xd):  # noqa: D102 - see CartesianLoad
-        (nx, ny, nz), p0 = self.n, self.p0
-        depth = (p0[0] - x[0]) * nx + (p0[1] - x[1]) * ny + (p0[2] - x[2]) * nz
-        rate = -(xd[0] * nx + xd[1] * ny + xd[2] * nz)
-        f = self.k * depth + self.c * rate
-        if self.unilateral:
-            self.in_contact = depth > 0.0
-            if not self.in_contact or f < 0.0:
-                f = 0.0
-        out = (f * nx, f * ny, f * nz)
-        self.last_force = out
-        return out
+        super().__init__(spec.point_m, spec.normal, spec.kind in ("wall", "foam"))
+        self.k, self.c = spec.stiffness_n_per_m, spec.damping_n_s_per_m
 
 
-class PushedMass(CartesianLoad):
+class PushedMass(HalfSpaceLoad):
     """A free mass m resting against the plane, pushed (or held, if attached) by the
     end-effector through a stiff contact spring-damper; it slides along -n without friction.
     At frequencies well below the contact resonance the end-effector feels Z_e = m s."""
@@ -255,38 +353,15 @@ class PushedMass(CartesianLoad):
     stateful = True
 
     def __init__(self, spec: MassSpec) -> None:
-        super().__init__()
-        self.p0 = _vec(spec.point_m)
-        self.n = _unit(spec.normal)
-        self.m = spec.mass_kg
-        self.attached = spec.attached
-        self.k = spec.contact_stiffness_n_per_m
-        self.c = spec.contact_damping_n_s_per_m
-        self.s = 0.0  # displacement of the mass into the half-space (along -n), m
-        self.s_dot = 0.0
-        self._f = 0.0
-
-    def force(self, t, x, xd):  # noqa: D102 - see CartesianLoad
-        (nx, ny, nz), p0 = self.n, self.p0
-        depth = (p0[0] - x[0]) * nx + (p0[1] - x[1]) * ny + (p0[2] - x[2]) * nz - self.s
-        rate = -(xd[0] * nx + xd[1] * ny + xd[2] * nz) - self.s_dot
-        f = self.k * depth + self.c * rate
-        if self.attached:
-            self.in_contact = True
-        else:
-            self.in_contact = depth > 0.0
-            if not self.in_contact or f < 0.0:
-                f = 0.0
-        self._f = f
-        out = (f * nx, f * ny, f * nz)
-        self.last_force = out
-        return out
+        super().__init__(spec.point_m, spec.normal, not spec.attached)
+        self.mass = spec.mass_kg
+        self.k, self.c = spec.contact_stiffness_n_per_m, spec.contact_damping_n_s_per_m
 
     def advance(self, dt: float) -> None:
-        # the mass feels the contact force's reaction, pushing it along -n (semi-implicit Euler)
-        self.s_dot += dt * self._f / self.m
-        self.s += dt * self.s_dot
+        """Move the mass over dt under the last contact force (semi-implicit Euler)."""
+        push_mass(self.f, 0, dt)
 
+    # RK4 (``teleop_rt.hal.sim``) works on the state itself
     def state(self) -> tuple[float, float]:
         return (self.s, self.s_dot)
 
@@ -294,9 +369,43 @@ class PushedMass(CartesianLoad):
         self.s, self.s_dot = state
 
     def derivative(self) -> tuple[float, float]:
-        return (self.s_dot, self._f / self.m)
+        """d(s, s_dot)/dt under the force of the last evaluation."""
+        return (self.s_dot, self.normal_force / self.mass)
 
 
+_K, _C, _UNILATERAL, _S, _S_DOT, _F, _MASS = (
+    _scalar_index(HalfSpaceLoad, s) for s in HalfSpaceLoad.SCALARS
+)
+
+
+@jit
+def half_space_force(
+    f: np.ndarray, i: np.ndarray, fo: int, io: int,
+    x: float, y: float, z: float, vx: float, vy: float, vz: float,
+) -> None:  # fmt: skip
+    """The plane's (block at f[fo:], i[io:]) force on the tool at (x, y, z) moving at
+    (vx, vy, vz) into ``last_force``; the contact flag into its int 1."""
+    nx, ny, nz = f[fo + 3], f[fo + 4], f[fo + 5]
+    depth = (f[fo] - x) * nx + (f[fo + 1] - y) * ny + (f[fo + 2] - z) * nz - f[fo + _S]
+    rate = -(vx * nx + vy * ny + vz * nz) - f[fo + _S_DOT]
+    force = f[fo + _K] * depth + f[fo + _C] * rate
+    if f[fo + _UNILATERAL]:
+        i[io + 1] = depth > 0.0
+        if not i[io + 1] or force < 0.0:
+            force = 0.0
+    f[fo + _F] = force
+    f[fo + 6], f[fo + 7], f[fo + 8] = force * nx, force * ny, force * nz
+
+
+@jit
+def push_mass(f: np.ndarray, fo: int, dt: float) -> None:
+    """The mass behind the plane (block at f[fo:]) feels the contact force's reaction along -n."""
+    if f[fo + _MASS] > 0.0:
+        f[fo + _S_DOT] += dt * f[fo + _F] / f[fo + _MASS]
+        f[fo + _S] += dt * f[fo + _S_DOT]
+
+
+# --- building from the config -----------------------------------------------------------------
 def build_operator(
     spec: DamperOperatorSpec | HandOperatorSpec, robot: RobotModel, q0: np.ndarray
 ) -> Load:

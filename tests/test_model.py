@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from teleop_rt.config import RobotSpec
-from teleop_rt.model import RobotModel
+from teleop_rt.model import RobotModel, friction_torque
 from tests.conftest import SCARA_URDF
 
 # Parameters written in robots/urdf/scara_2dof.urdf
@@ -75,10 +75,19 @@ def test_tool_kinematics_and_jacobian(scara: RobotModel) -> None:
 
 def test_friction_from_urdf_dynamics_tags(scara: RobotModel) -> None:
     assert scara.damping == [0.02, 0.01] and scara.coulomb == [0.01, 0.005]
-    f = scara.friction([2.0, -3.0])
+
+    def friction(v: list[float]) -> list[float]:
+        return [friction_torque(d, c, scara.inv_v_s, x)
+                for d, c, x in zip(scara.damping, scara.coulomb, v, strict=True)]  # fmt: skip
+
     # far above the smoothing velocity tanh saturates: viscous + Coulomb
-    np.testing.assert_allclose(f, [0.02 * 2 + 0.01, -0.01 * 3 - 0.005], rtol=1e-9)
-    assert scara.friction([0.0, 0.0]) == [0.0, 0.0]
+    np.testing.assert_allclose(
+        friction([2.0, -3.0]), [0.02 * 2 + 0.01, -0.01 * 3 - 0.005], rtol=1e-9
+    )
+    assert friction([0.0, 0.0]) == [0.0, 0.0]
+    # half the Coulomb level at v_s atanh(1/2) (smoothing 0.01 rad/s by default)
+    half = 0.01 * np.arctanh(0.5)
+    assert friction([half, 0.0])[0] == pytest.approx(0.02 * half + 0.005, rel=1e-12)
 
 
 def test_example_robot_data_double_pendulum_loads() -> None:

@@ -108,7 +108,7 @@ def test_an_unstable_session_ends_in_a_safety_stop_with_its_log(tmp_path: Path) 
     log = read_log(tmp_path / "unstable.mcap")
     assert log.ticks == summary.ticks and log.summary["safety_stop"] is True
     # zero torque after the stop: the backends were stopped
-    assert session.hsi.backend.tau_motor == [0.0, 0.0]
+    assert session.hsi.backend.tau_motor.tolist() == [0.0, 0.0]
 
 
 def test_cli_exit_code_3_on_a_safety_stop(capsys) -> None:

@@ -5,11 +5,12 @@ every block's state and makes its views alias the packed buffers."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from teleop_rt import config
 from teleop_rt.com.wave import WaveChannel
 from teleop_rt.control import Pid
-from teleop_rt.flat import Packed
+from teleop_rt.flat import Block, Packed
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
 
@@ -56,3 +57,8 @@ def test_packed_kernels_equal_the_blocks_run_one_by_one() -> None:
     assert session.metrics.t_p.tolist() == shadow.metrics.t_p.tolist()
     assert session.metrics.t_tau.tolist() == shadow.metrics.t_tau.tolist()
     assert abs(session.channel.total_energy) > 0.0 and session.metrics.t_tau.sum() > 0.0
+
+
+def test_a_block_field_may_not_shadow_the_blocks_own_buffers() -> None:
+    with pytest.raises(TypeError, match=r"\['f'\]"):
+        type("Bad", (Block,), {"SCALARS": ("k", "f")})

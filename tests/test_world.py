@@ -72,11 +72,11 @@ def test_contact_torque_is_j_transpose_f_by_virtual_power() -> None:
     model = RobotModel.from_spec(RobotSpec(urdf=SCARA_URDF, ee_frame="tool"), "to")
     w = wall(point_m=[0.30, 0.0])  # the tool at q0 is 4.4 cm inside this wall
     plant = SimBackend(model, [w], np.array([-0.8, 1.8]), 1e-3)
-    plant.vl[:] = [0.3, -0.5]
-    plant.v[:] = plant.vl
-    plant._eval_loads(0.0, plant.q, plant.vl)
+    plant.state.v[:] = [0.3, -0.5]
+    plant._evaluate_loads()
     assert w.in_contact
-    joint_power = float(np.dot(plant.tau_load, plant.vl))
+    joint_power = float(np.dot(plant.state.tau_load, plant.state.v))
+    model.update_ee(plant.state.q, plant.state.v.tolist())  # the tool velocity, independently
     cart_power = float(np.dot(w.last_force, model.ee_vel))
     assert joint_power == pytest.approx(cart_power, rel=1e-12)
     assert abs(joint_power) > 1e-3
@@ -114,7 +114,7 @@ def _held_mass_velocity(integrator: str, substeps: int, ticks: int = 200) -> np.
                        substeps=substeps, integrator=integrator)  # fmt: skip
     for k in range(ticks):
         plant.write([0.3 * np.sin(0.02 * k), -0.1])
-    return np.array(plant.vl)
+    return plant.state.v.copy()
 
 
 def test_rk4_is_fourth_order_with_a_stateful_load() -> None:
@@ -122,3 +122,40 @@ def test_rk4_is_fourth_order_with_a_stateful_load() -> None:
     errors = [np.abs(_held_mass_velocity("rk4", m) - reference).max() for m in (2, 4, 8)]
     # halving the step divides the error by 2^4 = 16 for a 4th-order method
     assert errors[0] / errors[1] > 12 and errors[1] / errors[2] > 12, errors
+
+
+def test_the_plants_compiled_write_equals_its_general_loop_exactly() -> None:
+    """The common write (three compiled calls around ABA and the Jacobian) and the general
+    loop (used for faults, sub-steps, RK4) run the same pieces: with a fault that never fires
+    the plant takes the general loop, and every tick's feedback and world snapshot agree
+    bit for bit, through the foam and into the wall with a pushed mass behind it."""
+    from teleop_rt.config import FaultSpec
+
+    def plant(faults):
+        model = RobotModel.from_spec(RobotSpec(urdf=SCARA_URDF, ee_frame="tool"), "to")
+        loads = [wall(point_m=[0.36, 0.0]), PushedMass(MassSpec(
+            kind="mass", point_m=[0.0, -0.008], normal=[0, 1], mass_kg=0.2))]  # fmt: skip
+        return SimBackend(model, loads, np.array([-0.8, 1.8]), 1e-3, faults=faults)
+
+    def loads_moved(p):
+        return p.loads[1].s > 1e-4
+
+    common = plant([])
+    general = plant([FaultSpec(kind="stuck", robot="to", start_s=100.0)])
+    assert common._one_euler_step and not general._one_euler_step
+    contacts = np.zeros(2)
+    for k in range(1500):
+        a, b = common.read(), general.read()
+        for x, y in (
+            (a.q, b.q),
+            (a.v, b.v),
+            (a.tau_ext, b.tau_ext),
+            (common.world.f, general.world.f),
+        ):
+            assert np.array_equal(x, y), k
+        contacts += common.world.contacts
+        tau = [0.4 * np.sin(0.004 * k), -0.3 * np.cos(0.003 * k)]
+        common.write(tau)
+        general.write(tau)
+    assert contacts[0] > 50 and contacts[1] > 0, f"both loads must have been touched: {contacts}"
+    assert loads_moved(common), "the mass must have been pushed"

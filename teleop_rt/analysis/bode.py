@@ -4,7 +4,7 @@
 C1 and C2, ``WaveChannel``) as the paper's open chain (Fig 2 cut at omega_o): the operator
 velocity omega_o is imposed on the channel's HSI port (omega_c = omega_o), a damper operator
 ``JointDamperOperator`` (Z_o) loads the HSI, a joint-space environment (``JointSpringDamper``
-and, for Z_e = m s, ``JointMass``) loads the TO, and tau_h (the torque the operator applies to
+and, for Z_e = m s, ``world.JointMass``) loads the TO, and tau_h (the torque the operator applies to
 the HSI) is measured. Only one joint is excited; computed torque keeps the others at rest.
 The plants integrate with semi-implicit Euler and one sub-step (the discrete model assumes it).
 
@@ -74,7 +74,7 @@ from teleop_rt.config import ControllerSpec, DamperOperatorSpec, RobotSpec
 from teleop_rt.control import ComputedTorque, Pid
 from teleop_rt.hal.sim import SimBackend, initial_configuration
 from teleop_rt.model import RobotModel
-from teleop_rt.world import JointDamperOperator, JointLoad, JointSpringDamper
+from teleop_rt.world import JointDamperOperator, JointLoad, JointMass, JointSpringDamper
 
 SCARA_URDF = Path(__file__).resolve().parents[2] / "robots" / "urdf" / "scara_2dof.urdf"
 SCARA_Q0 = [-0.8, 1.8]
@@ -88,34 +88,6 @@ def default_robot() -> RobotSpec:
 def default_omegas(omega_min: float = 0.5, omega_max: float = 50.0, points: int = 20) -> np.ndarray:
     """``points`` log-spaced frequencies from omega_min to omega_max, rad/s."""
     return np.geomspace(omega_min, omega_max, points)
-
-
-class JointMass(JointLoad):
-    """Z_e = m s per joint: tau_ext = -m (v[k] - v[k-1]) / dt, held over the tick (module doc).
-
-    The plant evaluates its loads once per tick at the tick's start (one sub-step); the last
-    velocity is remembered per distinct time, so repeated evaluations at one time agree.
-    """
-
-    def __init__(self, mass: list[float], dt: float) -> None:
-        self.m, self.dt = list(mass), dt
-        self.in_contact = True
-        self._t: float | None = None
-        self._v_now: list[float] = []
-        self._v_before: list[float] = []
-
-    def add_joint_torque(self, t, q, v, out):  # noqa: D102 - see JointLoad
-        if self._t is None:
-            self._v_before = list(v)
-            self._v_now = list(v)
-            self._t = t
-        elif t != self._t:
-            self._v_before = self._v_now
-            self._v_now = list(v)
-            self._t = t
-        inv_dt = 1.0 / self.dt
-        for j, m in enumerate(self.m):
-            out[j] -= m * (self._v_now[j] - self._v_before[j]) * inv_dt
 
 
 def controller_spec(c: ControllerGains | float) -> ControllerSpec:

@@ -23,7 +23,7 @@ z = exp(j omega dt) on the unit circle.
 * HSI, damper operator sampled at tick k: tau_h[k] = -Z_o v_h[k]; M1 s_f V_h = C1 (tau_h - tau_c).
   Eliminating V_h = -tau_h / Z_o: ``G_tau(z) = C1 Z_o / (M1 s_f + C1 Z_o)`` (eq 21 with s -> s_f).
 * TO: M2 s_f V_t = C2 (omega_t - V_t), so ``G_omega(z) = C2 / (M2 s_f + C2)`` (eq 24, s -> s_f).
-* Environment at tick start (``world.JointSpringDamper``, ``bode.JointMass``):
+* Environment at tick start (``world.JointSpringDamper``, ``world.JointMass``):
   tau_e[k] = k (q[k] - q0) + c v[k] + m (v[k] - v[k-1]) / dt, so
   ``Z_e(z) = m s_b + c + k / s_b`` and ``Z_t(z) = G_omega Z_e``.
 * Channel (``teleop_rt.com.wave``), both sides algebraic within a tick, the received waves

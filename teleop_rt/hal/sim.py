@@ -5,23 +5,180 @@ per ``write`` with a configurable integrator and number of sub-steps.
 The plant owns its own ``RobotModel`` (its own Pinocchio Data), separate from the controller's:
 it stands for the real robot. Sensors are ideal unless noise is configured (seeded, so fast mode
 stays deterministic).
+
+The plant's state and its loads are flat blocks (``teleop_rt.flat``, ``teleop_rt.world``) packed
+into one pair of buffers; the arithmetic between Pinocchio's calls is compiled. The common case
+(semi-implicit Euler, one sub-step, no faults) is a ``write`` of three compiled calls around ABA
+and the tool Jacobian, and a ``read`` of one; sub-steps, RK4 and faults run the same compiled
+pieces from a Python loop.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import numpy as np
+import pinocchio as pin
 
 from teleop_rt.config import FaultSpec, SessionConfig
 from teleop_rt.errors import ConfigError
+from teleop_rt.flat import Block, Packed, as_floats, jit
 from teleop_rt.hal.base import Backend, Feedback, register_backend
-from teleop_rt.model import RobotModel
-from teleop_rt.scalar import assign, shared_vector
-from teleop_rt.world import Load, ScriptedHand, build_environment, build_operator
+from teleop_rt.model import RobotModel, friction_torque
+from teleop_rt.world import (
+    HALF_SPACE,
+    HAND,
+    KIND,
+    Load,
+    ScriptedHand,
+    build_environment,
+    build_operator,
+    half_space_force,
+    hand_force,
+    joint_load_torque,
+    push_mass,
+)
 
 # seeds of the two plants' noise generators differ so their noise is independent
 _SIDE_SEED = {"hsi": 1, "to": 2}
+
+
+class PlantState(Block):
+    """The simulated robot: joint state, the torques on it (motor, loads, total) and its
+    friction parameters; time and tick; the tool's velocity (world frame) when loads act there."""
+
+    VECTORS = ("q", "v", "tau_motor", "tau_load", "tau", "damping", "coulomb")
+    SCALARS = ("t", "dt", "h", "inv_v_s", "tool_vx", "tool_vy", "tool_vz")
+    INTS = ("tick",)
+
+
+Q, V, TAU_MOTOR, TAU_LOAD, TAU, DAMPING, COULOMB = range(7)
+T, DT, H, INV_V_S, TOOL_V = range(5)  # scalar k at N_VECTORS * n + k
+N_VECTORS = len(PlantState.VECTORS)
+# the feedback's and world snapshot's layouts (teleop_rt.hal.base)
+FB_Q, FB_V, FB_TAU_EXT = range(3)
+W_REFERENCE, W_REFERENCE_VELOCITY, W_FORCE, W_CONTACTS = 0, 3, 6, 9
+
+
+# The kernels below index the packed buffers directly (the plant is block 0, at offset 0):
+# a slice costs a compiled function tens of ns, more than the arithmetic it serves.
+
+
+@jit
+def total_torque(f: np.ndarray, n: int) -> None:
+    """tau = tau_motor + tau_load - friction(v)."""
+    inv_v_s = f[N_VECTORS * n + INV_V_S]
+    for j in range(n):
+        friction = friction_torque(f[DAMPING * n + j], f[COULOMB * n + j], inv_v_s, f[V * n + j])
+        f[TAU * n + j] = f[TAU_MOTOR * n + j] + f[TAU_LOAD * n + j] - friction
+
+
+@jit
+def command(f: np.ndarray, n: int, tau_cmd: np.ndarray) -> None:
+    """Hold the motor torque tau_cmd for the period; the total torque at the tick's start."""
+    for j in range(n):
+        f[TAU_MOTOR * n + j] = tau_cmd[j]
+    total_torque(f, n)
+
+
+@jit
+def euler_step(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, a: np.ndarray) -> None:
+    """One semi-implicit (symplectic) Euler step of h with acceleration a: the stateful loads,
+    then v, then q with the new v."""
+    h = f[N_VECTORS * n + H]
+    for b in range(1, o.size // 2):
+        if i[o[2 * b + 1] + KIND] == HALF_SPACE:
+            push_mass(f, o[2 * b], h)
+    for j in range(n):
+        vj = f[V * n + j] + h * a[j]
+        f[V * n + j] = vj
+        f[Q * n + j] += h * vj
+    f[N_VECTORS * n + T] += h
+
+
+@jit
+def evaluate_loads(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, jac: np.ndarray, x: np.ndarray
+) -> None:
+    """tau_load: the sum of the loads' joint torques at the plant's (t, q, v), with the tool at x
+    (world frame) and jac its translational Jacobian (rows 0-2, world-aligned)."""
+    t, tool_v = f[N_VECTORS * n + T], N_VECTORS * n + TOOL_V
+    vx = vy = vz = 0.0
+    for j in range(n):
+        vj = f[V * n + j]
+        vx += jac[0, j] * vj
+        vy += jac[1, j] * vj
+        vz += jac[2, j] * vj
+    f[tool_v], f[tool_v + 1], f[tool_v + 2] = vx, vy, vz
+    cartesian = False
+    fx = fy = fz = 0.0
+    blocks = o.size // 2
+    b = 1
+    while b < blocks:
+        fo, io = o[2 * b], o[2 * b + 1]
+        kind = i[io + KIND]
+        if kind == HAND:  # its trajectory follows it
+            hand_force(f, fo, f, i, o[2 * b + 2], o[2 * b + 3], t, x[0], x[1], x[2], vx, vy, vz)
+            cartesian = True
+            fx, fy, fz = fx + f[fo], fy + f[fo + 1], fz + f[fo + 2]
+            b += 1
+        elif kind == HALF_SPACE:
+            half_space_force(f, i, fo, io, x[0], x[1], x[2], vx, vy, vz)
+            cartesian = True
+            fx, fy, fz = fx + f[fo + 6], fy + f[fo + 7], fz + f[fo + 8]
+        b += 1
+    for j in range(n):  # tau = J^T F
+        f[TAU_LOAD * n + j] = jac[0, j] * fx + jac[1, j] * fy + jac[2, j] * fz if cartesian else 0.0
+    b = 1
+    while b < blocks:
+        fo, io = o[2 * b], o[2 * b + 1]
+        kind = i[io + KIND]
+        if kind != HAND and kind != HALF_SPACE:
+            joint_load_torque(f, i, fo, io, n, t, Q * n, V * n, TAU_LOAD * n)
+        b += 2 if kind == HAND else 1
+
+
+@jit
+def sense(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int,
+    fb_f: np.ndarray, fb_i: np.ndarray, world: np.ndarray,
+) -> None:  # fmt: skip
+    """Ideal sensors: the feedback (q, v, tau_ext = tau_load, fresh) and the world snapshot (the
+    hand's reference and force, or the environment's force and contacts)."""
+    for j in range(n):
+        fb_f[FB_Q * n + j] = f[Q * n + j]
+        fb_f[FB_V * n + j] = f[V * n + j]
+        fb_f[FB_TAU_EXT * n + j] = f[TAU_LOAD * n + j]
+    fb_i[0] = 0
+    hand = False
+    fx = fy = fz = 0.0
+    contact = 0
+    b = 1
+    while b < o.size // 2:
+        fo, io = o[2 * b], o[2 * b + 1]
+        if i[io + KIND] == HAND:
+            trajectory = o[2 * b + 2]
+            for a in range(3):
+                world[W_REFERENCE + a] = f[trajectory + a]
+                world[W_REFERENCE_VELOCITY + a] = f[trajectory + 3 + a]
+                world[W_FORCE + a] = f[fo + a]
+            hand = True
+            b += 1
+        elif i[io + KIND] == HALF_SPACE:
+            fx, fy, fz = fx + f[fo + 6], fy + f[fo + 7], fz + f[fo + 8]
+            world[W_CONTACTS + contact] = 1.0 if i[io + 1] else 0.0
+            contact += 1
+        b += 1
+    if not hand and contact:
+        world[W_FORCE], world[W_FORCE + 1], world[W_FORCE + 2] = fx, fy, fz
+
+
+@jit
+def next_tick(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, jac: np.ndarray, x: np.ndarray
+) -> None:
+    """The end of a write: the next tick's time and the loads there."""
+    i[0] += 1
+    f[N_VECTORS * n + T] = i[0] * f[N_VECTORS * n + DT]  # no drift from summing steps
+    evaluate_loads(f, i, o, n, jac, x)
 
 
 class SimBackend(Backend):
@@ -40,72 +197,99 @@ class SimBackend(Backend):
         seed: int = 0,
         faults: list[FaultSpec] | None = None,
     ) -> None:
-        contact_loads = [ld for ld in loads if ld.cartesian and not ld.is_operator]
-        super().__init__(plant.nv, len(contact_loads))
-        self.contact_loads = contact_loads
-        self.hand = next((ld for ld in loads if isinstance(ld, ScriptedHand)), None)
         if integrator not in ("semi_implicit_euler", "rk4"):
             raise ValueError(f"unknown integrator {integrator!r}")
         n = plant.nv
+        for load in loads:
+            if not load.cartesian and load.n != n:
+                raise ValueError(f"{type(load).__name__} has {load.n} joints, the plant {n}")
+        contacts = [ld for ld in loads if ld.cartesian and not ld.is_operator]
+        super().__init__(n, len(contacts))
         self.plant = plant
-        self.joint_loads = [ld for ld in loads if not ld.cartesian]
-        self.cartesian_loads = [ld for ld in loads if ld.cartesian]
         self.loads = loads
         self.stateful = [ld for ld in loads if ld.stateful]
-        self.dt = dt
-        self.h = dt / substeps
         self.substeps = substeps
         self.rk4 = integrator == "rk4"
-        self._single_euler_step = substeps == 1 and not self.rk4 and not faults
-        # state: lists for the scalar arithmetic, numpy mirrors for Pinocchio
-        self.ql = [float(x) for x in q0]
-        self.vl = [0.0] * n
-        self.q, self._q_view = shared_vector(n)  # Pinocchio's inputs, written element-wise
-        self.v, self._v_view = shared_vector(n)
-        self.q[:] = self.ql
-        self.t = 0.0
-        self.tick = 0
-        self.tau_motor = [0.0] * n
-        self.tau_load = [0.0] * n  # loads at the current state (what an ideal sensor reads)
-        self._tau, self._tau_view = shared_vector(n)
-        self._qs, self._vs = np.zeros(n), np.zeros(n)
+        self.faults = list(faults or [])
         self.torque_noise_std = torque_noise_std
         self.velocity_noise_std = velocity_noise_std
         self.rng = np.random.default_rng(seed)
         self._noise = np.zeros(n)
-        self.faults = list(faults or [])
         self._held: dict[int, float] = {}  # stuck joints: the angle they are held at
-        self._eval_loads(self.t, self.q, self.vl)
+        # the common case: one Euler step per write, ideal sensors
+        self._one_euler_step = substeps == 1 and not self.rk4 and not self.faults
+        self._ideal_sensors = not (self.faults or torque_noise_std or velocity_noise_std)
+
+        state = PlantState(n)
+        state.q[:] = q0
+        state.dt, state.h = dt, dt / substeps
+        state.damping[:] = plant.damping
+        state.coulomb[:] = plant.coulomb if plant.has_coulomb else 0.0
+        state.inv_v_s = plant.inv_v_s
+        blocks: list[Block] = [state]
+        for load in loads:
+            blocks.append(load)
+            if isinstance(load, ScriptedHand):
+                blocks.append(load.trajectory)
+        self.packed = Packed(blocks)
+        self.state = state
+        self.dt = dt
+        # Pinocchio's arguments, looked up once: the state's views and the tool's placement
+        self._pin = (plant.model, plant.data, state.q, state.v, state.tau)
+        self._cartesian = any(ld.cartesian for ld in loads)
+        self._tool = (plant.model, plant.data, state.q, plant.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)
+        self._no_jacobian = np.zeros((6, n))
+        self._x = plant._ee_translation  # a view of data.oMf, updated by the Jacobian call
+        self._buffers = (self.packed.f, self.packed.i, self.packed.offsets, n)
+        self._evaluate_loads()
+
+    @property
+    def tau_motor(self) -> np.ndarray:
+        """The motor torque held over the current period (N m)."""
+        return self.state.tau_motor
 
     # --- Backend --------------------------------------------------------------------------
     def start(self) -> None:
         """Nothing to power up: the simulated robot accepts torque from construction on."""
-
-    def _active(self, kind: str) -> list[FaultSpec]:
-        t = self.tick * self.dt
-        return [
-            f for f in self.faults if f.kind == kind and f.start_s <= t < f.start_s + f.duration_s
-        ]
 
     def read(self) -> Feedback:
         fb = self.feedback
         if self.faults and self._active("dropout"):
             fb.age_ticks += 1  # the sensors did not deliver: the last values stay
             return fb
-        fb.age_ticks = 0
-        # q, v: the plant's state (a memcpy each); tau_ext: what an ideal sensor reads
-        fb.copy_arrays(self._q_view, self._v_view)
-        tau_mv = fb.tau_mv
-        for j, x in enumerate(self.tau_load):
-            tau_mv[j] = x
+        f, i, o, n = self._buffers
+        sense(f, i, o, n, fb.f, fb.i, self.world.f)
+        if self._ideal_sensors:
+            return fb
         if self.torque_noise_std:
-            self._add_noise(tau_mv, self.torque_noise_std)
+            self._add_noise(fb.tau_ext, self.torque_noise_std)
         if self.velocity_noise_std:
-            self._add_noise(fb.v_mv, self.velocity_noise_std)
+            self._add_noise(fb.v, self.velocity_noise_std)
         if self.faults:
             self._corrupt_sensors(fb)  # (the torque sensors only)
-        self._snapshot_world()
         return fb
+
+    def write(self, tau: list[float] | np.ndarray) -> None:
+        tau = tau if isinstance(tau, np.ndarray) else as_floats(tau)
+        f, i, o, n = self._buffers
+        command(f, n, tau)
+        if self._one_euler_step:
+            model, data, q, v, tau_total = self._pin
+            euler_step(f, i, o, n, pin.aba(model, data, q, v, tau_total))
+        else:
+            self._advance()
+        jac = pin.computeFrameJacobian(*self._tool) if self._cartesian else self._no_jacobian
+        next_tick(f, i, o, n, jac, self._x)
+
+    def stop(self) -> None:
+        self.state.tau_motor[:] = 0.0
+
+    # --- the general path: sub-steps, RK4, faults, noisy sensors ---------------------------
+    def _active(self, kind: str) -> list[FaultSpec]:
+        t = self.state.tick * self.dt
+        return [
+            f for f in self.faults if f.kind == kind and f.start_s <= t < f.start_s + f.duration_s
+        ]
 
     def _corrupt_sensors(self, fb: Feedback) -> None:
         for f in self._active("nan"):
@@ -115,136 +299,62 @@ class SimBackend(Backend):
         for f in self._active("noise_burst"):
             fb.tau_ext[f.joint] += f.magnitude * float(self.rng.standard_normal())
 
-    def _snapshot_world(self) -> None:
-        # the loads were last evaluated at this tick's time (end of the previous write)
-        world = self.world
-        if self.hand is not None:
-            trajectory, force = self.hand.trajectory, self.hand.last_force
-            world.reference_mv[0], world.reference_mv[1], world.reference_mv[2] = trajectory.pos
-            vel = world.reference_velocity_mv
-            vel[0], vel[1], vel[2] = trajectory.vel
-            world.force_mv[0], world.force_mv[1], world.force_mv[2] = force
-        elif self.contact_loads:
-            fx = fy = fz = 0.0
-            contacts = world.contacts_mv
-            for j, load in enumerate(self.contact_loads):
-                f = load.last_force
-                fx += f[0]
-                fy += f[1]
-                fz += f[2]
-                contacts[j] = 1.0 if load.in_contact else 0.0
-            world.force_mv[0], world.force_mv[1], world.force_mv[2] = fx, fy, fz
-
-    def _add_noise(self, values: memoryview, std: float) -> None:
+    def _add_noise(self, values: np.ndarray, std: float) -> None:
         self.rng.standard_normal(out=self._noise)
-        for j, x in enumerate(self._noise.tolist()):
-            values[j] += std * x
+        values += std * self._noise
 
-    def write(self, tau: list[float] | np.ndarray) -> None:
-        self.tau_motor[:] = tau.tolist() if isinstance(tau, np.ndarray) else tau
-        if self._single_euler_step:  # the common case, without the loop
-            self._euler_substep()
-        elif self.faults:
-            self._advance_with_faults()
-        else:
-            self._advance()
-        self.tick += 1
-        self.t = self.tick * self.dt  # no drift from summing sub-steps
-        self._eval_loads(self.t, self.q, self.vl)
-
-    def _advance(self, stuck: Sequence[FaultSpec] = ()) -> None:
-        substep = self._rk4_substep if self.rk4 else self._euler_substep
-        for i in range(self.substeps):
-            if i:  # the loads at the tick's start were evaluated at the end of the last write
-                self._eval_loads(self.t, self.q, self.vl)
-            substep()
-            for f in stuck:  # a blocked joint: held in place whatever the torque
-                j = f.joint
-                self.ql[j] = self._q_view[j] = self._held[j]
-                self.vl[j] = self._v_view[j] = 0.0
-
-    def _advance_with_faults(self) -> None:
+    def _advance(self) -> None:
+        state = self.state
         for f in self._active("saturation"):
             lim = f.magnitude
-            self.tau_motor[f.joint] = min(max(self.tau_motor[f.joint], -lim), lim)
+            state.tau_motor[f.joint] = min(max(state.tau_motor[f.joint], -lim), lim)
         stuck = self._active("stuck")
         for f in stuck:
-            self._held.setdefault(f.joint, self.ql[f.joint])
-        self._advance(stuck)
+            self._held.setdefault(f.joint, float(state.q[f.joint]))
+        for k in range(self.substeps):
+            if k:  # the loads at the tick's start were evaluated at the end of the last write
+                self._evaluate_loads()
+            if self.rk4:
+                self._rk4_step()
+            else:
+                f, i, o, n = self._buffers
+                euler_step(f, i, o, n, self._acceleration())
+            for fault in stuck:  # a blocked joint: held in place whatever the torque
+                state.q[fault.joint] = self._held[fault.joint]
+                state.v[fault.joint] = 0.0
 
-    def stop(self) -> None:
-        self.tau_motor[:] = [0.0] * self.n
+    def _evaluate_loads(self) -> None:
+        f, i, o, n = self._buffers
+        jac = pin.computeFrameJacobian(*self._tool) if self._cartesian else self._no_jacobian
+        evaluate_loads(f, i, o, n, jac, self._x)
 
-    # --- dynamics -------------------------------------------------------------------------
-    def _eval_loads(self, t: float, q: np.ndarray, v: list[float]) -> None:
-        """tau_load = sum of the loads' joint torques at (t, q, v)."""
-        tl = self.tau_load
-        if self.cartesian_loads:
-            plant = self.plant
-            plant.update_ee(q, v)
-            x, xd = plant.ee_pos, plant.ee_vel
-            fx = fy = fz = 0.0
-            for load in self.cartesian_loads:
-                f = load.force(t, x, xd)
-                fx += f[0]
-                fy += f[1]
-                fz += f[2]
-            jx, jy, jz = plant.ee_jac[0], plant.ee_jac[1], plant.ee_jac[2]
-            for j in range(self.n):  # tau = J^T F
-                tl[j] = jx[j] * fx + jy[j] * fy + jz[j] * fz
-        else:
-            for j in range(self.n):
-                tl[j] = 0.0
-        for load in self.joint_loads:
-            load.add_joint_torque(t, q, v, tl)
+    def _acceleration(self) -> np.ndarray:
+        """Joint acceleration at the plant's state with the loads last evaluated (ABA; M a + n
+        = g + tau_motor + tau_load - friction)."""
+        total_torque(self.state.f, self.n)
+        return pin.aba(*self._pin)
 
-    def _acceleration(self, q: np.ndarray, v_arr: np.ndarray, v: list[float]) -> list[float]:
-        # M a + n = g + tau_ext - friction
-        fric = self.plant.friction(v)
-        tm, tl, tau = self.tau_motor, self.tau_load, self._tau_view
-        for j in range(self.n):
-            tau[j] = tm[j] + tl[j] - fric[j]
-        return self.plant.forward_dynamics(q, v_arr, self._tau)
-
-    def _euler_substep(self) -> None:
-        # semi-implicit (symplectic) Euler: v first, then q with the new v
-        h, ql, vl = self.h, self.ql, self.vl
-        a = self._acceleration(self.q, self.v, vl)
-        for load in self.stateful:
-            load.advance(h)
-        q, v = self._q_view, self._v_view
-        for j in range(self.n):
-            vj = vl[j] + h * a[j]
-            qj = ql[j] + h * vj
-            vl[j] = v[j] = vj
-            ql[j] = q[j] = qj
-        self.t += h
-
-    def _rk4_substep(self) -> None:
+    def _rk4_step(self) -> None:
         # classic RK4 on (q, v) and the stateful loads' states; every stage re-evaluates the
         # loads at its own (t, q, v, load state)
-        h, ql, vl, n = self.h, self.ql, self.vl, self.n
-        qs, vs, stateful = self._qs, self._vs, self.stateful
+        state, h, stateful = self.state, self.state.h, self.stateful
+        q0, v0, t0 = state.q.copy(), state.v.copy(), state.t
         s0 = [load.state() for load in stateful]
-        k1v = list(vl)
-        k1a = self._acceleration(self.q, self.v, vl)  # loads already at (t, q, v, s0)
-        stages = [(k1v, k1a, [load.derivative() for load in stateful])]
+        stages = [(v0, self._acceleration(), [load.derivative() for load in stateful])]
         for frac in (0.5, 0.5, 1.0):
             dq, dv, ds = stages[-1]
-            q_stage = [ql[j] + frac * h * dq[j] for j in range(n)]
-            v_stage = [vl[j] + frac * h * dv[j] for j in range(n)]
+            state.q[:] = q0 + frac * h * dq
+            state.v[:] = v0 + frac * h * dv
             for load, x0, dx in zip(stateful, s0, ds, strict=True):
                 load.set_state(tuple(a + frac * h * b for a, b in zip(x0, dx, strict=True)))
-            assign(qs, q_stage)
-            assign(vs, v_stage)
-            self._eval_loads(self.t + frac * h, qs, v_stage)
-            accel = self._acceleration(qs, vs, v_stage)
-            stages.append((v_stage, accel, [load.derivative() for load in stateful]))
+            state.t = t0 + frac * h
+            self._evaluate_loads()
+            accel = self._acceleration()
+            stages.append((state.v.copy(), accel, [load.derivative() for load in stateful]))
         (v1, a1, d1), (v2, a2, d2), (v3, a3, d3), (v4, a4, d4) = stages
         w = h / 6.0
-        for j in range(n):
-            ql[j] += w * (v1[j] + 2.0 * v2[j] + 2.0 * v3[j] + v4[j])
-            vl[j] += w * (a1[j] + 2.0 * a2[j] + 2.0 * a3[j] + a4[j])
+        state.q[:] = q0 + w * (v1 + 2.0 * v2 + 2.0 * v3 + v4)
+        state.v[:] = v0 + w * (a1 + 2.0 * a2 + 2.0 * a3 + a4)
         for i, load in enumerate(stateful):
             load.set_state(
                 tuple(
@@ -252,9 +362,7 @@ class SimBackend(Backend):
                     for x, p1, p2, p3, p4 in zip(s0[i], d1[i], d2[i], d3[i], d4[i], strict=True)
                 )
             )
-        assign(self._q_view, ql)
-        assign(self._v_view, vl)
-        self.t += h
+        state.t = t0 + h
 
 
 @register_backend("sim")
