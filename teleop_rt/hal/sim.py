@@ -278,8 +278,7 @@ class SimBackend(Backend):
             euler_step(f, i, o, n, pin.aba(model, data, q, v, tau_total))
         else:
             self._advance()
-        jac = pin.computeFrameJacobian(*self._tool) if self._cartesian else self._no_jacobian
-        next_tick(f, i, o, n, jac, self._x)
+        next_tick(f, i, o, n, self._jacobian(), self._x)
 
     def stop(self) -> None:
         self.state.tau_motor[:] = 0.0
@@ -325,8 +324,15 @@ class SimBackend(Backend):
 
     def _evaluate_loads(self) -> None:
         f, i, o, n = self._buffers
-        jac = pin.computeFrameJacobian(*self._tool) if self._cartesian else self._no_jacobian
-        evaluate_loads(f, i, o, n, jac, self._x)
+        evaluate_loads(f, i, o, n, self._jacobian(), self._x)
+
+    def _jacobian(self) -> np.ndarray:
+        """The tool's Jacobian (6 x n, world-aligned) at the plant's q; it also places the tool
+        (``_x``). Zeros when no load acts at the tool."""
+        if not self._cartesian:
+            return self._no_jacobian
+        jac = pin.computeFrameJacobian(*self._tool)
+        return jac if jac.ndim == 2 else jac.reshape(6, 1)  # a 1-DoF robot's comes flat
 
     def _acceleration(self) -> np.ndarray:
         """Joint acceleration at the plant's state with the loads last evaluated (ABA; M a + n
