@@ -159,3 +159,22 @@ def test_the_plants_compiled_write_equals_its_general_loop_exactly() -> None:
         general.write(tau)
     assert contacts[0] > 50 and contacts[1] > 0, f"both loads must have been touched: {contacts}"
     assert loads_moved(common), "the mass must have been pushed"
+
+
+def test_a_one_joint_robot_feels_a_tool_load_through_its_jacobian() -> None:
+    """Pinocchio hands a 1-DoF Jacobian over flat: the plant still maps F to tau = J^T F.
+    A rotary joint with the tool at r = 0.3 m, q = 0.2 rad, a bilateral spring along y about
+    y = 0: tau = x F_y = r cos q (-k r sin q)."""
+    import pinocchio as pin
+
+    model = pin.Model()
+    joint = model.addJoint(0, pin.JointModelRZ(), pin.SE3.Identity(), "j1")
+    tool = pin.SE3(np.eye(3), np.array([0.3, 0.0, 0.0]))
+    model.appendBodyToJoint(joint, pin.Inertia.FromSphere(1.0, 0.1), tool)
+    model.addFrame(pin.Frame("tool", joint, 0, tool, pin.FrameType.OP_FRAME))
+    spring = HalfPlaneContact(
+        SpringSpec(kind="spring", point_m=[0, 0], normal=[0, 1], stiffness_n_per_m=200.0)
+    )
+    plant = SimBackend(RobotModel(model, "tool"), [spring], np.array([0.2]), 1e-3)
+    expected = 0.3 * np.cos(0.2) * (-200.0 * 0.3 * np.sin(0.2))
+    assert plant.read().tau_ext[0] == pytest.approx(expected, rel=1e-12)
