@@ -40,11 +40,6 @@ MIN_JERK, LOGGED = range(2)  # trajectory_kind codes
 KIND = 0  # every load's and trajectory's int 0
 
 
-def _scalar_index(cls: type[Block], name: str, n: int = 3) -> int:
-    """Where a block's scalar sits in its float buffer (for the compiled functions)."""
-    return len(cls.VECTORS) * n + cls.SCALARS.index(name)
-
-
 class Load(Block):
     """Something that pushes on a robot."""
 
@@ -167,6 +162,9 @@ class Trajectory(Block):
     def evaluate(self, t: float) -> None:
         """Fill pos and vel at time t (s)."""
         evaluate_trajectory(self.f, self.i, 0, 0, t)
+
+
+POS, VEL = (3 * Trajectory.VECTORS.index(name) for name in ("pos", "vel"))
 
 
 class HandTrajectory(Trajectory):
@@ -294,7 +292,8 @@ class ScriptedHand(CartesianLoad):
         return tuple(self.last_force.tolist())
 
 
-_HAND_K, _HAND_D = (_scalar_index(ScriptedHand, s) for s in ScriptedHand.SCALARS)
+_HAND_K, _HAND_D = (ScriptedHand.scalar_index(s, 3) for s in ScriptedHand.SCALARS)
+HAND_FORCE = 3 * ScriptedHand.VECTORS.index("last_force")  # where the plant reads it
 
 
 @jit
@@ -306,9 +305,10 @@ def hand_force(
     ti[tio:]) evaluated at t first; the tool at (x, y, z) moving at (vx, vy, vz)."""
     evaluate_trajectory(tf, ti, to, tio, t)
     k, d = f[fo + _HAND_K], f[fo + _HAND_D]
-    f[fo] = k * (tf[to] - x) + d * (tf[to + 3] - vx)
-    f[fo + 1] = k * (tf[to + 1] - y) + d * (tf[to + 4] - vy)
-    f[fo + 2] = k * (tf[to + 2] - z) + d * (tf[to + 5] - vz)
+    pos, vel, out = to + POS, to + VEL, fo + HAND_FORCE
+    f[out] = k * (tf[pos] - x) + d * (tf[vel] - vx)
+    f[out + 1] = k * (tf[pos + 1] - y) + d * (tf[vel + 1] - vy)
+    f[out + 2] = k * (tf[pos + 2] - z) + d * (tf[vel + 2] - vz)
 
 
 class HalfSpaceLoad(CartesianLoad):
@@ -374,8 +374,10 @@ class PushedMass(HalfSpaceLoad):
 
 
 _K, _C, _UNILATERAL, _S, _S_DOT, _F, _MASS = (
-    _scalar_index(HalfSpaceLoad, s) for s in HalfSpaceLoad.SCALARS
+    HalfSpaceLoad.scalar_index(s, 3) for s in HalfSpaceLoad.SCALARS
 )
+_P0, _NORMAL, HALF_SPACE_FORCE = (3 * k for k in range(len(HalfSpaceLoad.VECTORS)))
+CONTACT = HalfSpaceLoad.INTS.index("contact")  # the contact flag's int
 
 
 @jit
@@ -384,17 +386,19 @@ def half_space_force(
     x: float, y: float, z: float, vx: float, vy: float, vz: float,
 ) -> None:  # fmt: skip
     """The plane's (block at f[fo:], i[io:]) force on the tool at (x, y, z) moving at
-    (vx, vy, vz) into ``last_force``; the contact flag into its int 1."""
-    nx, ny, nz = f[fo + 3], f[fo + 4], f[fo + 5]
-    depth = (f[fo] - x) * nx + (f[fo + 1] - y) * ny + (f[fo + 2] - z) * nz - f[fo + _S]
+    (vx, vy, vz) into ``last_force``; the contact flag into its int ``contact``."""
+    p0, normal = fo + _P0, fo + _NORMAL
+    nx, ny, nz = f[normal], f[normal + 1], f[normal + 2]
+    depth = (f[p0] - x) * nx + (f[p0 + 1] - y) * ny + (f[p0 + 2] - z) * nz - f[fo + _S]
     rate = -(vx * nx + vy * ny + vz * nz) - f[fo + _S_DOT]
     force = f[fo + _K] * depth + f[fo + _C] * rate
     if f[fo + _UNILATERAL]:
-        i[io + 1] = depth > 0.0
-        if not i[io + 1] or force < 0.0:
+        i[io + CONTACT] = depth > 0.0
+        if not i[io + CONTACT] or force < 0.0:
             force = 0.0
     f[fo + _F] = force
-    f[fo + 6], f[fo + 7], f[fo + 8] = force * nx, force * ny, force * nz
+    out = fo + HALF_SPACE_FORCE
+    f[out], f[out + 1], f[out + 2] = force * nx, force * ny, force * nz
 
 
 @jit

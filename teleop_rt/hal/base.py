@@ -43,6 +43,11 @@ class Feedback(Block):
         self.v_mv[:] = v
 
 
+# where a kernel finds the feedback's signals (vector k at k * n; age_ticks is int 0)
+FB_Q, FB_V, FB_TAU_EXT = (Feedback.VECTORS.index(x) for x in ("q", "v", "tau_ext"))
+FB_AGE_TICKS = Feedback.INTS.index("age_ticks")
+
+
 class WorldSnapshot(Block):
     """What a simulated world knows at the tick's read (zeros for real hardware): the operator's
     hand reference and force (HSI) or the environment force and contacts (TO: 1.0 in contact),
@@ -60,6 +65,13 @@ class WorldSnapshot(Block):
             memoryview(x)
             for x in (self.reference, self.reference_velocity, self.force, self.contacts)
         )
+
+
+# where a kernel finds the world snapshot's signals (vectors of 3, then the contacts)
+W_REFERENCE, W_REFERENCE_VELOCITY, W_FORCE = (
+    3 * WorldSnapshot.VECTORS.index(x) for x in ("reference", "reference_velocity", "force")
+)
+W_CONTACTS = 3 * len(WorldSnapshot.VECTORS)
 
 
 class Backend(ABC):

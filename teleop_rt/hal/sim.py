@@ -21,12 +21,29 @@ import pinocchio as pin
 from teleop_rt.config import FaultSpec, SessionConfig
 from teleop_rt.errors import ConfigError
 from teleop_rt.flat import Block, Packed, as_floats, jit
-from teleop_rt.hal.base import Backend, Feedback, register_backend
+from teleop_rt.hal.base import (
+    FB_AGE_TICKS,
+    FB_Q,
+    FB_TAU_EXT,
+    FB_V,
+    W_CONTACTS,
+    W_FORCE,
+    W_REFERENCE,
+    W_REFERENCE_VELOCITY,
+    Backend,
+    Feedback,
+    register_backend,
+)
 from teleop_rt.model import RobotModel, friction_torque
 from teleop_rt.world import (
+    CONTACT,
     HALF_SPACE,
+    HALF_SPACE_FORCE,
     HAND,
+    HAND_FORCE,
     KIND,
+    POS,
+    VEL,
     Load,
     ScriptedHand,
     build_environment,
@@ -53,9 +70,6 @@ class PlantState(Block):
 Q, V, TAU_MOTOR, TAU_LOAD, TAU, DAMPING, COULOMB = range(7)
 T, DT, H, INV_V_S, TOOL_V = range(5)  # scalar k at N_VECTORS * n + k
 N_VECTORS = len(PlantState.VECTORS)
-# the feedback's and world snapshot's layouts (teleop_rt.hal.base)
-FB_Q, FB_V, FB_TAU_EXT = range(3)
-W_REFERENCE, W_REFERENCE_VELOCITY, W_FORCE, W_CONTACTS = 0, 3, 6, 9
 
 
 # The kernels below index the packed buffers directly (the plant is block 0, at offset 0):
@@ -118,12 +132,14 @@ def evaluate_loads(
         if kind == HAND:  # its trajectory follows it
             hand_force(f, fo, f, i, o[2 * b + 2], o[2 * b + 3], t, x[0], x[1], x[2], vx, vy, vz)
             cartesian = True
-            fx, fy, fz = fx + f[fo], fy + f[fo + 1], fz + f[fo + 2]
+            force = fo + HAND_FORCE
+            fx, fy, fz = fx + f[force], fy + f[force + 1], fz + f[force + 2]
             b += 1
         elif kind == HALF_SPACE:
             half_space_force(f, i, fo, io, x[0], x[1], x[2], vx, vy, vz)
             cartesian = True
-            fx, fy, fz = fx + f[fo + 6], fy + f[fo + 7], fz + f[fo + 8]
+            force = fo + HALF_SPACE_FORCE
+            fx, fy, fz = fx + f[force], fy + f[force + 1], fz + f[force + 2]
         b += 1
     for j in range(n):  # tau = J^T F
         f[TAU_LOAD * n + j] = jac[0, j] * fx + jac[1, j] * fy + jac[2, j] * fz if cartesian else 0.0
@@ -147,7 +163,7 @@ def sense(
         fb_f[FB_Q * n + j] = f[Q * n + j]
         fb_f[FB_V * n + j] = f[V * n + j]
         fb_f[FB_TAU_EXT * n + j] = f[TAU_LOAD * n + j]
-    fb_i[0] = 0
+    fb_i[FB_AGE_TICKS] = 0
     hand = False
     fx = fy = fz = 0.0
     contact = 0
@@ -157,14 +173,15 @@ def sense(
         if i[io + KIND] == HAND:
             trajectory = o[2 * b + 2]
             for a in range(3):
-                world[W_REFERENCE + a] = f[trajectory + a]
-                world[W_REFERENCE_VELOCITY + a] = f[trajectory + 3 + a]
-                world[W_FORCE + a] = f[fo + a]
+                world[W_REFERENCE + a] = f[trajectory + POS + a]
+                world[W_REFERENCE_VELOCITY + a] = f[trajectory + VEL + a]
+                world[W_FORCE + a] = f[fo + HAND_FORCE + a]
             hand = True
             b += 1
         elif i[io + KIND] == HALF_SPACE:
-            fx, fy, fz = fx + f[fo + 6], fy + f[fo + 7], fz + f[fo + 8]
-            world[W_CONTACTS + contact] = 1.0 if i[io + 1] else 0.0
+            force = fo + HALF_SPACE_FORCE
+            fx, fy, fz = fx + f[force], fy + f[force + 1], fz + f[force + 2]
+            world[W_CONTACTS + contact] = 1.0 if i[io + CONTACT] else 0.0
             contact += 1
         b += 1
     if not hand and contact:
@@ -233,7 +250,6 @@ class SimBackend(Backend):
                 blocks.append(load.trajectory)
         self.packed = Packed(blocks)
         self.state = state
-        self.dt = dt
         # Pinocchio's arguments, looked up once: the state's views and the tool's placement
         self._pin = (plant.model, plant.data, state.q, state.v, state.tau)
         self._cartesian = any(ld.cartesian for ld in loads)
@@ -285,7 +301,7 @@ class SimBackend(Backend):
 
     # --- the general path: sub-steps, RK4, faults, noisy sensors ---------------------------
     def _active(self, kind: str) -> list[FaultSpec]:
-        t = self.state.tick * self.dt
+        t = self.state.tick * self.state.dt
         return [
             f for f in self.faults if f.kind == kind and f.start_s <= t < f.start_s + f.duration_s
         ]
