@@ -9,7 +9,10 @@ One tick k (see ../shared/docs/architecture.md), in this order:
 6. safety checks, then write both backends; accumulate T_p, T_tau (eq 18) and timing.
 
 Steps 3-6 but the RNEA calls are compiled (``teleop_rt.tick``) and run on the blocks' state,
-packed into two flat buffers when the session is built (``teleop_rt.flat``).
+packed into two flat buffers when the session is built (``teleop_rt.flat``). Two simulated
+plants are packed along; in their common case the session runs steps 2-6 and both plants'
+periods as four compiled calls around the six Pinocchio calls (``teleop_rt.sim_tick``), bit for
+bit what ``read`` and ``write`` compute.
 """
 
 from __future__ import annotations
@@ -30,9 +33,17 @@ from teleop_rt.control import ComputedTorque, Pid
 from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Packed
 from teleop_rt.hal.base import Backend, create_backend
+from teleop_rt.hal.sim import SimBackend
 from teleop_rt.loop import StopSignals, TickClock, TimingStats, acquire_realtime
 from teleop_rt.model import RobotModel
 from teleop_rt.safety import Supervisor
+from teleop_rt.sim_tick import (
+    finish_and_command,
+    integrate,
+    load_simulated_tick,
+    next_ticks,
+    sense_and_prepare,
+)
 from teleop_rt.tick import BLOCK_ORDER, TickSignals, after_models, before_models
 
 if TYPE_CHECKING:
@@ -142,9 +153,20 @@ class Session:
             "guard_h": sup.guards["hsi"], "guard_t": sup.guards["to"], "metrics": self.metrics,
             "world_h": hsi.backend.world, "world_t": to.backend.world,
         }  # fmt: skip
-        self.packed = Packed([blocks[name] for name in BLOCK_ORDER])
+        ordered = [blocks[name] for name in BLOCK_ORDER]
+        # two simulated plants' blocks follow, so that one compiled call reaches both the
+        # controller's and the plants' state (teleop_rt.sim_tick)
+        plants = [s.backend for s in (hsi, to) if isinstance(s.backend, SimBackend)]
+        if len(plants) < 2:
+            plants = []
+        ranges = []
+        for plant in plants:
+            ranges.append((len(ordered), len(ordered) + len(plant.blocks)))
+            ordered += plant.blocks
+        self.packed = p = Packed(ordered)
+        for plant, (first, end) in zip(plants, ranges, strict=True):
+            plant.rebind(p.f, p.i, p.offsets[2 * first : 2 * end])
         # what the tick passes on each call, looked up once
-        p = self.packed
         self._buffers = (p.f, p.i, p.offsets, self.n)
         self._pin = [
             (side.model.model, side.model.data, side.feedback.q, side.feedback.v,
@@ -156,6 +178,12 @@ class Session:
         f, i, o, n = self._buffers
         before_models(f.copy(), i.copy(), o, n)
         after_models(f.copy(), i.copy(), o, n, np.zeros(n), np.zeros(n))
+        self.fused = bool(plants) and all(plant.compiled_common_case for plant in plants)
+        if self.fused:
+            self._split = ranges[1][0]
+            self._plants = plants
+            load_simulated_tick(f.copy(), i.copy(), o, n, self._split)
+            self.step = self._step_simulated  # the same tick, in fewer calls
 
     @property
     def tau_h(self) -> np.ndarray:
@@ -185,6 +213,31 @@ class Session:
             supervisor.raise_for(code, self.tick, fb_h, fb_t)
         hsi.backend.write(hsi.computed_torque.tau)
         to.backend.write(to.computed_torque.tau)
+        self.tick += 1
+
+    def _step_simulated(self) -> None:
+        """``step`` on two simulated plants in their common case: the same arithmetic in four
+        compiled calls around the six Pinocchio calls (teleop_rt.sim_tick)."""
+        f, i, o, n = self._buffers
+        split = self._split
+        sense_and_prepare(f, i, o, n, split)
+        (model_h, data_h, q_h, v_h, a_h), (model_t, data_t, q_t, v_t, a_t) = self._pin
+        rnea_h = pin.rnea(model_h, data_h, q_h, v_h, a_h)
+        rnea_t = pin.rnea(model_t, data_t, q_t, v_t, a_t)
+        supervisor = self.supervisor
+        if supervisor.workspaces:
+            supervisor.check_workspaces(self.tick, self.hsi.feedback, self.to.feedback)
+        code = finish_and_command(f, i, o, n, split, rnea_h, rnea_t)
+        if code:
+            supervisor.raise_for(code, self.tick, self.hsi.feedback, self.to.feedback)
+        plant_h, plant_t = self._plants
+        integrate(
+            f, i, o, n, split, pin.aba(*plant_h._pin), pin.aba(*plant_t._pin)
+        )  # fmt: skip
+        next_ticks(
+            f, i, o, n, split,
+            plant_h._jacobian(), plant_h._x, plant_t._jacobian(), plant_t._x,
+        )  # fmt: skip
         self.tick += 1
 
     def run(

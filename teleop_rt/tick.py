@@ -25,7 +25,7 @@ BLOCK_ORDER = (
     "supervisor", "guard_h", "guard_t", "metrics", "world_h", "world_t",
 )  # fmt: skip
 FB_H, FB_T, SIGNALS, CHANNEL, PID_H, PID_T, CT_H, CT_T = range(8)
-SUPERVISOR, GUARD_H, GUARD_T, METRICS = range(8, 12)
+SUPERVISOR, GUARD_H, GUARD_T, METRICS, WORLD_H, WORLD_T = range(8, 14)
 TAU_H, TAU_E, ERROR_H, ERROR_T = range(4)  # TickSignals vectors
 
 

@@ -10,7 +10,9 @@ The plant's state and its loads are flat blocks (``teleop_rt.flat``, ``teleop_rt
 into one pair of buffers; the arithmetic between Pinocchio's calls is compiled. The common case
 (semi-implicit Euler, one sub-step, no faults) is a ``write`` of three compiled calls around ABA
 and the tool Jacobian, and a ``read`` of one; sub-steps, RK4 and faults run the same compiled
-pieces from a Python loop.
+pieces from a Python loop. A session on two simulated plants packs their blocks with its own
+(``SimBackend.rebind``) and, in the common case, runs these pieces itself in its own compiled
+calls (``teleop_rt.sim_tick``).
 """
 
 from __future__ import annotations
@@ -70,42 +72,49 @@ class PlantState(Block):
 Q, V, TAU_MOTOR, TAU_LOAD, TAU, DAMPING, COULOMB = range(7)
 T, DT, H, INV_V_S, TOOL_V = range(5)  # scalar k at N_VECTORS * n + k
 N_VECTORS = len(PlantState.VECTORS)
+TICK = PlantState.INTS.index("tick")
 
 
-# The kernels below index the packed buffers directly (the plant is block 0, at offset 0):
-# a slice costs a compiled function tens of ns, more than the arithmetic it serves.
+# The kernels below index the packed buffers directly: ``o`` holds the plant's offsets (its
+# state block first, then its loads, a hand followed by its trajectory), as a view of whatever
+# buffers hold them (its own, or a session's, see ``SimBackend.rebind``); a slice costs a
+# compiled function tens of ns, more than the arithmetic it serves.
 
 
 @jit
-def total_torque(f: np.ndarray, n: int) -> None:
-    """tau = tau_motor + tau_load - friction(v)."""
-    inv_v_s = f[N_VECTORS * n + INV_V_S]
+def total_torque(f: np.ndarray, s: int, n: int) -> None:
+    """tau = tau_motor + tau_load - friction(v), for the plant state at f[s:]."""
+    inv_v_s = f[s + N_VECTORS * n + INV_V_S]
     for j in range(n):
-        friction = friction_torque(f[DAMPING * n + j], f[COULOMB * n + j], inv_v_s, f[V * n + j])
-        f[TAU * n + j] = f[TAU_MOTOR * n + j] + f[TAU_LOAD * n + j] - friction
+        friction = friction_torque(
+            f[s + DAMPING * n + j], f[s + COULOMB * n + j], inv_v_s, f[s + V * n + j]
+        )
+        f[s + TAU * n + j] = f[s + TAU_MOTOR * n + j] + f[s + TAU_LOAD * n + j] - friction
 
 
 @jit
-def command(f: np.ndarray, n: int, tau_cmd: np.ndarray) -> None:
+def command(f: np.ndarray, o: np.ndarray, n: int, tau_cmd: np.ndarray) -> None:
     """Hold the motor torque tau_cmd for the period; the total torque at the tick's start."""
+    s = o[0]
     for j in range(n):
-        f[TAU_MOTOR * n + j] = tau_cmd[j]
-    total_torque(f, n)
+        f[s + TAU_MOTOR * n + j] = tau_cmd[j]
+    total_torque(f, s, n)
 
 
 @jit
 def euler_step(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, a: np.ndarray) -> None:
     """One semi-implicit (symplectic) Euler step of h with acceleration a: the stateful loads,
     then v, then q with the new v."""
-    h = f[N_VECTORS * n + H]
+    s = o[0]
+    h = f[s + N_VECTORS * n + H]
     for b in range(1, o.size // 2):
         if i[o[2 * b + 1] + KIND] == HALF_SPACE:
             push_mass(f, o[2 * b], h)
     for j in range(n):
-        vj = f[V * n + j] + h * a[j]
-        f[V * n + j] = vj
-        f[Q * n + j] += h * vj
-    f[N_VECTORS * n + T] += h
+        vj = f[s + V * n + j] + h * a[j]
+        f[s + V * n + j] = vj
+        f[s + Q * n + j] += h * vj
+    f[s + N_VECTORS * n + T] += h
 
 
 @jit
@@ -114,10 +123,11 @@ def evaluate_loads(
 ) -> None:
     """tau_load: the sum of the loads' joint torques at the plant's (t, q, v), with the tool at x
     (world frame) and jac its translational Jacobian (rows 0-2, world-aligned)."""
-    t, tool_v = f[N_VECTORS * n + T], N_VECTORS * n + TOOL_V
+    s = o[0]
+    t, tool_v = f[s + N_VECTORS * n + T], s + N_VECTORS * n + TOOL_V
     vx = vy = vz = 0.0
     for j in range(n):
-        vj = f[V * n + j]
+        vj = f[s + V * n + j]
         vx += jac[0, j] * vj
         vy += jac[1, j] * vj
         vz += jac[2, j] * vj
@@ -141,14 +151,15 @@ def evaluate_loads(
             force = fo + HALF_SPACE_FORCE
             fx, fy, fz = fx + f[force], fy + f[force + 1], fz + f[force + 2]
         b += 1
+    tau_load = s + TAU_LOAD * n
     for j in range(n):  # tau = J^T F
-        f[TAU_LOAD * n + j] = jac[0, j] * fx + jac[1, j] * fy + jac[2, j] * fz if cartesian else 0.0
+        f[tau_load + j] = jac[0, j] * fx + jac[1, j] * fy + jac[2, j] * fz if cartesian else 0.0
     b = 1
     while b < blocks:
         fo, io = o[2 * b], o[2 * b + 1]
         kind = i[io + KIND]
         if kind != HAND and kind != HALF_SPACE:
-            joint_load_torque(f, i, fo, io, n, t, Q * n, V * n, TAU_LOAD * n)
+            joint_load_torque(f, i, fo, io, n, t, s + Q * n, s + V * n, tau_load)
         b += 2 if kind == HAND else 1
 
 
@@ -159,10 +170,11 @@ def sense(
 ) -> None:  # fmt: skip
     """Ideal sensors: the feedback (q, v, tau_ext = tau_load, fresh) and the world snapshot (the
     hand's reference and force, or the environment's force and contacts)."""
+    s = o[0]
     for j in range(n):
-        fb_f[FB_Q * n + j] = f[Q * n + j]
-        fb_f[FB_V * n + j] = f[V * n + j]
-        fb_f[FB_TAU_EXT * n + j] = f[TAU_LOAD * n + j]
+        fb_f[FB_Q * n + j] = f[s + Q * n + j]
+        fb_f[FB_V * n + j] = f[s + V * n + j]
+        fb_f[FB_TAU_EXT * n + j] = f[s + TAU_LOAD * n + j]
     fb_i[FB_AGE_TICKS] = 0
     hand = False
     fx = fy = fz = 0.0
@@ -193,8 +205,9 @@ def next_tick(
     f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, jac: np.ndarray, x: np.ndarray
 ) -> None:
     """The end of a write: the next tick's time and the loads there."""
-    i[0] += 1
-    f[N_VECTORS * n + T] = i[0] * f[N_VECTORS * n + DT]  # no drift from summing steps
+    tick = o[1] + TICK
+    i[tick] += 1
+    f[o[0] + N_VECTORS * n + T] = i[tick] * f[o[0] + N_VECTORS * n + DT]  # no drift from sums
     evaluate_loads(f, i, o, n, jac, x)
 
 
@@ -248,16 +261,33 @@ class SimBackend(Backend):
             blocks.append(load)
             if isinstance(load, ScriptedHand):
                 blocks.append(load.trajectory)
-        self.packed = Packed(blocks)
+        self.blocks = blocks
         self.state = state
-        # Pinocchio's arguments, looked up once: the state's views and the tool's placement
-        self._pin = (plant.model, plant.data, state.q, state.v, state.tau)
         self._cartesian = any(ld.cartesian for ld in loads)
-        self._tool = (plant.model, plant.data, state.q, plant.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)
         self._no_jacobian = np.zeros((6, n))
         self._x = plant._ee_translation  # a view of data.oMf, updated by the Jacobian call
-        self._buffers = (self.packed.f, self.packed.i, self.packed.offsets, n)
+        packed = Packed(blocks)
+        self.rebind(packed.f, packed.i, packed.offsets)
         self._evaluate_loads()
+
+    def rebind(self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray) -> None:
+        """Work on ``self.blocks`` where they are now: the buffers f, i that hold them and
+        their ``offsets`` there (a view, in ``blocks``' order). A session that packs the
+        plant with its own blocks (``teleop_rt.sim_tick``) calls this after packing."""
+        state, plant = self.state, self.plant
+        self._buffers = (f, i, offsets, self.n)
+        # Pinocchio's arguments, looked up once: the state's views and the tool's placement
+        self._pin = (plant.model, plant.data, state.q, state.v, state.tau)
+        self._tool = (plant.model, plant.data, state.q, plant.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)
+
+    @property
+    def compiled_common_case(self) -> bool:
+        """One semi-implicit Euler step per write, ideal sensors, no faults, and ``read`` and
+        ``write`` as defined here (not a subclass's): what the fused simulated tick
+        (``teleop_rt.sim_tick``) does in their place."""
+        cls = type(self)
+        own = cls.read is SimBackend.read and cls.write is SimBackend.write
+        return own and self._one_euler_step and self._ideal_sensors
 
     @property
     def tau_motor(self) -> np.ndarray:
@@ -288,7 +318,7 @@ class SimBackend(Backend):
     def write(self, tau: list[float] | np.ndarray) -> None:
         tau = tau if isinstance(tau, np.ndarray) else as_floats(tau)
         f, i, o, n = self._buffers
-        command(f, n, tau)
+        command(f, o, n, tau)
         if self._one_euler_step:
             model, data, q, v, tau_total = self._pin
             euler_step(f, i, o, n, pin.aba(model, data, q, v, tau_total))
@@ -353,7 +383,7 @@ class SimBackend(Backend):
     def _acceleration(self) -> np.ndarray:
         """Joint acceleration at the plant's state with the loads last evaluated (ABA; M a + n
         = g + tau_motor + tau_load - friction)."""
-        total_torque(self.state.f, self.n)
+        total_torque(self.state.f, 0, self.n)
         return pin.aba(*self._pin)
 
     def _rk4_step(self) -> None:
