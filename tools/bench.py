@@ -12,7 +12,8 @@ and read the medians, not the maxima):
    recording, and the controller-side tick (what runs against hardware: read, models,
    controllers, channel, safety, write; the feedback replayed from a simulated run);
 4. real-time mode, S seconds at 1 kHz with recording on: deadline lateness percentiles and
-   the ticks that started more than a whole period late;
+   the ticks that started more than a whole period late; then the host's own wake-up latency
+   under the same grant for S seconds, measured by cyclictest (rt-tests) if it is installed;
 5. how the tick grows with the number of joints (planar chains generated from one template).
 Times are min / median / p99 over R repeats of N ticks (the repeat with the lowest median).
 """
@@ -25,6 +26,8 @@ import json
 import os
 import platform
 import resource
+import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -205,6 +208,62 @@ def realtime(cfg, seconds: float, tmp: Path) -> dict:
     return {"timing": summary.timing, "notes": summary.notes, "stopped": summary.stopped_early}
 
 
+def host_baseline(seconds: float, rate_hz: float, priority: int = 80) -> dict | None:
+    """The host's own wake-up latency under the loop's grant (SCHED_FIFO, the same CPU, locked
+    memory), measured by rt-tests' cyclictest, the field's standard tool: a C thread that does
+    nothing but sleep to absolute deadlines. What it sees late, no loop on this host can be on
+    time for. None if cyclictest is not installed."""
+    exe = shutil.which("cyclictest")
+    if exe is None:
+        return None
+    period_us = round(1e6 / rate_hz)
+    cpu = sorted(os.sched_getaffinity(0))[-1]  # where acquire_realtime pins the loop
+    loops, bins = int(seconds * rate_hz), 3 * period_us
+    cmd = [exe, "-q", "-m", "-t", "1", "-p", str(priority), "-a", str(cpu),
+           "-i", str(period_us), "-l", str(loops), "-h", str(bins)]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=2 * seconds + 60)
+    if done.returncode != 0:
+        lines = done.stderr.strip().splitlines() or [f"exit {done.returncode}"]
+        return {"error": lines[-1]}
+    return cyclictest_summary(done.stdout, period_us)
+
+
+def cyclictest_summary(text: str, period_us: int) -> dict:
+    """p50 / p99 / p99.9 / max (us) and the wake-ups later than a whole period, from
+    cyclictest's histogram output (one thread; 1 us bins, overflows beyond the last bin)."""
+    hist: dict[int, int] = {}
+    overflows, max_us = 0, 0
+    for row in text.splitlines():
+        if row.startswith("# Histogram Overflows:"):
+            overflows = int(row.split(":")[1].split()[0])
+        elif row.startswith("# Max Latencies:"):
+            max_us = int(row.split(":")[1].split()[0])
+        elif row[:1].isdigit():
+            latency, count = row.split()[:2]
+            hist[int(latency)] = int(count)
+    total = sum(hist.values()) + overflows
+    if not total:
+        raise ValueError("cyclictest printed no histogram")
+
+    def percentile(p: float) -> float:
+        seen = 0
+        for latency in sorted(hist):
+            seen += hist[latency]
+            if seen >= p * total:
+                return float(latency)
+        return float(max_us)  # in the overflows
+
+    late = overflows + sum(c for latency, c in hist.items() if latency > period_us)
+    return {
+        "wakeups": total,
+        "p50": percentile(0.5),
+        "p99": percentile(0.99),
+        "p99.9": percentile(0.999),
+        "max": float(max_us),
+        "late_over_period": late,
+    }
+
+
 def chain_urdf(n: int) -> str:
     """A planar serial chain of n revolute z joints, 0.6 m long in all, a tool at its end."""
     length, mass = 0.6 / n, 2.0 / n
@@ -350,6 +409,18 @@ def run(args, cfg, joints: list[int]) -> int:
             for note in rt["notes"]:
                 print(f"  note: {note}")
             out["realtime"] = rt
+            print(f"host baseline: cyclictest, {args.rt_seconds:g} s, the same grant")
+            host = host_baseline(args.rt_seconds, cfg.rate_hz)
+            if host is None:
+                print("  cyclictest not installed (Debian: apt install rt-tests); skipped")
+            elif "error" in host:
+                print(f"  cyclictest failed: {host['error']}")
+            else:
+                print(f"  wake-up latency     p50 {host['p50']:6.1f}  p99 {host['p99']:6.1f}  "
+                      f"p99.9 {host['p99.9']:7.1f}  max {host['max']:8.1f} us")  # fmt: skip
+                print(f"  wake-ups over a period late: {host['late_over_period']} of "
+                      f"{host['wakeups']} (a thread that does nothing else)")  # fmt: skip
+            out["host_baseline"] = host
 
         if joints:  # --joints "" skips the scaling table
             print("\nscaling with the number of joints (planar chains, full tick, recording off)")
