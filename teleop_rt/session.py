@@ -38,11 +38,12 @@ from teleop_rt.loop import StopSignals, TickClock, TimingStats, acquire_realtime
 from teleop_rt.model import RobotModel
 from teleop_rt.safety import Supervisor
 from teleop_rt.sim_tick import (
+    PLANT_H,
     finish_and_command,
     integrate,
-    load_simulated_tick,
     next_ticks,
     sense_and_prepare,
+    warm_up_simulated_tick,
 )
 from teleop_rt.tick import BLOCK_ORDER, TickSignals, after_models, before_models
 
@@ -178,12 +179,15 @@ class Session:
         f, i, o, n = self._buffers
         before_models(f.copy(), i.copy(), o, n)
         after_models(f.copy(), i.copy(), o, n, np.zeros(n), np.zeros(n))
+        # the fused tick: the same arithmetic as read / write, in fewer calls
         self.fused = bool(plants) and all(plant.compiled_common_case for plant in plants)
         if self.fused:
+            # the layout the fused kernels assume: the HSI's plant right after the session's
+            # blocks, the TO's from ``split`` to the end
+            assert ranges[0][0] == PLANT_H and ranges[1][1] == len(ordered)
             self._split = ranges[1][0]
             self._plants = plants
-            load_simulated_tick(f.copy(), i.copy(), o, n, self._split)
-            self.step = self._step_simulated  # the same tick, in fewer calls
+            warm_up_simulated_tick(f.copy(), i.copy(), o, n, self._split)
 
     @property
     def tau_h(self) -> np.ndarray:
@@ -197,6 +201,13 @@ class Session:
 
     def step(self) -> None:
         """One control tick: read, channel, controllers, computed torque, safety, write."""
+        if self.fused:
+            self._step_simulated()
+        else:
+            self._step_through_backends()
+
+    def _step_through_backends(self) -> None:
+        # (keep in step with _step_simulated, its fused twin)
         hsi, to = self.hsi, self.to
         fb_h = hsi.backend.read()
         fb_t = to.backend.read()
@@ -217,7 +228,8 @@ class Session:
 
     def _step_simulated(self) -> None:
         """``step`` on two simulated plants in their common case: the same arithmetic in four
-        compiled calls around the six Pinocchio calls (teleop_rt.sim_tick)."""
+        compiled calls around the Pinocchio calls (teleop_rt.sim_tick). It uses the plants'
+        cached Pinocchio arguments and Jacobian directly: what their ``write`` would do."""
         f, i, o, n = self._buffers
         split = self._split
         sense_and_prepare(f, i, o, n, split)

@@ -1,6 +1,7 @@
 """A session's tick on two simulated plants, fused: the controller's halves (``teleop_rt.tick``)
-and both plants' compiled pieces (``teleop_rt.hal.sim``) in four compiled calls around the six
-Pinocchio calls, instead of ten calls and four backend method calls.
+and both plants' compiled pieces (``teleop_rt.hal.sim``) in four compiled calls around the
+Pinocchio calls (six when loads act at the tools), instead of ten compiled calls and four
+backend method calls.
 
     sense_and_prepare:  both plants' sensors; before_models
     (Python)            RNEA of each controller model
@@ -83,7 +84,7 @@ def next_ticks(
     next_tick(f, i, o[2 * split :], n, jac_t, x_t)
 
 
-def load_simulated_tick(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, split: int) -> None:
+def warm_up_simulated_tick(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, split: int) -> None:
     """Load (or, on a fresh install, compile) the four kernels now, not at the first deadline:
     run them once on the given scratch copies of a session's buffers."""
     zeros, jac, x = np.zeros(n), np.zeros((6, n)), np.zeros(3)

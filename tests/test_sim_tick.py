@@ -1,7 +1,7 @@
 """The fused simulated tick (teleop_rt.sim_tick): on two simulated plants in their common case a
-session runs the controller's and the plants' compiled pieces in four calls instead of through
-``Backend.read`` / ``write``. It must compute exactly what the backends' own entry points do,
-bit for bit, and only run where it applies."""
+session packs the plants with its own blocks and runs the controller's and the plants' compiled
+pieces in four calls instead of through ``Backend.read`` / ``write``. It must compute exactly
+what plants on their own buffers compute, bit for bit, and only run where it applies."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from teleop_rt.errors import SafetyStop
 from teleop_rt.hal import sim
 from teleop_rt.hal.base import register_backend
 from teleop_rt.session import Session
+from teleop_rt.sim_tick import PLANT_H
 from tests.conftest import CONFIGS
 
 PAPER = CONFIGS / "paper_experiment.yaml"
@@ -20,29 +21,66 @@ PAPER = CONFIGS / "paper_experiment.yaml"
 
 def general_step(session: Session) -> None:
     """The tick through the backends' read and write, whatever the session chose."""
-    Session.step(session)
+    session._step_through_backends()
 
 
-def test_the_fused_tick_equals_the_backends_entry_points_bit_for_bit() -> None:
-    """The whole paper experiment (free space, foam, the wall) with 20 ms of delay, tick by
-    tick: every signal and state of the session and of both plants (one packed buffer pair
-    holds them all) agrees exactly."""
-    cfg = config.load(PAPER, ["channel.delay_ms=20"])
-    fused, general = Session(cfg), Session(cfg)
-    assert fused.fused and general.fused
-    contacts = np.zeros(2)
+class _NotASimBackend:
+    """Stands in for SimBackend in teleop_rt.session, so that a session leaves its plants on
+    their own buffers, as before the fused tick existed: the reference."""
+
+
+def unpacked_session(cfg: config.SessionConfig, monkeypatch: pytest.MonkeyPatch) -> Session:
+    with monkeypatch.context() as m:
+        m.setattr("teleop_rt.session.SimBackend", _NotASimBackend)
+        session = Session(cfg)
+    assert not session.fused and len(session.packed.blocks) == PLANT_H
+    return session
+
+
+def states(session: Session) -> list[np.ndarray]:
+    """Every block of the session and of both plants, wherever they are packed."""
+    plants = [b for side in (session.hsi, session.to) for b in side.backend.blocks]
+    return [x for b in [*session.packed.blocks[:PLANT_H], *plants] for x in (b.f, b.i)]
+
+
+# the paper experiment with delay: a hand, foam and a wall; a damper operator (a joint load)
+# with a TO pulled by a spring against a mass it pushes
+CASES = {
+    "paper, 20 ms": ["channel.delay_ms=20"],
+    "damper, spring, mass": [
+        "duration_s=4",
+        "operator={kind: damper, damping_nm_s_per_rad: 0.2}",
+        "environment=[{kind: spring, point_m: [0.38, 0.0], normal: [-1, 0], "
+        "stiffness_n_per_m: 200}, {kind: mass, point_m: [0.0, -0.012], normal: [0, 1], "
+        "mass_kg: 0.5}]",
+    ],
+}
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_the_fused_tick_equals_plants_on_their_own_buffers_bit_for_bit(case, monkeypatch) -> None:
+    """Tick by tick, every signal and state of the session and of both plants agrees exactly
+    with a session whose plants keep their own buffers and are stepped through read / write;
+    so does the packed session stepped through read / write."""
+    cfg = config.load(PAPER, CASES[case])
+    fused, general, reference = Session(cfg), Session(cfg), unpacked_session(cfg, monkeypatch)
+    assert fused.fused
+    q0, moved, touched = np.array(cfg.hsi.robot.q0_rad), 0.0, np.zeros(len(cfg.environment))
     for k in range(cfg.n_ticks):
         fused.step()
         general_step(general)
-        assert np.array_equal(fused.packed.f, general.packed.f), k
-        assert np.array_equal(fused.packed.i, general.packed.i), k
-        contacts += fused.to.backend.world.contacts
-    assert contacts.min() > 500, f"foam and wall must both have been pressed: {contacts}"
-    assert fused.tick == general.tick == cfg.n_ticks
+        reference.step()
+        for a, b, c in zip(states(fused), states(general), states(reference), strict=True):
+            assert np.array_equal(a, c) and np.array_equal(b, c), k
+        moved = max(moved, np.abs(fused.hsi.feedback.q - q0).max())
+        touched += fused.to.backend.world.contacts
+    assert fused.tick == cfg.n_ticks
+    assert moved > 0.05, f"the HSI must have moved: {moved} rad"
+    assert touched.min() >= 5, f"the TO must have touched every element: {touched} ticks"
 
 
 def test_a_safety_stop_in_the_fused_tick_reaches_no_plant() -> None:
-    """A wildly unstable HSI: both ticks stop at the same tick with the same finding, and the
+    """A wildly unstable HSI: both paths stop at the same tick with the same finding, and the
     plants keep the motor torques of the last tick that passed the checks."""
     cfg = config.load(PAPER, ["duration_s=3", "hsi.controller.kp=1e6"])
     fused, general = Session(cfg), Session(cfg)
@@ -73,32 +111,65 @@ def test_a_safety_stop_in_the_fused_tick_reaches_no_plant() -> None:
         ["plant.faults=[{kind: stuck, robot: hsi, start_s: 100.0}]"],
     ],
 )
-def test_the_general_path_runs_where_the_fused_tick_does_not_apply(overrides) -> None:
-    session = Session(config.load(PAPER, overrides))
+def test_the_general_path_runs_where_the_fused_tick_does_not_apply(overrides, monkeypatch):
+    """Sub-steps, RK4, noise, faults: the plants, packed with the session, step through read /
+    write, exactly as on their own buffers."""
+    cfg = config.load(PAPER, ["duration_s=0.3", *overrides])
+    session, reference = Session(cfg), unpacked_session(cfg, monkeypatch)
     assert not session.fused
-    session.step()  # and the plants, packed with the session, still step
-    assert session.hsi.backend.state.tick == 1
+    for k in range(cfg.n_ticks):
+        session.step()
+        reference.step()
+        for a, b in zip(states(session), states(reference), strict=True):
+            assert np.array_equal(a, b), k
 
 
-class _Recording(sim.SimBackend):
-    """A sim backend that overrides write: the session must call it."""
-
+class _CountingWrites(sim.SimBackend):
     def write(self, tau) -> None:
-        self.written += 1
+        self.calls += 1
         super().write(tau)
 
 
-@register_backend("test_sim_recording_writes")
-def _recording(cfg, side, model, operator=None):
+class _CountingReads(sim.SimBackend):
+    def read(self):
+        self.calls += 1
+        return super().read()
+
+
+def _counting(cls):
+    def factory(cfg, side, model, operator=None):
+        backend = sim._make_sim(cfg, side, model, operator)
+        backend.__class__ = cls
+        backend.calls = 0
+        return backend
+
+    return factory
+
+
+register_backend("test_sim_counting_writes")(_counting(_CountingWrites))
+register_backend("test_sim_counting_reads")(_counting(_CountingReads))
+
+
+@register_backend("test_sim_write_replaced")
+def _write_replaced(cfg, side, model, operator=None):
     backend = sim._make_sim(cfg, side, model, operator)
-    backend.__class__ = _Recording
-    backend.written = 0
+    plain = backend.write
+    backend.calls = 0
+
+    def write(tau) -> None:
+        backend.calls += 1
+        plain(tau)
+
+    backend.write = write
     return backend
 
 
-def test_a_backend_that_overrides_its_entry_points_is_called_through_them() -> None:
-    session = Session(config.load(PAPER, ["backend=test_sim_recording_writes"]))
+@pytest.mark.parametrize(
+    "backend", ["test_sim_counting_writes", "test_sim_counting_reads", "test_sim_write_replaced"]
+)
+def test_a_backend_whose_entry_points_are_overridden_is_called_through_them(backend) -> None:
+    session = Session(config.load(PAPER, [f"backend={backend}"]))
     assert not session.fused
     for _ in range(3):
         session.step()
-    assert session.hsi.backend.written == session.to.backend.written == 3
+    assert session.hsi.backend.calls == session.to.backend.calls == 3

@@ -287,6 +287,7 @@ class SimBackend(Backend):
         (``teleop_rt.sim_tick``) does in their place."""
         cls = type(self)
         own = cls.read is SimBackend.read and cls.write is SimBackend.write
+        own = own and not {"read", "write"} & vars(self).keys()  # nor replaced on the instance
         return own and self._one_euler_step and self._ideal_sensors
 
     @property
