@@ -269,6 +269,18 @@ class SimBackend(Backend):
         packed = Packed(blocks)
         self.rebind(packed.f, packed.i, packed.offsets)
         self._evaluate_loads()
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Load (or, on a fresh install, compile) the write's kernels now, on scratch copies of
+        the state, not at the first write: loading takes milliseconds, a period of a drive
+        emulator or of a session that runs this plant."""
+        f, i, o, n = self._buffers
+        f, i, zeros = f.copy(), i.copy(), np.zeros(n)
+        command(f, o, n, zeros)
+        euler_step(f, i, o, n, zeros)
+        next_tick(f, i, o, n, self._no_jacobian, np.zeros(3))
+        total_torque(f, int(o[0]), n)
 
     def rebind(self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray) -> None:
         """Work on ``self.blocks`` where they are now: the buffers f, i that hold them and
