@@ -17,10 +17,12 @@ import ctypes.util
 import gc
 import os
 import signal
+import struct
 import sys
 import threading
 import time
 from dataclasses import dataclass
+from typing import BinaryIO
 
 import numpy as np
 
@@ -28,6 +30,7 @@ from teleop_rt.errors import SafetyStop
 
 OVERRUN_POLICIES = ("catch_up", "skip", "stop")
 MCL_CURRENT, MCL_FUTURE = 1, 2  # <sys/mman.h>
+CPU_DMA_LATENCY = "/dev/cpu_dma_latency"  # the kernel's PM QoS request for wake-up latency
 
 
 class OverrunStop(SafetyStop):
@@ -149,8 +152,12 @@ class RealtimeGrant:
     old_policy: tuple[int, int] | None = None
     old_affinity: set[int] | None = None
     memory_locked: bool = False
+    wakeup_latency: BinaryIO | None = None  # /dev/cpu_dma_latency, held open for the loop
 
     def release(self) -> None:
+        if self.wakeup_latency is not None:
+            self.wakeup_latency.close()  # the kernel drops the request with the last close
+            self.wakeup_latency = None
         if self.gc_was_enabled:
             gc.enable()
         if self.old_policy is not None:
@@ -176,7 +183,8 @@ def acquire_realtime(priority: int = 80, cpu: int | None = -1) -> RealtimeGrant:
     """Ask the OS for what a 1 kHz loop needs and report what worked: SCHED_FIFO, one CPU of
     its own (``cpu``: an index into the allowed CPUs, -1 the last one, so the log writer and the
     OS keep the others; None leaves the affinity alone), memory locked against page faults
-    (mlockall), and the garbage collector frozen for the loop."""
+    (mlockall), no deep CPU idle states (/dev/cpu_dma_latency), and the garbage collector
+    frozen for the loop."""
     notes: list[str] = []
     old = None
     if hasattr(os, "sched_setscheduler"):
@@ -194,12 +202,13 @@ def acquire_realtime(priority: int = 80, cpu: int | None = -1) -> RealtimeGrant:
         notes.append("SCHED_FIFO is not available on this OS; default scheduler")
     old_affinity = _pin_cpu(cpu, notes)
     locked = _lock_memory(notes)
+    wakeup = hold_wakeup_latency(notes)
     gc_enabled = gc.isenabled()
     gc.collect()
     gc.freeze()
     gc.disable()
     notes.append("garbage collector frozen for the loop")
-    return RealtimeGrant(notes, gc_enabled, old, old_affinity, locked)
+    return RealtimeGrant(notes, gc_enabled, old, old_affinity, locked, wakeup)
 
 
 def _pin_cpu(cpu: int | None, notes: list[str]) -> set[int] | None:
@@ -217,6 +226,28 @@ def _pin_cpu(cpu: int | None, notes: list[str]) -> set[int] | None:
         return None
     notes.append(f"pinned to CPU {target} of {allowed}")
     return set(allowed)
+
+
+def hold_wakeup_latency(notes: list[str], path: str = CPU_DMA_LATENCY) -> BinaryIO | None:
+    """Ask the kernel's PM QoS for a 0 us CPU wake-up latency (no deep idle states, whose exit
+    adds tens to hundreds of us to a wake-up) for as long as the returned file stays open, as
+    cyclictest does; None, with a note, if not granted."""
+    try:
+        handle = open(path, "wb", buffering=0)  # noqa: SIM115 - held open for the loop
+    except OSError as err:
+        notes.append(
+            f"CPU wake-up latency not held ({path}: {err.strerror}); deep idle states may "
+            "add latency"
+        )
+        return None
+    try:
+        handle.write(struct.pack("i", 0))
+    except OSError as err:
+        handle.close()
+        notes.append(f"CPU wake-up latency not held ({path}: {err.strerror})")
+        return None
+    notes.append(f"CPU wake-up latency held at 0 us ({path})")
+    return handle
 
 
 def _lock_memory(notes: list[str]) -> bool:

@@ -8,10 +8,20 @@ computation.
 
 from __future__ import annotations
 
+import gc
+import struct
+
 import pytest
 
 from teleop_rt.errors import SafetyStop, TeleopError
-from teleop_rt.loop import OVERRUN_POLICIES, OverrunStop, TickClock, TimingStats
+from teleop_rt.loop import (
+    OVERRUN_POLICIES,
+    OverrunStop,
+    RealtimeGrant,
+    TickClock,
+    TimingStats,
+    hold_wakeup_latency,
+)
 
 PERIOD = 1_000_000  # 1 kHz
 SPIN = 200_000
@@ -261,3 +271,20 @@ def test_timing_stats_empty() -> None:
     assert s["ticks"] == 0 and s["missed_deadlines"] == 0
     zero = {"p50": 0.0, "p99": 0.0, "p99.9": 0.0, "max": 0.0}
     assert s["compute_us"] == zero and s["lateness_us"] == zero
+
+
+def test_the_wakeup_latency_request_is_held_until_the_grant_is_released(tmp_path) -> None:
+    path = tmp_path / "cpu_dma_latency"  # stands in for the kernel's PM QoS file
+    path.touch()
+    notes: list[str] = []
+    handle = hold_wakeup_latency(notes, str(path))
+    assert path.read_bytes() == struct.pack("i", 0)  # 0 us, as a native int
+    assert not handle.closed and notes == [f"CPU wake-up latency held at 0 us ({path})"]
+    RealtimeGrant([], gc.isenabled(), wakeup_latency=handle).release()
+    assert handle.closed  # the kernel drops the request with the last close
+
+
+def test_a_wakeup_latency_request_not_granted_is_a_note(tmp_path) -> None:
+    notes: list[str] = []
+    assert hold_wakeup_latency(notes, str(tmp_path / "missing" / "cpu_dma_latency")) is None
+    assert notes[0].startswith("CPU wake-up latency not held (") and "deep idle" in notes[0]

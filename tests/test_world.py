@@ -180,7 +180,7 @@ def test_a_one_joint_robot_feels_a_tool_load_through_its_jacobian() -> None:
     assert plant.read().tau_ext[0] == pytest.approx(expected, rel=1e-12)
 
 
-def test_a_new_plant_has_its_kernels_loaded_before_its_first_write() -> None:
+def test_a_new_plant_has_its_kernels_loaded_before_its_first_read_and_write() -> None:
     """Loading a compiled kernel takes milliseconds: a drive emulator whose plant loaded its
     write's kernels at the first write (when the drives enable) missed three SYNC windows and
     the master stopped. In a fresh process, constructing the plant loads them."""
@@ -194,7 +194,7 @@ def test_a_new_plant_has_its_kernels_loaded_before_its_first_write() -> None:
         from teleop_rt.hal import sim
         from teleop_rt.model import RobotModel
         from teleop_rt.world import HalfPlaneContact
-        kernels = (sim.command, sim.euler_step, sim.next_tick, sim.total_torque)
+        kernels = (sim.sense, sim.command, sim.euler_step, sim.next_tick, sim.total_torque)
         assert not any(k.signatures for k in kernels), "loaded before the test"
         model = RobotModel.from_spec(RobotSpec(urdf={str(SCARA_URDF)!r}, ee_frame="tool"), "to")
         wall = HalfPlaneContact(WallSpec(kind="wall", point_m=[0.4, 0], normal=[-1, 0],
@@ -206,4 +206,4 @@ def test_a_new_plant_has_its_kernels_loaded_before_its_first_write() -> None:
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=300
     )
     assert done.returncode == 0, done.stderr
-    assert done.stdout.split() == ["[1,", "1,", "1,", "1]"]
+    assert done.stdout.split() == ["[1,", "1,", "1,", "1,", "1]"]

@@ -210,8 +210,9 @@ def realtime(cfg, seconds: float, tmp: Path) -> dict:
 
 def host_baseline(seconds: float, rate_hz: float, priority: int = 80) -> dict | None:
     """The host's own wake-up latency under the loop's grant (SCHED_FIFO, the same CPU, locked
-    memory), measured by rt-tests' cyclictest, the field's standard tool: a C thread that does
-    nothing but sleep to absolute deadlines. What it sees late, no loop on this host can be on
+    memory, wake-up latency held at 0 us: cyclictest's defaults), measured by rt-tests'
+    cyclictest, the field's standard tool: a C thread that does nothing but sleep to absolute
+    deadlines. What it sees late, no loop on this host can be on
     time for. None if cyclictest is not installed."""
     exe = shutil.which("cyclictest")
     if exe is None:
@@ -221,11 +222,14 @@ def host_baseline(seconds: float, rate_hz: float, priority: int = 80) -> dict | 
     loops, bins = int(seconds * rate_hz), 3 * period_us
     cmd = [exe, "-q", "-m", "-t", "1", "-p", str(priority), "-a", str(cpu),
            "-i", str(period_us), "-l", str(loops), "-h", str(bins)]  # fmt: skip
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=2 * seconds + 60)
-    if done.returncode != 0:
-        lines = done.stderr.strip().splitlines() or [f"exit {done.returncode}"]
-        return {"error": lines[-1]}
-    return cyclictest_summary(done.stdout, period_us)
+    try:
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=2 * seconds + 60)
+        if done.returncode != 0:
+            lines = done.stderr.strip().splitlines() or [f"exit {done.returncode}"]
+            return {"error": "; ".join(lines)}
+        return cyclictest_summary(done.stdout, period_us)
+    except (subprocess.TimeoutExpired, OSError, ValueError) as err:  # the rest of the bench goes on
+        return {"error": str(err)}
 
 
 def cyclictest_summary(text: str, period_us: int) -> dict:
@@ -253,7 +257,8 @@ def cyclictest_summary(text: str, period_us: int) -> dict:
                 return float(latency)
         return float(max_us)  # in the overflows
 
-    late = overflows + sum(c for latency, c in hist.items() if latency > period_us)
+    # bin b holds [b, b + 1) us: from bin period_us on, later than a whole period
+    late = overflows + sum(c for latency, c in hist.items() if latency >= period_us)
     return {
         "wakeups": total,
         "p50": percentile(0.5),

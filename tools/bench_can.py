@@ -91,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"[emulator] {line}")
         except subprocess.TimeoutExpired:
             emulator.kill()
-    if args.transport_free_cycles:
+    if code == 0 and args.transport_free_cycles:  # a run that failed is reported as such
         transport_free(cfg, args.side, args.transport_free_cycles)
     return code
 
@@ -166,8 +166,8 @@ def run(cfg: config.SessionConfig, args: argparse.Namespace) -> int:
     try:
         backend.start()
     except TeleopError as exc:  # a safety stop or a drive that does not answer
-        grant.release()
         backend.stop()
+        grant.release()
         print(f"bench_can: error: start-up failed: {exc}", file=sys.stderr)
         return 3
     print(f"start-up (reset, SDO, NMT, sensor zeroing, enable): {time.perf_counter() - t0:.2f} s")
@@ -191,8 +191,8 @@ def run(cfg: config.SessionConfig, args: argparse.Namespace) -> int:
     except SafetyStop as exc:
         stop_reason = str(exc)
     finally:
+        backend.stop()  # as a session does: the drives safe first, then the grant
         grant.release()
-        backend.stop()
     cpu, wall, late = cpu[:done] / 1e3, wall[:done] / 1e3, late[:done] / 1e3
     stats = {k: backend.stats[k] - base[k] for k in base}
     print(f"\n{done} cycles of {n_ticks} at {cfg.rate_hz} Hz ({side}: {backend.n} drives"

@@ -272,11 +272,12 @@ class SimBackend(Backend):
         self._warm_up()
 
     def _warm_up(self) -> None:
-        """Load (or, on a fresh install, compile) the write's kernels now, on scratch copies of
-        the state, not at the first write: loading takes milliseconds, a period of a drive
-        emulator or of a session that runs this plant."""
+        """Load (or, on a fresh install, compile) the read's and write's kernels now, on scratch
+        copies of the state, not at the first read or write: loading takes milliseconds, a
+        period of a drive emulator or of a session that runs this plant."""
         f, i, o, n = self._buffers
         f, i, zeros = f.copy(), i.copy(), np.zeros(n)
+        sense(f, i, o, n, self.feedback.f.copy(), self.feedback.i.copy(), self.world.f.copy())
         command(f, o, n, zeros)
         euler_step(f, i, o, n, zeros)
         next_tick(f, i, o, n, self._no_jacobian, np.zeros(3))
