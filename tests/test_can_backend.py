@@ -500,3 +500,34 @@ def test_a_fault_while_the_other_robot_starts_stops_this_one_and_is_raised(free_
     assert set(after[:reaction]) <= {0x0F}, after[:reaction]
     assert set(after[reaction:]) <= {0x02, 0x00}, sorted(set(after[reaction:]))
     assert states == [FAULT, SOD]
+
+
+@pytest.mark.parametrize("poll_s", [0.0, 1e-4], ids=["blocking", "polling"])
+def test_the_free_running_emulator_answers_sync_blocking_or_polling(poll_s) -> None:
+    """``serve`` (the emulator's own thread, as tools/drive_emulator.py runs it) answers a SYNC
+    with the sensor's TPDO whether it blocks on the bus or polls it, and stops on request."""
+    import threading
+
+    channel = f"serve-{poll_s}"
+    emulator_bus = can.Bus(interface="virtual", channel=channel)
+    master = can.Bus(interface="virtual", channel=channel)
+    emulator = DriveEmulator(emulator_bus, make_cfg(), "hsi")
+    stop = threading.Event()
+    thread = threading.Thread(target=emulator.serve, args=(stop, 5, poll_s))
+    thread.start()
+    try:
+        while master.recv(0.05) is not None:  # the drives' boot-up frames
+            pass
+        master.send(can.Message(arbitration_id=0x080, data=b"", is_extended_id=False))
+        sensor = emulator.sensor.cob_id
+        answers = []
+        while (msg := master.recv(2.0)) is not None and msg.arbitration_id != sensor:
+            answers.append(msg.arbitration_id)
+        assert msg is not None, f"no sensor TPDO after SYNC; got {answers}"
+        assert emulator.sync_count == 1
+    finally:
+        stop.set()
+        thread.join(2.0)
+        emulator_bus.shutdown()
+        master.shutdown()
+    assert not thread.is_alive()

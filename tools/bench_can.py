@@ -2,7 +2,7 @@
 """Benchmark: the CAN backend against the drive emulator in another process, in real time.
 
     python tools/bench_can.py [CONFIG] [--seconds S] [--side hsi|to] [--set key=value ...]
-                              [--emulator-realtime]
+                              [--emulator-realtime] [--emulator-poll-us US]
 
 Starts ``tools/drive_emulator.py`` for one robot (two drives and a torque sensor by default)
 over the config's bus (``udp_multicast`` on loopback in configs/can_emulated.yaml), runs the
@@ -54,6 +54,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--side", choices=("hsi", "to"), default="hsi")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--emulator-realtime", action="store_true", help="SCHED_FIFO for the emulator")
+    p.add_argument(
+        "--emulator-poll-us", type=float, default=None, metavar="US",
+        help="the emulator's --poll-us (its default if not given; 0: it blocks on the bus)",
+    )  # fmt: skip
     p.add_argument("--transport-free-cycles", type=int, default=20000, metavar="N")
     args = p.parse_args(argv)
     overrides = [*args.overrides, "can.emulate=false"]
@@ -73,6 +77,8 @@ def main(argv: list[str] | None = None) -> int:
         cmd += ["--set", o]
     if args.emulator_realtime:
         cmd.append("--realtime")
+    if args.emulator_poll_us is not None:
+        cmd += ["--poll-us", str(args.emulator_poll_us)]
     emulator = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
     try:
         for line in emulator.stdout:

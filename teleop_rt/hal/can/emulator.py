@@ -643,13 +643,24 @@ class DriveEmulator:
         return out
 
     # --- free running ----------------------------------------------------------------------------
-    def serve(self, stop: threading.Event, idle_sync_periods: int = 5) -> None:
-        """Answer frames until ``stop`` is set; while no SYNC comes the clock follows the wall."""
+    def serve(self, stop: threading.Event, idle_sync_periods: int = 5, poll_s: float = 0.0) -> None:
+        """Answer frames until ``stop`` is set; while no SYNC comes the clock follows the wall.
+
+        ``poll_s`` > 0: look at the bus without blocking and sleep ``poll_s`` after each empty
+        look, instead of blocking in the bus's ``recv``. A drive is always listening; on a VM,
+        an emulator woken by each frame from another CPU answers late far more often."""
         last_wall = time.monotonic()
         last_sync = self.sync_count
         idle_after = idle_sync_periods * self.period_us / 1e6
+        recv, sleep = self.bus.recv, time.sleep
         while not stop.is_set():
-            msg = self.bus.recv(0.01)
+            if poll_s:
+                msg = recv(0.0)
+                if msg is None:
+                    sleep(poll_s)
+                    continue
+            else:
+                msg = recv(0.01)
             with self._lock:
                 if msg is not None:
                     self.handle(msg)
