@@ -200,56 +200,43 @@ class Session:
         return self.signals.tau_e
 
     def step(self) -> None:
-        """One control tick: read, channel, controllers, computed torque, safety, write."""
-        if self.fused:
-            self._step_simulated()
-        else:
-            self._step_through_backends()
+        """One control tick: read, channel, controllers, computed torque, safety, write.
 
-    def _step_through_backends(self) -> None:
-        # (keep in step with _step_simulated, its fused twin)
+        With ``fused`` (two simulated plants in their common case) the reads and writes are the
+        plants' compiled pieces inside the tick's own kernels (teleop_rt.sim_tick): the same
+        arithmetic in four compiled calls, using the plants' cached Pinocchio arguments and
+        Jacobian as their ``write`` would."""
         hsi, to = self.hsi, self.to
-        fb_h = hsi.backend.read()
-        fb_t = to.backend.read()
         f, i, o, n = self._buffers
-        before_models(f, i, o, n)
+        fused = self.fused
+        if fused:
+            sense_and_prepare(f, i, o, n, self._split)
+        else:
+            hsi.backend.read()  # into hsi.feedback
+            to.backend.read()
+            before_models(f, i, o, n)
         (model_h, data_h, q_h, v_h, a_h), (model_t, data_t, q_t, v_t, a_t) = self._pin
         rnea_h = pin.rnea(model_h, data_h, q_h, v_h, a_h)
         rnea_t = pin.rnea(model_t, data_t, q_t, v_t, a_t)
         supervisor = self.supervisor
         if supervisor.workspaces:
-            supervisor.check_workspaces(self.tick, fb_h, fb_t)
-        code = after_models(f, i, o, n, rnea_h, rnea_t)
+            supervisor.check_workspaces(self.tick, hsi.feedback, to.feedback)
+        if fused:  # only without a finding do the plants take the torques
+            code = finish_and_command(f, i, o, n, self._split, rnea_h, rnea_t)
+        else:
+            code = after_models(f, i, o, n, rnea_h, rnea_t)
         if code:
-            supervisor.raise_for(code, self.tick, fb_h, fb_t)
-        hsi.backend.write(hsi.computed_torque.tau)
-        to.backend.write(to.computed_torque.tau)
-        self.tick += 1
-
-    def _step_simulated(self) -> None:
-        """``step`` on two simulated plants in their common case: the same arithmetic in four
-        compiled calls around the Pinocchio calls (teleop_rt.sim_tick). It uses the plants'
-        cached Pinocchio arguments and Jacobian directly: what their ``write`` would do."""
-        f, i, o, n = self._buffers
-        split = self._split
-        sense_and_prepare(f, i, o, n, split)
-        (model_h, data_h, q_h, v_h, a_h), (model_t, data_t, q_t, v_t, a_t) = self._pin
-        rnea_h = pin.rnea(model_h, data_h, q_h, v_h, a_h)
-        rnea_t = pin.rnea(model_t, data_t, q_t, v_t, a_t)
-        supervisor = self.supervisor
-        if supervisor.workspaces:
-            supervisor.check_workspaces(self.tick, self.hsi.feedback, self.to.feedback)
-        code = finish_and_command(f, i, o, n, split, rnea_h, rnea_t)
-        if code:
-            supervisor.raise_for(code, self.tick, self.hsi.feedback, self.to.feedback)
-        plant_h, plant_t = self._plants
-        integrate(
-            f, i, o, n, split, pin.aba(*plant_h._pin), pin.aba(*plant_t._pin)
-        )  # fmt: skip
-        next_ticks(
-            f, i, o, n, split,
-            plant_h._jacobian(), plant_h._x, plant_t._jacobian(), plant_t._x,
-        )  # fmt: skip
+            supervisor.raise_for(code, self.tick, hsi.feedback, to.feedback)
+        if fused:
+            plant_h, plant_t = self._plants
+            integrate(f, i, o, n, self._split, pin.aba(*plant_h._pin), pin.aba(*plant_t._pin))
+            next_ticks(
+                f, i, o, n, self._split,
+                plant_h._jacobian(), plant_h._x, plant_t._jacobian(), plant_t._x,
+            )  # fmt: skip
+        else:
+            hsi.backend.write(hsi.computed_torque.tau)
+            to.backend.write(to.computed_torque.tau)
         self.tick += 1
 
     def run(
