@@ -232,19 +232,17 @@ def hold_wakeup_latency(notes: list[str], path: str = CPU_DMA_LATENCY) -> Binary
     """Ask the kernel's PM QoS for a 0 us CPU wake-up latency (no deep idle states, whose exit
     adds tens to hundreds of us to a wake-up) for as long as the returned file stays open, as
     cyclictest does; None, with a note, if not granted."""
+    handle = None
     try:
         handle = open(path, "wb", buffering=0)  # noqa: SIM115 - held open for the loop
+        handle.write(struct.pack("i", 0))
     except OSError as err:
+        if handle is not None:
+            handle.close()
         notes.append(
             f"CPU wake-up latency not held ({path}: {err.strerror}); deep idle states may "
             "add latency"
         )
-        return None
-    try:
-        handle.write(struct.pack("i", 0))
-    except OSError as err:
-        handle.close()
-        notes.append(f"CPU wake-up latency not held ({path}: {err.strerror})")
         return None
     notes.append(f"CPU wake-up latency held at 0 us ({path})")
     return handle

@@ -86,8 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--poll-us", type=float, default=100.0, metavar="US",
         help="poll the bus, sleeping US between empty polls (default 100; 0 blocks on the bus "
-        "instead): on this project's VM polling answered SYNC late 10-40x less often, for a "
-        "few %% of a CPU while idle",
+        "instead): on this project's VM polling answered SYNC late 10-40x less often, for "
+        "about 10 %% of a CPU while no frame comes",
     )  # fmt: skip
     args = p.parse_args(argv)
     if args.poll_us < 0:
