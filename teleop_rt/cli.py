@@ -26,6 +26,17 @@ def _build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"teleop-rt {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
+    def add_backend_arg(p: argparse.ArgumentParser) -> None:
+        p.add_argument(
+            "--backend",
+            type=_backend_arg,
+            action="append",
+            default=[],
+            metavar="[hsi:|to:]NAME",
+            help="backend instead of the config's, for both robots or one of them "
+            "(repeatable): --backend can, --backend hsi:can --backend to:sim",
+        )
+
     def add_config_args(p: argparse.ArgumentParser) -> None:
         p.add_argument("config", help="session config (YAML), e.g. configs/paper_experiment.yaml")
         add_set_arg(p, "override a config value, e.g. --set channel.delay_ms=50 (repeatable)")
@@ -44,12 +55,13 @@ def _build_parser() -> argparse.ArgumentParser:
         default="catch_up",
         help="what a late tick does in real-time mode (default: catch_up)",
     )
-    run.add_argument("--backend", metavar="NAME", help="backend to use instead of the config's")
+    add_backend_arg(run)
     run.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     add_log_args(run)
 
     check = sub.add_parser("check", help="validate a config (and load its robots) without running")
     add_config_args(check)
+    add_backend_arg(check)
 
     metrics = sub.add_parser("metrics", help="transparency, energy and timing figures of a log")
     metrics.add_argument("log", help="an MCAP log written by teleop-rt run or replay")
@@ -124,10 +136,35 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _backend_arg(value: str) -> tuple[str, str]:
+    """``NAME`` (both robots) or ``hsi:NAME`` / ``to:NAME``: (side or '', name)."""
+    side, sep, name = value.rpartition(":")
+    if sep and side not in ("hsi", "to"):
+        raise argparse.ArgumentTypeError(f"{value!r}: the robot is 'hsi' or 'to' (hsi:NAME)")
+    if not name:
+        raise argparse.ArgumentTypeError(f"{value!r}: a backend name is missing")
+    return side, name
+
+
+def _backend_overrides(choices: list[tuple[str, str]]) -> list[str]:
+    """--backend choices as config overrides: a name for both replaces each robot's too."""
+    out = []
+    for side, name in choices:
+        sides = [side] if side else ["hsi", "to"]
+        out += ([] if side else [f"backend={name}"]) + [f"{s}.backend={name}" for s in sides]
+    return out
+
+
 def _load_config(args: argparse.Namespace, extra: list[str] | None = None):
     from teleop_rt import config
 
-    return config.load(args.config, [*args.overrides, *(extra or [])])
+    backends = _backend_overrides(getattr(args, "backend", None) or [])
+    return config.load(args.config, [*args.overrides, *backends, *(extra or [])])
+
+
+def _backends_text(cfg) -> str:
+    hsi, to = cfg.backend_for("hsi"), cfg.backend_for("to")
+    return hsi if hsi == to else f"hsi {hsi}, to {to}"
 
 
 def _cmd_check(args: argparse.Namespace) -> int:
@@ -138,7 +175,7 @@ def _cmd_check(args: argparse.Namespace) -> int:
     _print_warnings(session)
     print(
         f"{args.config}: ok ({session.n} joints, {cfg.n_ticks} ticks at {cfg.rate_hz} Hz, "
-        f"delay {cfg.delay_ticks} ticks, backend {cfg.backend})"
+        f"delay {cfg.delay_ticks} ticks, backends {_backends_text(cfg)})"
     )
     return 0
 
@@ -157,8 +194,6 @@ def _cmd_run(args: argparse.Namespace) -> int:
     extra = []
     if args.duration is not None:
         extra.append(f"duration_s={args.duration}")
-    if args.backend is not None:
-        extra.append(f"backend={args.backend}")
     cfg = _load_config(args, extra)
     session = Session(cfg)
     _print_warnings(session)

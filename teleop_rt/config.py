@@ -93,6 +93,7 @@ class SideSpec(Strict):
     virtual_mass: PerJointPositive  # kg m^2 per joint (M1 or M2 of the paper)
     controller: ControllerSpec
     compensate_friction: bool = True  # include the model's joint friction in n(q, v)
+    backend: str | None = None  # this robot's backend; default: the session's ``backend``
 
 
 class ChannelSpec(Strict):
@@ -323,6 +324,14 @@ class SessionConfig(Strict):
     @property
     def dt(self) -> float:
         return 1.0 / self.rate_hz
+
+    def backend_for(self, side: str) -> str:
+        """The backend of robot ``side`` ('hsi' or 'to'): its own, else the session's."""
+        return getattr(self, side).backend or self.backend
+
+    @property
+    def backends(self) -> dict[str, str]:
+        return {side: self.backend_for(side) for side in ("hsi", "to")}
 
     @property
     def delay_ticks(self) -> int:

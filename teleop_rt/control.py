@@ -29,13 +29,8 @@ import math
 import numpy as np
 
 from teleop_rt.config import ControllerSpec, per_joint
-from teleop_rt.flat import Block, as_floats, jit, vec
+from teleop_rt.flat import Block, Int, Scalar, Vector, as_floats, jit, vec
 from teleop_rt.model import RobotModel, friction_torque
-
-# ComputedTorque block: vectors, scalars, ints
-INV_MASS, A_DES, TAU, DAMPING, COULOMB = range(5)
-CT_INV_V_S = 0
-CT_COMPENSATE = 0
 
 
 class ComputedTorque(Block):
@@ -47,9 +42,13 @@ class ComputedTorque(Block):
     ``ct_prepare`` (a_des), Pinocchio's RNEA on a_des, then ``ct_finish`` (tau).
     """
 
-    VECTORS = ("inv_mass", "a_des", "tau", "damping", "coulomb")
-    SCALARS = ("inv_v_s",)
-    INTS = ("compensate_friction",)
+    inv_mass = Vector("M_v^-1 per joint, 1/(kg m^2)", param=True)
+    a_des = Vector("M_v^-1 a_ref: the acceleration RNEA is evaluated at, rad/s^2")
+    tau = Vector("the motor torque, N m")
+    damping = Vector("the model's viscous friction, N m s/rad", param=True)
+    coulomb = Vector("the model's Coulomb friction, N m", param=True)
+    inv_v_s = Scalar("1 / the Coulomb smoothing speed", param=True)
+    compensate_friction = Int("1: the model's friction is added", param=True)
 
     def __init__(
         self, model: RobotModel, virtual_mass: list[float], compensate_friction: bool
@@ -70,6 +69,9 @@ class ComputedTorque(Block):
         return self.tau
 
 
+INV_MASS, A_DES, TAU = ComputedTorque.inv_mass.k, ComputedTorque.a_des.k, ComputedTorque.tau.k
+DAMPING, COULOMB = ComputedTorque.damping.k, ComputedTorque.coulomb.k
+CT_INV_V_S, CT_COMPENSATE = ComputedTorque.inv_v_s.k, ComputedTorque.compensate_friction.k
 N_CT_VECTORS = len(ComputedTorque.VECTORS)
 
 
@@ -96,12 +98,6 @@ def ct_finish(
             tau[j] += friction_torque(damping[j], coulomb[j], inv_v_s, v[j])
 
 
-# Pid block: vectors, scalars, ints
-OUT, KP, KI, KD, INTEGRAL_LIMIT, OUTPUT_LIMIT, INTEGRAL, DERIV, PREV_ERROR, SATURATED = range(10)
-PID_DT, D_ALPHA = range(2)
-PROPORTIONAL_ONLY, HAS_I, HAS_D, STARTED = range(4)
-
-
 class Pid(Block):
     """Per-joint P or PID law on an error signal, discretised with the tick period dt.
 
@@ -113,12 +109,22 @@ class Pid(Block):
     Absent limits are stored as infinite ones.
     """
 
-    VECTORS = (
-        "out", "kp", "ki", "kd", "integral_limit", "output_limit",
-        "integral", "deriv", "prev_error", "saturated",  # saturated: 1.0 where at the limit
-    )  # fmt: skip
-    SCALARS = ("dt", "d_alpha")
-    INTS = ("proportional_only", "has_i", "has_d", "started")
+    out = Vector("the controller's output: M_v a_ref, N m")
+    kp = Vector(param=True)
+    ki = Vector(param=True)
+    kd = Vector(param=True)
+    integral_limit = Vector(param=True)
+    output_limit = Vector(param=True)
+    integral = Vector("I")
+    deriv = Vector("the filtered derivative of the error")
+    prev_error = Vector()
+    saturated = Vector("1.0 where the output is at its limit")
+    dt = Scalar(param=True)
+    d_alpha = Scalar("derivative filter coefficient", param=True)
+    proportional_only = Int(param=True)
+    has_i = Int(param=True)
+    has_d = Int(param=True)
+    started = Int()
 
     def __init__(self, spec: ControllerSpec, n: int, dt: float, key: str) -> None:
         super().__init__(n)
@@ -147,6 +153,16 @@ class Pid(Block):
         return self.out
 
 
+OUT, KP, KI, KD = Pid.out.k, Pid.kp.k, Pid.ki.k, Pid.kd.k
+INTEGRAL_LIMIT, OUTPUT_LIMIT, INTEGRAL = Pid.integral_limit.k, Pid.output_limit.k, Pid.integral.k
+DERIV, PREV_ERROR, SATURATED = Pid.deriv.k, Pid.prev_error.k, Pid.saturated.k
+PID_DT, D_ALPHA = Pid.dt.k, Pid.d_alpha.k
+PROPORTIONAL_ONLY, HAS_I, HAS_D, STARTED = (
+    Pid.proportional_only.k,
+    Pid.has_i.k,
+    Pid.has_d.k,
+    Pid.started.k,
+)
 N_PID_VECTORS = len(Pid.VECTORS)
 
 

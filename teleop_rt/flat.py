@@ -15,12 +15,39 @@ module constants with the same indices, listed next to the names.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
+from pathlib import Path
+from typing import overload
 
 import numba
 import numpy as np
 
-# compiled once per machine and cached beside the sources (the first run pays a few seconds)
+
+def _source_hash() -> str:
+    """A hash of every source file of the package: the compiled kernels' cache key."""
+    digest = hashlib.sha256()
+    root = Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:16]
+
+
+def _kernel_cache_dir() -> Path:
+    """Where compiled kernels are cached: a folder per version of the package's sources.
+
+    numba's own cache checks a kernel's file but not the files of the kernels it calls, so an
+    edit to a callee (or a revert) could leave stale machine code; keyed by a hash of all the
+    sources, any edit starts a fresh folder. ``NUMBA_CACHE_DIR`` moves the root; to debug a
+    kernel as Python, run with ``NUMBA_DISABLE_JIT=1``."""
+    root = Path(numba.config.CACHE_DIR or Path.home() / ".cache" / "teleop_rt" / "numba")
+    return root / _source_hash()
+
+
+# compiled once per version of the sources and cached (the first run pays some seconds); the
+# decorators below pick the folder up when they are applied
+numba.config.CACHE_DIR = str(_kernel_cache_dir())
 jit = numba.njit(cache=True, nogil=True)
 # for the small helpers that slice the buffers: inlined where they are called, which saves the
 # call (about a third of a slice's cost here); the view itself still costs tens of ns for its
@@ -46,16 +73,103 @@ def ints_of(i: np.ndarray, offsets: np.ndarray, block: int) -> np.ndarray:
     return i[offsets[2 * block + 1] :]
 
 
+class Vector:
+    """A block's n-vector field (declared once, as a class attribute): its index ``k`` among the
+    block's vectors is derived from the declaration order, for the compiled kernels to use
+    (``K = MyBlock.name.k``); instances see a float64 view."""
+
+    kind = "vector"
+
+    def __init__(self, doc: str = "", *, param: bool = False) -> None:
+        self.doc, self.param = doc, param
+        self.name, self.k = "", -1
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> Vector: ...
+    @overload
+    def __get__(self, obj: Block, owner: type | None = None) -> np.ndarray: ...
+    def __get__(self, obj: Block | None, owner: type | None = None) -> Vector | np.ndarray:
+        if obj is None:
+            return self
+        return obj.f[self.k * obj.n : (self.k + 1) * obj.n]  # (normally shadowed by _bind)
+
+
+class Scalar:
+    """A block's float field; read and written from Python through a memoryview (a fraction
+    of numpy's per-element cost). ``k``: its index among the scalars."""
+
+    kind = "scalar"
+
+    def __init__(self, doc: str = "", *, param: bool = False) -> None:
+        self.doc, self.param = doc, param
+        self.name, self.k, self.base = "", -1, 0
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> Scalar: ...
+    @overload
+    def __get__(self, obj: Block, owner: type | None = None) -> float: ...
+    def __get__(self, obj: Block | None, owner: type | None = None) -> Scalar | float:
+        if obj is None:
+            return self
+        return obj._f_mv[self.base * obj.n + self.k]
+
+    def __set__(self, obj: Block, value: float) -> None:
+        obj._f_mv[self.base * obj.n + self.k] = value
+
+
+class Int:
+    """A block's int64 field (flags, counters, codes). ``k``: its index in the int buffer."""
+
+    kind = "int"
+
+    def __init__(self, doc: str = "", *, param: bool = False) -> None:
+        self.doc, self.param = doc, param
+        self.name, self.k = "", -1
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+
+    @overload
+    def __get__(self, obj: None, owner: type | None = None) -> Int: ...
+    @overload
+    def __get__(self, obj: Block, owner: type | None = None) -> int: ...
+    def __get__(self, obj: Block | None, owner: type | None = None) -> Int | int:
+        if obj is None:
+            return self
+        return obj._i_mv[self.k]
+
+    def __set__(self, obj: Block, value: int) -> None:
+        obj._i_mv[self.k] = value
+
+
+Field = Vector | Scalar | Int
+
+
 class Block:
     """One block's state: float buffer ``f`` and int buffer ``i`` with named views.
 
-    Subclasses set ``VECTORS`` (names of n-vectors), ``SCALARS`` (names of floats) and ``INTS``
-    (names of ints); scalars and ints are read and written through properties of their names.
-    ``tail`` extra floats follow the scalars (see ``tail_view``)."""
+    Fields are declared once, as class attributes: ``Vector()`` (n-vectors), ``Scalar()``
+    (floats) and ``Int()`` (ints), each optionally ``param=True`` (set at construction and
+    never written by a tick: gains, impedances, limits; the rest is state). Their order in the
+    class gives the layout and the indices the kernels use (``MyBlock.name.k``); the names are
+    also listed in ``VECTORS``, ``SCALARS`` and ``INTS`` (derived; older blocks may still
+    declare these tuples directly). ``tail`` extra floats follow the scalars (``tail_view``).
+
+    Layout, shared by a block's Python views and its compiled functions: the float buffer
+    holds the vectors (vector k at ``k * n``), then the scalars (scalar k at
+    ``len(VECTORS) * n + k``), then the tail; the int buffer holds the ints."""
 
     VECTORS: tuple[str, ...] = ()
     SCALARS: tuple[str, ...] = ()
     INTS: tuple[str, ...] = ()
+    PARAMS: frozenset[str] = frozenset()  # fields that are parameters, not state
+    TAIL_IS_STATE = True  # a tail (delay lines, contacts) is state unless a block says not
 
     def __init__(self, n: int, tail: int = 0) -> None:
         self.n = n
@@ -97,16 +211,54 @@ class Block:
         """Where scalar ``name`` sits in the float buffer of a block of vectors of n."""
         return len(cls.VECTORS) * n + cls.SCALARS.index(name)
 
+    def state_positions(self) -> tuple[list[int], list[int]]:
+        """Positions of the block's state (not its parameters) in its float and int buffers."""
+        n, fs, is_ = self.n, [], []
+        for k, name in enumerate(self.VECTORS):
+            if name not in self.PARAMS:
+                fs += range(k * n, (k + 1) * n)
+        base = len(self.VECTORS) * n
+        fs += [base + k for k, name in enumerate(self.SCALARS) if name not in self.PARAMS]
+        if self.TAIL_IS_STATE:
+            fs += range(self.tail_start, self.tail_start + self.tail)
+        is_ += [k for k, name in enumerate(self.INTS) if name not in self.PARAMS]
+        return fs, is_
+
     def __init_subclass__(cls) -> None:
         super().__init_subclass__()
+        declared: list[Field] = []
+        for klass in reversed(cls.__mro__):
+            declared += [x for x in vars(klass).values() if isinstance(x, Vector | Scalar | Int)]
+        if declared:  # the tuples follow from the declarations
+            seen: dict[str, Field] = {}
+            for x in declared:
+                seen.pop(x.name, None)
+                seen[x.name] = x  # a redeclared name keeps the subclass's, in its place
+            fields = list(seen.values())
+            cls.VECTORS = tuple(x.name for x in fields if isinstance(x, Vector))
+            cls.SCALARS = tuple(x.name for x in fields if isinstance(x, Scalar))
+            cls.INTS = tuple(x.name for x in fields if isinstance(x, Int))
+            cls.PARAMS = frozenset(x.name for x in fields if x.param)
         taken = {"f", "i", "n", "tail"} & {*cls.VECTORS, *cls.SCALARS, *cls.INTS}
         if taken:
             raise TypeError(f"{cls.__name__}: {sorted(taken)} name the block's own attributes")
         base = len(cls.VECTORS)
+        for k, name in enumerate(cls.VECTORS):
+            existing = vars(cls).get(name)
+            if isinstance(existing, Vector):
+                existing.k = k
         for k, name in enumerate(cls.SCALARS):
-            setattr(cls, name, _scalar_property(base, k))
+            existing = vars(cls).get(name)
+            if isinstance(existing, Scalar):
+                existing.k, existing.base = k, base
+            else:
+                setattr(cls, name, _scalar_property(base, k))
         for k, name in enumerate(cls.INTS):
-            setattr(cls, name, _int_property(k))
+            existing = vars(cls).get(name)
+            if isinstance(existing, Int):
+                existing.k = k
+            else:
+                setattr(cls, name, _int_property(k))
 
 
 def _scalar_property(base: int, k: int) -> property:
@@ -149,6 +301,17 @@ class Packed:
             block.adopt(self.f[fo : fo + fs], self.i[io : io + is_])
             fo += fs
             io += is_
+
+    def state_index(self) -> tuple[np.ndarray, np.ndarray]:
+        """Positions of every block's state (not its parameters) in the packed float and int
+        buffers: a snapshot is ``f[fs], i[is_]``, a restore the reverse, one copy each."""
+        fs: list[int] = []
+        is_: list[int] = []
+        for k, block in enumerate(self.blocks):
+            bf, bi = block.state_positions()
+            fs += [int(self.offsets[2 * k]) + x for x in bf]
+            is_ += [int(self.offsets[2 * k + 1]) + x for x in bi]
+        return np.array(fs, dtype=np.int64), np.array(is_, dtype=np.int64)
 
     def index_of(self, block: Block, name: str) -> int:
         """Position in the packed float buffer of a block's scalar, or of the first entry of

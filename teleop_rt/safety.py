@@ -1,9 +1,12 @@
-"""The safety layer between the controllers and the backends (tick step 7).
+"""The safety layer between the controllers and the backends (tick step 7): one guard per
+site, checking its own robot.
 
-Every tick, for both robots, before anything is written to a motor:
+Every tick, before anything is written to a motor:
 
-* every measured and commanded value must be finite (a NaN from a sensor or a diverging
-  loop must never reach a motor);
+* every measured value must be finite, checked when the site reads its sensors, before
+  anything is computed or sent from them (``measured_fault``), and every commanded torque must
+  be finite: a NaN from a sensor or a diverging loop never reaches a motor, whatever the config
+  (``safety.enabled: false`` switches off the checks below, never these);
 * joint angles inside the URDF position limits and speeds inside the URDF velocity limits
   (where the URDF gives them: a zero limit means none);
 * commanded torques inside the URDF effort limits: saturated (and counted) by default, or a
@@ -11,7 +14,8 @@ Every tick, for both robots, before anything is written to a motor:
   a row is a stop too.
 
 A violation raises ``SafetyStop`` naming the tick, the robot, the joint and the reason; the
-session then commands zero torque on both backends, finishes the log and ends (exit code 3).
+session then brings both robots to rest and commands zero torque, finishes the log and ends
+(exit code 3).
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import numpy as np
 
 from teleop_rt.config import SafetySpec
 from teleop_rt.errors import SafetyStop
-from teleop_rt.flat import Block, as_floats, jit, vec
+from teleop_rt.flat import Block, Int, Scalar, Vector, as_floats, jit, vec
 from teleop_rt.hal.base import Feedback
 from teleop_rt.model import RobotModel
 
@@ -49,13 +53,11 @@ class RobotLimits:
                 tau[j] = min(max(tau[j], -emax), emax)
 
 
-# RobotGuard block: vectors, scalars, ints
-LO, HI, VMAX, EMAX, PREV_V, PREV_A, RUN = range(7)
-TOLERANCE, INV_DT, VALUE = range(3)
-STALE_TICKS, TRACKING_TICKS, STOP_ON_TORQUE, TRACKING_VALID, JOINT, SATURATED = range(6)
-# what a check found (0: nothing); MEASURED_*: a non-finite measurement
+# what a check found (0: nothing); MEASURED_*: a non-finite measurement; SATURATION: a torque
+# at its limit for too long
 OK, STALE, ANGLE, SPEED, TRACKING, TORQUE_NAN, TORQUE_LIMIT = range(7)
 MEASURED_ANGLE, MEASURED_SPEED, MEASURED_TORQUE = range(7, 10)
+SATURATION = 100
 
 
 class RobotGuard(Block):
@@ -66,10 +68,26 @@ class RobotGuard(Block):
     one commanded at k-1 (eq 3 / 13); a saturated or blocked actuator, or a wrong model,
     breaks that for ``tracking_error_ticks`` ticks in a row."""
 
-    VECTORS = ("lo", "hi", "vmax", "emax", "prev_v", "prev_a", "run")
-    SCALARS = ("tolerance", "inv_dt", "value")  # value: the offending value of a finding
-    INTS = ("stale_ticks", "tracking_ticks", "stop_on_torque", "tracking_valid", "joint",
-            "saturated")  # fmt: skip
+    lo = Vector("lower position limit, rad (-inf: none)", param=True)
+    hi = Vector("upper position limit, rad (inf: none)", param=True)
+    vmax = Vector("speed limit, rad/s", param=True)
+    emax = Vector("effort limit, N m", param=True)
+    prev_v = Vector("last tick's velocity (tracking)")
+    prev_a = Vector("last tick's commanded acceleration (tracking)")
+    run = Vector("ticks in a row off the commanded acceleration")
+    tolerance = Scalar("tracking tolerance, rad/s^2", param=True)
+    inv_dt = Scalar(param=True)
+    value = Scalar("the offending value of a finding")
+    enabled = Int("0: only non-finite values are checked (safety.enabled: false)", param=True)
+    stale_ticks = Int(param=True)
+    tracking_ticks = Int(param=True)
+    stop_on_torque = Int(param=True)
+    saturation_stop_ticks = Int("saturation this long in a row is a stop (0: never)", param=True)
+    tracking_valid = Int()
+    joint = Int("the joint of a finding")
+    saturated = Int("1: a torque was saturated this tick")
+    saturated_run = Int("ticks in a row with a saturated torque")
+    saturated_ticks = Int("ticks with a saturated torque")
 
     def __init__(self, spec: SafetySpec, model: RobotModel, name: str, dt: float) -> None:
         super().__init__(model.nv)
@@ -85,6 +103,8 @@ class RobotGuard(Block):
         effort = lim.effort if spec.torque_limits != "off" else [None] * self.n
         self.emax[:] = [x if x is not None else inf for x in effort]
         self.stop_on_torque = int(spec.torque_limits == "stop")
+        self.enabled = int(spec.enabled)
+        self.saturation_stop_ticks = spec.saturation_stop_ticks
         self.stale_ticks = spec.stale_ticks
         self.tolerance = spec.tracking_error_rad_s2
         self.tracking_ticks = spec.tracking_error_ticks
@@ -117,6 +137,11 @@ class RobotGuard(Block):
 
     def stop_for(self, tick: int, code: int, age_ticks: int) -> SafetyStop:
         """The SafetyStop that words a finding of the compiled checks."""
+        if code == SATURATION:
+            return SafetyStop(
+                f"tick {tick}: {self.name}: a motor torque has been at its effort limit for "
+                f"{self.saturation_stop_ticks} ticks in a row (unstable loop or blocked joint)"
+            )
         if code == STALE:
             return SafetyStop(
                 f"tick {tick}: {self.name} feedback stale for {age_ticks} ticks (sensor dropout)"
@@ -154,6 +179,23 @@ class RobotGuard(Block):
         )
 
 
+G = RobotGuard
+LO, HI, VMAX, EMAX, PREV_V, PREV_A, RUN = (
+    x.k for x in (G.lo, G.hi, G.vmax, G.emax, G.prev_v, G.prev_a, G.run)
+)
+TOLERANCE, INV_DT, VALUE = G.tolerance.k, G.inv_dt.k, G.value.k
+ENABLED, STALE_TICKS, TRACKING_TICKS, STOP_ON_TORQUE = (
+    G.enabled.k,
+    G.stale_ticks.k,
+    G.tracking_ticks.k,
+    G.stop_on_torque.k,
+)
+TRACKING_VALID, JOINT, SATURATED = G.tracking_valid.k, G.joint.k, G.saturated.k
+SATURATION_STOP_TICKS, SATURATED_RUN, SATURATED_TICKS = (
+    G.saturation_stop_ticks.k,
+    G.saturated_run.k,
+    G.saturated_ticks.k,
+)
 N_GUARD_VECTORS = len(RobotGuard.VECTORS)
 
 
@@ -244,117 +286,46 @@ def guard_check(
     return OK
 
 
-# Supervisor ints
-ENABLED, SATURATED_TICKS, SATURATED_RUN, SATURATION_STOP_TICKS, GUARD = range(5)
-SATURATION = 100  # a finding of the supervisor itself: saturated too long
-
-
-class Supervisor(Block):
-    """Checks both robots every tick; saturates torques; raises SafetyStop on a violation.
-
-    The session runs the compiled ``supervise`` inside its tick kernel, the workspace check
-    before it and ``raise_for`` on a finding; ``step`` does all three (standalone use)."""
-
-    INTS = ("enabled", "saturated_ticks", "saturated_run", "saturation_stop_ticks", "guard")
-
-    def __init__(self, spec: SafetySpec, hsi: RobotModel, to: RobotModel, dt: float = 1e-3) -> None:
-        super().__init__(hsi.nv)
-        self.spec = spec
-        self.enabled = int(spec.enabled)
-        self.saturation_stop_ticks = spec.saturation_stop_ticks
-        self.guards = {
-            "hsi": RobotGuard(spec, hsi, "hsi", dt),
-            "to": RobotGuard(spec, to, "to", dt),
-        }
-        self.limits = {name: guard.limits for name, guard in self.guards.items()}
-        self.workspaces = [g for g in self.guards.values() if g.workspace is not None]
-
-    @property
-    def blocks(self) -> list[Block]:
-        return [self, self.guards["hsi"], self.guards["to"]]
-
-    def step(
-        self,
-        tick: int,
-        fb_h: Feedback,
-        tau_h,
-        g_h: np.ndarray,
-        a_h: np.ndarray,
-        fb_t: Feedback,
-        tau_t,
-        g_t: np.ndarray,
-        a_t: np.ndarray,
-    ) -> None:
-        """All of one tick's checks: per robot stale feedback, limits, commands and tracking,
-        then saturation. For each robot: feedback, measured tau_ext, commanded torque
-        (saturated in place, a float64 array), commanded acceleration."""
-        if self.workspaces:
-            self.check_workspaces(tick, fb_h, fb_t)
-        gh, gt = self.guards["hsi"], self.guards["to"]
-        code = supervise(
-            self.i, gh.f, gh.i, gt.f, gt.i, self.n,
-            fb_h.q, fb_h.v, fb_h.age_ticks, as_floats(tau_h), g_h, as_floats(a_h),
-            fb_t.q, fb_t.v, fb_t.age_ticks, as_floats(tau_t), g_t, as_floats(a_t),
-        )  # fmt: skip
-        if code:
-            self.raise_for(code, tick, fb_h, fb_t)
-
-    def check_workspaces(self, tick: int, fb_h: Feedback, fb_t: Feedback) -> None:
-        """The tool frames inside their workspace boxes (forward kinematics: Pinocchio, outside
-        the compiled checks; a non-finite angle is left to them, which name it)."""
-        if not self.enabled:
-            return
-        for guard in self.workspaces:
-            q = (fb_h if guard.name == "hsi" else fb_t).q
-            if np.isfinite(q).all():
-                guard.check_workspace(tick, q)
-
-    def raise_for(self, code: int, tick: int, fb_h: Feedback, fb_t: Feedback) -> None:
-        """Raise the SafetyStop for a finding of ``supervise``."""
-        if code == SATURATION:
-            limit = self.saturation_stop_ticks
-            raise SafetyStop(
-                f"tick {tick}: a motor torque has been at its effort limit for {limit} ticks "
-                "in a row (unstable loop or blocked joint)"
-            )
-        name = "hsi" if self.guard == 0 else "to"
-        fb = fb_h if name == "hsi" else fb_t
-        raise self.guards[name].stop_for(tick, code, fb.age_ticks)
-
-
 @jit
-def supervise(
-    s_i, gh_f, gh_i, gt_f, gt_i, n,
-    q_h, v_h, age_h, tau_h, g_h, a_h,
-    q_t, v_t, age_t, tau_t, g_t, a_t,
+def guard_site(
+    f: np.ndarray, i: np.ndarray, n: int, q: np.ndarray, v: np.ndarray, age_ticks: int,
+    tau_cmd: np.ndarray, a_cmd: np.ndarray,
 ) -> int:  # fmt: skip
-    """Both robots' checks and the saturation count; the finding (s_i[GUARD]: which robot) or
-    OK. A non-finite measurement always trips a check (comparisons with NaN fail; a NaN torque
-    sensor makes its command NaN), and the finding then names the measurement."""
-    if not s_i[ENABLED]:
+    """A site's checks of its commands, after its measurements passed ``measured_fault``: with
+    safety on, ``guard_check`` and the saturation run; with it off, still no non-finite torque
+    reaches the motors (whatever the config)."""
+    if not i[ENABLED]:
+        for j in range(n):
+            if not math.isfinite(tau_cmd[j]):
+                return _found(f, i, n, TORQUE_NAN, j, tau_cmd[j])
         return OK
-    s_i[GUARD] = 0
-    code = guard_check(gh_f, gh_i, n, q_h, v_h, age_h, g_h, a_h)
-    if code == OK:
-        s_i[GUARD] = 1
-        code = guard_check(gt_f, gt_i, n, q_t, v_t, age_t, g_t, a_t)
+    code = guard_check(f, i, n, q, v, age_ticks, tau_cmd, a_cmd)
     if code != OK:
-        # name the sensor at fault, not the command it poisoned (maybe through the channel)
-        found = measured_fault(gh_f, gh_i, n, q_h, v_h, tau_h)
-        if found:
-            s_i[GUARD] = 0
-            return found
-        found = measured_fault(gt_f, gt_i, n, q_t, v_t, tau_t)
-        if found:
-            s_i[GUARD] = 1
-            return found
         return code
-    if gh_i[SATURATED] or gt_i[SATURATED]:
-        s_i[SATURATED_TICKS] += 1
-        s_i[SATURATED_RUN] += 1
-        limit = s_i[SATURATION_STOP_TICKS]
-        if limit and s_i[SATURATED_RUN] >= limit:
+    if i[SATURATED]:
+        i[SATURATED_TICKS] += 1
+        i[SATURATED_RUN] += 1
+        limit = i[SATURATION_STOP_TICKS]
+        if limit and i[SATURATED_RUN] >= limit:
             return SATURATION
     else:
-        s_i[SATURATED_RUN] = 0
+        i[SATURATED_RUN] = 0
     return OK
+
+
+def check_all(
+    guard: RobotGuard, tick: int, fb: Feedback, tau_ext, tau_cmd: np.ndarray, a_cmd
+) -> None:
+    """One robot's checks of a tick as a site runs them (standalone use: tests): measured
+    values, then the workspace, limits, commands, tracking and saturation (tau_cmd saturated in
+    place); SafetyStop on a finding."""
+    code = measured_fault(guard.f, guard.i, guard.n, fb.q, fb.v, as_floats(tau_ext))
+    if code:
+        raise guard.stop_for(tick, code, fb.age_ticks)
+    if guard.workspace is not None and guard.enabled:
+        guard.check_workspace(tick, fb.q)
+    code = guard_site(
+        guard.f, guard.i, guard.n, fb.q, fb.v, fb.age_ticks, tau_cmd, as_floats(a_cmd)
+    )
+    if code:
+        raise guard.stop_for(tick, code, fb.age_ticks)

@@ -1,18 +1,21 @@
-"""A bilateral session: builds the blocks of Fig 2 from a config and runs fixed-step ticks.
+"""A one-process session: the two sites (``teleop_rt.site``) joined by an in-process link,
+stepped in lock-step, in fast mode or in real time.
 
 One tick k (see ../shared/docs/architecture.md), in this order:
 1. wait for the deadline (real-time mode);
-2. read both backends (q, v, tau_ext);
-3. COM: omega_c = v_h and tau_t = -tau_ext_t in, tau_c and omega_t out (eq 9, 10);
+2. each site reads its backend (q, v, tau_ext) and checks its measurements;
+3. the link hands each site's port the packet due (eq 10: the peer's of D ticks ago, or of
+   this tick when D = 0); each port computes its output (eq 9): tau_c at the HSI, omega_t at
+   the TO, and the wave it sends;
 4. controllers: a_ref_h = C1(tau_h - tau_c), a_ref_t = C2(omega_t - v_t) (eq 4, 14);
 5. computed torque: g = M M_v^-1 a_ref + n - tau_ext (eq 2, 12), one RNEA per robot;
-6. safety checks, then write both backends; accumulate T_p, T_tau (eq 18) and timing.
+6. each site's safety checks, then each writes its backend; T_p, T_tau (eq 18), the
+   channel's energy (eq 7, 8) and timing are accumulated.
 
-Steps 3-6 but the RNEA calls are compiled (``teleop_rt.tick``) and run on the blocks' state,
-packed into two flat buffers when the session is built (``teleop_rt.flat``). Two simulated
-plants are packed along; in their common case the session runs steps 2-6 and both plants'
-periods as four compiled calls around the six Pinocchio calls (``teleop_rt.sim_tick``), bit for
-bit what ``read`` and ``write`` compute.
+Steps 2-6 but the RNEA calls are compiled (``teleop_rt.lockstep`` around each site's kernels,
+``teleop_rt.site_tick``) and run on the blocks' state, packed into two flat buffers when the
+session is built (``teleop_rt.flat``). Backends that can (two simulated plants) run inside those
+kernels instead of through ``read`` / ``write`` (``Backend.fuse``): bit for bit the same.
 """
 
 from __future__ import annotations
@@ -26,59 +29,57 @@ import numpy as np
 import pinocchio as pin
 
 from teleop_rt.analysis.transparency import TransparencyAccumulator
-from teleop_rt.com.direct import DirectChannel
-from teleop_rt.com.wave import WaveChannel
-from teleop_rt.config import SessionConfig, per_joint
-from teleop_rt.control import ComputedTorque, Pid
+from teleop_rt.com.channel import ChannelMonitor
+from teleop_rt.com.link import InProcessLink
+from teleop_rt.config import SessionConfig
 from teleop_rt.errors import ConfigError, SafetyStop
-from teleop_rt.flat import Packed
-from teleop_rt.hal.base import Backend, create_backend
-from teleop_rt.hal.sim import SimBackend
+from teleop_rt.flat import Block, Packed
+from teleop_rt.hal.base import FusedPlants
+from teleop_rt.lockstep import SESSION_BLOCKS, PairState, lockstep_after, lockstep_before
 from teleop_rt.loop import StopSignals, TickClock, TimingStats, acquire_realtime
-from teleop_rt.model import RobotModel
-from teleop_rt.safety import Supervisor
-from teleop_rt.sim_tick import (
-    PLANT_H,
-    finish_and_command,
-    integrate,
-    next_ticks,
-    sense_and_prepare,
-    warm_up_simulated_tick,
-)
-from teleop_rt.tick import BLOCK_ORDER, TickSignals, after_models, before_models
+from teleop_rt.site import HsiSite, Site, ToSite
 
 if TYPE_CHECKING:
     from teleop_rt.recording.recorder import Recorder
     from teleop_rt.world import Load
 
 
-class Side:
-    """One robot of the pair on the controller side: model, backend, controllers, signals."""
+class ChannelView:
+    """The two-port's signals under the paper's names, from the two sites' ports and the
+    session's monitor (what the log's /channel topic holds)."""
 
-    def __init__(
-        self, cfg: SessionConfig, name: str, backend_name: str, operator: Load | None = None
-    ) -> None:
-        spec = getattr(cfg, name)
-        self.name = name
-        self.model = RobotModel.from_spec(spec.robot, name, cfg.plant.coulomb_smoothing_rad_s)
-        n = self.model.nv
-        self.virtual_mass = per_joint(spec.virtual_mass, n, f"{name}.virtual_mass")
-        self.controller = Pid(spec.controller, n, cfg.dt, f"{name}.controller")
-        self.computed_torque = ComputedTorque(
-            self.model, self.virtual_mass, spec.compensate_friction
-        )
-        self.backend: Backend = create_backend(backend_name, cfg, name, self.model, operator)
-        self.feedback = self.backend.feedback
+    SOURCES = {  # name -> (owner, field)
+        "omega_c": ("hsi", "flow"), "tau_c": ("hsi", "effort"),
+        "omega_t": ("to", "flow"), "tau_t": ("to", "effort"),
+        "u_l": ("hsi", "wave_out"), "v_l": ("hsi", "wave_in"),
+        "u_r": ("to", "wave_in"), "v_r": ("to", "wave_out"),
+        "power": ("monitor", "power"), "energy": ("monitor", "energy"),
+        "total_energy": ("monitor", "total_energy"),
+        "min_total_energy": ("monitor", "min_total_energy"),
+    }  # fmt: skip
 
-    @property
-    def a_ref(self) -> np.ndarray:
-        """Reference acceleration times the virtual mass (the controller's output)."""
-        return self.controller.out
+    def __init__(self, session: Session) -> None:
+        self._owners = {"hsi": session.hsi.port, "to": session.to.port,
+                        "monitor": session.monitor}  # fmt: skip
+        self.link = session.link
+        self.dt = session.dt
 
-    @property
-    def tau_cmd(self) -> np.ndarray:
-        """Motor torque command (after the safety layer's saturation)."""
-        return self.computed_torque.tau
+    def source(self, name: str) -> tuple[Block, str]:
+        """The block and field that hold signal ``name``."""
+        owner, attr = self.SOURCES[name]
+        return self._owners[owner], attr
+
+    def __getattr__(self, name: str):
+        if name.startswith("_") or name not in self.SOURCES:
+            raise AttributeError(name)
+        block, attr = self.source(name)
+        return getattr(block, attr)
+
+    def stored_energy(self) -> float:
+        """Wave energy in flight on the link (0 for a direct channel)."""
+        if self._owners["hsi"].mode == 0:
+            return 0.0
+        return self.link.stored_wave_energy(self.dt)
 
 
 @dataclass
@@ -117,127 +118,135 @@ class Summary:
 
 
 class Session:
-    """Everything of one teleoperation session, preallocated at construction."""
+    """Two sites and an in-process link, preallocated at construction."""
 
-    def __init__(self, cfg: SessionConfig, operator: Load | None = None) -> None:
-        """``operator`` replaces the config's operator model (replay drives it from a log)."""
+    fused = False  # True while two backends run inside the tick (set False to force read/write)
+
+    def __init__(
+        self,
+        cfg: SessionConfig,
+        operator: Load | None = None,
+        fuse: bool = True,
+        backends: dict[str, str] | None = None,
+    ) -> None:
+        """``operator`` replaces the config's operator model (replay drives it from a log);
+        ``backends`` the config's backend per robot (``{"hsi": "can"}``); ``fuse=False``
+        keeps the backends on the plain ``read`` / ``write`` path and their own buffers."""
         self.cfg = cfg
-        backend = cfg.backend
         self.dt = cfg.dt
-        self.hsi = Side(cfg, "hsi", backend, operator)
-        self.to = Side(cfg, "to", backend)
-        n = self.hsi.model.nv
-        if self.to.model.nv != n:
+        backends = backends or {}
+        self.hsi = HsiSite(cfg, backends.get("hsi"), operator)
+        self.to = ToSite(cfg, backends.get("to"))
+        n = self.hsi.n
+        if self.to.n != n:
             raise ConfigError(
-                f"to.robot: the TO has {self.to.model.nv} joints but the HSI has {n}; "
+                f"to.robot: the TO has {self.to.n} joints but the HSI has {n}; "
                 "the channel couples joint to joint"
             )
         self.n = n
-        if cfg.channel.mode == "direct":
-            self.channel: WaveChannel | DirectChannel = DirectChannel(n, cfg.delay_ticks, self.dt)
-        else:
-            b = per_joint(cfg.channel.wave_impedance, n, "channel.wave_impedance")
-            self.channel = WaveChannel(b, cfg.delay_ticks, self.dt, cfg.channel.wave_filter_hz)
-        self.signals = TickSignals(n)
-        self.tick = 0
+        self.link = InProcessLink(n, cfg.delay_ticks)
+        self.monitor = ChannelMonitor(n, self.dt)
         self.metrics = TransparencyAccumulator(n, self.dt)
-        self.supervisor = Supervisor(cfg.safety, self.hsi.model, self.to.model, self.dt)
-        self._pack()
+        self.pair = PairState(n)
+        self.channel = ChannelView(self)
+        self.tick = 0
+        pair = self.hsi.backend.fuse(self.to.backend) if fuse else None
+        self._pack(pair)
 
-    def _pack(self) -> None:
-        """All blocks into one pair of buffers, for the compiled halves of the tick."""
-        hsi, to, sup = self.hsi, self.to, self.supervisor
-        blocks = {
-            "fb_h": hsi.feedback, "fb_t": to.feedback, "signals": self.signals,
-            "channel": self.channel, "pid_h": hsi.controller, "pid_t": to.controller,
-            "ct_h": hsi.computed_torque, "ct_t": to.computed_torque, "supervisor": sup,
-            "guard_h": sup.guards["hsi"], "guard_t": sup.guards["to"], "metrics": self.metrics,
-            "world_h": hsi.backend.world, "world_t": to.backend.world,
-        }  # fmt: skip
-        ordered = [blocks[name] for name in BLOCK_ORDER]
-        # two simulated plants' blocks follow, so that one compiled call reaches both the
-        # controller's and the plants' state (teleop_rt.sim_tick)
-        plants = [s.backend for s in (hsi, to) if isinstance(s.backend, SimBackend)]
-        if len(plants) < 2:
-            plants = []
-        ranges = []
-        for plant in plants:
-            ranges.append((len(ordered), len(ordered) + len(plant.blocks)))
-            ordered += plant.blocks
-        self.packed = p = Packed(ordered)
-        for plant, (first, end) in zip(plants, ranges, strict=True):
-            plant.rebind(p.f, p.i, p.offsets[2 * first : 2 * end])
-        # what the tick passes on each call, looked up once
+    @property
+    def sites(self) -> tuple[Site, Site]:
+        return self.hsi, self.to
+
+    def _pack(self, pair: FusedPlants | None) -> None:
+        """All blocks into one pair of buffers, for the compiled lock-step tick; backends that
+        fuse follow, so that the same compiled calls reach their state."""
+        hsi, to = self.hsi, self.to
+        own = [*hsi.blocks, *to.blocks, self.link, self.monitor, self.metrics, self.pair]
+        assert len(own) == SESSION_BLOCKS
+        blocks = own + (pair.blocks if pair else [])
+        self.packed = p = Packed(blocks)
+        hsi.bind(p, 0)
+        to.bind(p, len(hsi.blocks))
         self._buffers = (p.f, p.i, p.offsets, self.n)
-        self._pin = [
-            (side.model.model, side.model.data, side.feedback.q, side.feedback.v,
-             side.computed_torque.a_des)
-            for side in (hsi, to)
-        ]  # fmt: skip
+        self._pin = (hsi._pin, to._pin)
         # load (or, on a fresh install, compile) the kernels now, on scratch copies of the
         # state, not at the first deadline
         f, i, o, n = self._buffers
-        before_models(f.copy(), i.copy(), o, n)
-        after_models(f.copy(), i.copy(), o, n, np.zeros(n), np.zeros(n))
-        # the fused tick: the same arithmetic as read / write, in fewer calls
-        self.fused = bool(plants) and all(plant.compiled_common_case for plant in plants)
-        if self.fused:
-            # the layout the fused kernels assume: the HSI's plant right after the session's
-            # blocks, the TO's from ``split`` to the end
-            assert ranges[0][0] == PLANT_H and ranges[1][1] == len(ordered)
-            self._split = ranges[1][0]
-            self._plants = plants
-            warm_up_simulated_tick(f.copy(), i.copy(), o, n, self._split)
+        lockstep_before(f.copy(), i.copy(), o, n)
+        lockstep_after(f.copy(), i.copy(), o, n, np.zeros(n), np.zeros(n))
+        self._pair_plants = pair
+        if pair is not None:
+            pair.bind(p.f, p.i, p.offsets)
+            self.fused = True
+
+    def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
+        """The state of every block (not the parameters), one copy per buffer."""
+        fs, is_ = self._state_index()
+        return self.packed.f[fs], self.packed.i[is_]
+
+    def restore(self, snapshot: tuple[np.ndarray, np.ndarray]) -> None:
+        """Put a ``snapshot`` back (the backends' hardware, if any, is not rewound)."""
+        fs, is_ = self._state_index()
+        self.packed.f[fs], self.packed.i[is_] = snapshot
+
+    def _state_index(self) -> tuple[np.ndarray, np.ndarray]:
+        if not hasattr(self, "_state_idx"):
+            self._state_idx = self.packed.state_index()
+        return self._state_idx
 
     @property
     def tau_h(self) -> np.ndarray:
         """The operator's torque on the HSI, as measured this tick."""
-        return self.signals.tau_h
+        return self.hsi.tau_h
 
     @property
     def tau_e(self) -> np.ndarray:
         """The TO's torque on the environment this tick (-tau_ext of the TO)."""
-        return self.signals.tau_e
+        return self.to.tau_e
+
+    @property
+    def saturated_ticks(self) -> int:
+        return self.pair.saturated_ticks
 
     def step(self) -> None:
-        """One control tick: read, channel, controllers, computed torque, safety, write.
-
-        With ``fused`` (two simulated plants in their common case) the reads and writes are the
-        plants' compiled pieces inside the tick's own kernels (teleop_rt.sim_tick): the same
-        arithmetic in four compiled calls, using the plants' cached Pinocchio arguments and
-        Jacobian as their ``write`` would."""
+        """One control tick of both sites: read, link, ports, controllers, computed torque,
+        safety, write. With ``fused`` the reads and writes are the backends' own compiled
+        pieces inside the lock-step kernels (``Backend.fuse``)."""
         hsi, to = self.hsi, self.to
         f, i, o, n = self._buffers
         fused = self.fused
+        pair = self._pair_plants
         if fused:
-            sense_and_prepare(f, i, o, n, self._split)
+            code = pair.before()
         else:
             hsi.backend.read()  # into hsi.feedback
             to.backend.read()
-            before_models(f, i, o, n)
+            code = lockstep_before(f, i, o, n)
+        if code:
+            raise self._stop_for(code)
         (model_h, data_h, q_h, v_h, a_h), (model_t, data_t, q_t, v_t, a_t) = self._pin
         rnea_h = pin.rnea(model_h, data_h, q_h, v_h, a_h)
         rnea_t = pin.rnea(model_t, data_t, q_t, v_t, a_t)
-        supervisor = self.supervisor
-        if supervisor.workspaces:
-            supervisor.check_workspaces(self.tick, hsi.feedback, to.feedback)
+        hsi.check_workspace()
+        to.check_workspace()
         if fused:  # only without a finding do the plants take the torques
-            code = finish_and_command(f, i, o, n, self._split, rnea_h, rnea_t)
+            code = pair.after(rnea_h, rnea_t)
         else:
-            code = after_models(f, i, o, n, rnea_h, rnea_t)
+            code = lockstep_after(f, i, o, n, rnea_h, rnea_t)
         if code:
-            supervisor.raise_for(code, self.tick, hsi.feedback, to.feedback)
+            raise self._stop_for(code)
         if fused:
-            plant_h, plant_t = self._plants
-            integrate(f, i, o, n, self._split, pin.aba(*plant_h._pin), pin.aba(*plant_t._pin))
-            next_ticks(
-                f, i, o, n, self._split,
-                plant_h._jacobian(), plant_h._x, plant_t._jacobian(), plant_t._x,
-            )  # fmt: skip
+            pair.advance()
         else:
             hsi.backend.write(hsi.computed_torque.tau)
             to.backend.write(to.computed_torque.tau)
         self.tick += 1
+        hsi.tick = to.tick = self.tick
+
+    def _stop_for(self, code: int) -> SafetyStop:
+        site = self.to if self.pair.finding_site else self.hsi
+        site.tick = self.tick
+        return site.stop_for(code)
 
     def run(
         self,
@@ -323,10 +332,10 @@ class Session:
         except SafetyStop as exc:  # a second fault while stopping: zero torque at once
             return f"a further fault while stopping ({exc}): zero torque"
 
-    def _damp_and_rest(self, spec, hsi: Side, to: Side) -> str:
+    def _damp_and_rest(self, spec, hsi: Site, to: Site) -> str:
         zeros = np.zeros(self.n)
         gains = to.controller.kp
-        limits = self.supervisor.limits
+        limits = {"hsi": hsi.guard.limits, "to": to.guard.limits}
         for i in range(spec.stop_max_ticks):
             fb_h, fb_t = hsi.backend.read(), to.backend.read()
             values = (fb_h.v, fb_t.v, fb_h.q, fb_t.q, fb_t.tau_ext)
@@ -358,13 +367,13 @@ class Session:
             delay_ticks=self.cfg.delay_ticks,
             t_p=self.metrics.t_p.tolist(),
             t_tau=self.metrics.t_tau.tolist(),
-            channel_energy_j=self.channel.total_energy,
-            min_channel_energy_j=self.channel.min_total_energy,
+            channel_energy_j=self.monitor.total_energy,
+            min_channel_energy_j=self.monitor.min_total_energy,
             timing=timing,
             realtime=realtime,
             notes=notes,
             stopped_early=stopped,
             stop_signal=stop.signum,
             safety_stop=safety_stop,
-            saturated_ticks=self.supervisor.saturated_ticks,
+            saturated_ticks=self.saturated_ticks,
         )

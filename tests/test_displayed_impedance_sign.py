@@ -12,6 +12,7 @@ import pytest
 
 from teleop_rt.analysis.bode import OpenChain
 from teleop_rt.analysis.impedance import ImpedanceParams, displayed_impedance
+from teleop_rt.errors import SafetyStop
 from tests.conftest import lock_in
 
 DT = 1e-3
@@ -32,11 +33,15 @@ def measure_open_chain(omega, delay_ms, k_env, filter_hz=None, flip_c1=False, se
     the TO; Z_h by lock-in over the second half (whole periods at 0.5 and 1 Hz)."""
     params = paper_params(delay_ms, k_env, filter_hz)
     chain = OpenChain(params, JOINT, DT)
-    if flip_c1:
-        chain.c1_sign = -1.0
+    if flip_c1:  # C1 on tau_c - tau_h: for a P controller, the same as a negated gain
+        assert (chain.hsi.controller.ki == 0).all() and (chain.hsi.controller.kd == 0).all()
+        chain.hsi.controller.kp[:] *= -1.0
     settle = round(seconds / DT)
     w_o = 0.05 * np.sin(omega * DT * np.arange(2 * settle))
-    rec = chain.run(w_o)
+    try:
+        rec = chain.run(w_o)
+    except SafetyStop:  # rung up to non-finite values
+        return complex(math.nan, math.nan), None
     z = lock_in(rec.tau_h[settle:], omega, DT) / lock_in(w_o[settle:], omega, DT)
     return z, chain.other_joint_motion
 

@@ -15,17 +15,24 @@ from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.hal.base import Feedback
 from teleop_rt.recording.reader import read_log
 from teleop_rt.recording.recorder import Recorder
-from teleop_rt.safety import Supervisor
+from teleop_rt.safety import RobotGuard, check_all
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
 
 PAPER = CONFIGS / "paper_experiment.yaml"
 
 
-def supervisor(**spec) -> Supervisor:
-    session = Session(config.load(PAPER, ["duration_s=0.01"]))
-    cfg = config.SafetySpec(**spec)
-    return Supervisor(cfg, session.hsi.model, session.to.model)
+class Guards:
+    """Both sites' guards for a safety spec."""
+
+    def __init__(self, **spec) -> None:
+        session = Session(config.load(PAPER, ["duration_s=0.01"]))
+        cfg = config.SafetySpec(**spec)
+        self.guards = {s.name: RobotGuard(cfg, s.model, s.name, session.dt) for s in session.sites}
+
+
+def supervisor(**spec) -> Guards:
+    return Guards(**spec)
 
 
 def feedback(q: list[float], v: list[float], age_ticks: int = 0) -> Feedback:
@@ -81,13 +88,12 @@ def test_stale_feedback_is_a_stop_at_stale_ticks() -> None:
 
 
 def test_saturation_that_lasts_is_a_stop() -> None:
-    sup = supervisor(saturation_stop_ticks=5)
+    guard = supervisor(saturation_stop_ticks=5).guards["hsi"]
     zero = [0.0, 0.0]
 
     def tick(k: int, saturate: bool) -> None:  # 25 N m: above the HSI shoulder's 20 N m
-        g_h, g_t = np.array([25.0 if saturate else 0.0, 0.0]), np.zeros(2)
-        fb_h, fb_t = feedback(zero, zero), feedback(zero, zero)
-        sup.step(k, fb_h, zero, g_h, zero, fb_t, zero, g_t, zero)
+        g_h = np.array([25.0 if saturate else 0.0, 0.0])
+        check_all(guard, k, feedback(zero, zero), zero, g_h, zero)
 
     for k in range(4):
         tick(k, True)
@@ -96,7 +102,7 @@ def test_saturation_that_lasts_is_a_stop() -> None:
         tick(k, True)
     with pytest.raises(SafetyStop, match="tick 9: .*5 ticks in a row"):
         tick(9, True)
-    assert sup.saturated_ticks == 9
+    assert guard.saturated_ticks == 9
 
 
 def test_an_unstable_session_ends_in_a_safety_stop_with_its_log(tmp_path: Path) -> None:

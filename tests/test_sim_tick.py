@@ -1,7 +1,8 @@
-"""The fused simulated tick (teleop_rt.sim_tick): on two simulated plants in their common case a
-session packs the plants with its own blocks and runs the controller's and the plants' compiled
-pieces in four calls instead of through ``Backend.read`` / ``write``. It must compute exactly
-what plants on their own buffers compute, bit for bit, and only run where it applies."""
+"""The fused simulated tick (teleop_rt.hal.sim_fused, offered by ``SimBackend.fuse``): on two
+simulated plants in their common case a session packs the plants with its own blocks and runs
+the lock-step's and the plants' compiled pieces in four calls instead of through
+``Backend.read`` / ``write``. It must compute exactly what plants on their own buffers compute,
+bit for bit, and only run where it applies."""
 
 from __future__ import annotations
 
@@ -12,8 +13,8 @@ from teleop_rt import config
 from teleop_rt.errors import SafetyStop
 from teleop_rt.hal import sim
 from teleop_rt.hal.base import register_backend
+from teleop_rt.lockstep import SESSION_BLOCKS
 from teleop_rt.session import Session
-from teleop_rt.sim_tick import PLANT_H
 from tests.conftest import CONFIGS
 
 PAPER = CONFIGS / "paper_experiment.yaml"
@@ -25,23 +26,18 @@ def through_backends(session: Session) -> Session:
     return session
 
 
-class _NotASimBackend:
-    """Stands in for SimBackend in teleop_rt.session, so that a session leaves its plants on
-    their own buffers, as before the fused tick existed: the reference."""
-
-
-def unpacked_session(cfg: config.SessionConfig, monkeypatch: pytest.MonkeyPatch) -> Session:
-    with monkeypatch.context() as m:
-        m.setattr("teleop_rt.session.SimBackend", _NotASimBackend)
-        session = Session(cfg)
-    assert not session.fused and len(session.packed.blocks) == PLANT_H
+def unpacked_session(cfg: config.SessionConfig) -> Session:
+    """A session whose plants keep their own buffers and are stepped through read / write, as
+    before the fused tick existed: the reference."""
+    session = Session(cfg, fuse=False)
+    assert not session.fused and len(session.packed.blocks) == SESSION_BLOCKS
     return session
 
 
 def states(session: Session) -> list[np.ndarray]:
     """Every block of the session and of both plants, wherever they are packed."""
     plants = [b for side in (session.hsi, session.to) for b in side.backend.blocks]
-    return [x for b in [*session.packed.blocks[:PLANT_H], *plants] for x in (b.f, b.i)]
+    return [x for b in [*session.packed.blocks[:SESSION_BLOCKS], *plants] for x in (b.f, b.i)]
 
 
 # the paper experiment with delay: a hand, foam and a wall; a damper operator (a joint load)
@@ -59,12 +55,12 @@ CASES = {
 
 
 @pytest.mark.parametrize("case", CASES)
-def test_the_fused_tick_equals_plants_on_their_own_buffers_bit_for_bit(case, monkeypatch) -> None:
+def test_the_fused_tick_equals_plants_on_their_own_buffers_bit_for_bit(case) -> None:
     """Tick by tick, every signal and state of the session and of both plants agrees exactly
     with a session whose plants keep their own buffers and are stepped through read / write;
     so does the packed session stepped through read / write."""
     cfg = config.load(PAPER, CASES[case])
-    fused, reference = Session(cfg), unpacked_session(cfg, monkeypatch)
+    fused, reference = Session(cfg), unpacked_session(cfg)
     general = through_backends(Session(cfg))
     assert fused.fused
     q0, moved, touched = np.array(cfg.hsi.robot.q0_rad), 0.0, np.zeros(len(cfg.environment))
@@ -113,11 +109,11 @@ def test_a_safety_stop_in_the_fused_tick_reaches_no_plant() -> None:
         ["plant.faults=[{kind: stuck, robot: hsi, start_s: 100.0}]"],
     ],
 )
-def test_the_general_path_runs_where_the_fused_tick_does_not_apply(overrides, monkeypatch):
+def test_the_general_path_runs_where_the_fused_tick_does_not_apply(overrides):
     """Sub-steps, RK4, noise, faults: the plants, packed with the session, step through read /
     write, exactly as on their own buffers."""
     cfg = config.load(PAPER, ["duration_s=0.3", *overrides])
-    session, reference = Session(cfg), unpacked_session(cfg, monkeypatch)
+    session, reference = Session(cfg), unpacked_session(cfg)
     assert not session.fused
     for k in range(cfg.n_ticks):
         session.step()

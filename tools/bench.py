@@ -41,7 +41,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from teleop_rt import config  # noqa: E402
+from teleop_rt.com.link import Link  # noqa: E402
+from teleop_rt.com.port import Packet  # noqa: E402
 from teleop_rt.errors import TeleopError  # noqa: E402
+from teleop_rt.flat import Packed  # noqa: E402
 from teleop_rt.hal.base import Backend, Feedback, register_backend  # noqa: E402
 from teleop_rt.loop import acquire_realtime  # noqa: E402
 from teleop_rt.recording.recorder import Recorder  # noqa: E402
@@ -141,6 +144,43 @@ def replayed_session(cfg, samples: dict[str, list]) -> Session:
 
 def controller_side(cfg, samples: dict[str, list], ticks: int) -> np.ndarray:
     return time_ticks(replayed_session(cfg, samples).step, ticks)
+
+
+class _EchoLink(Link):
+    """A link for one site alone: it gets back a copy of its own packet of the last tick
+    (the transport's cost is the network issue's to measure, not this one's)."""
+
+    def __init__(self, n: int) -> None:
+        self.last = Packet(n)
+        self.sent: Packet | None = None
+
+    def send(self, side: int, packet: Packet) -> None:
+        self.sent = packet
+
+    def receive(self, side: int, into: Packet) -> None:
+        into.f[:] = self.last.f
+        into.i[:] = self.last.i
+
+    def end_tick(self, side: int) -> None:
+        self.last.f[:] = self.sent.f
+        self.last.i[:] = self.sent.i
+
+
+def each_site_alone(cfg, samples: dict[str, list], ticks: int) -> dict[str, np.ndarray]:
+    """One site's controller-side tick on buffers of its own, as a site in a process of its
+    own runs it (sense, link, update; its backend replays recorded feedback)."""
+    session = replayed_session(cfg, samples)
+    out = {}
+    for site in session.sites:
+        site.bind(Packed(site.blocks))
+        link = _EchoLink(session.n)
+
+        def tick(site=site, link=link) -> None:
+            site.sense(link)
+            site.update(link)
+
+        out[site.name] = time_ticks(tick, ticks)
+    return out
 
 
 # --- sections --------------------------------------------------------------------------------
@@ -390,16 +430,21 @@ def run(args, cfg, joints: list[int]) -> int:
         full = full_tick(cfg, args.ticks, args.repeat, tmp)
         samples = record_feedback(cfg, args.ticks)
         ctrl = best_of([controller_side(cfg, samples, args.ticks) for _ in range(args.repeat)])
+        alone = [each_site_alone(cfg, samples, args.ticks) for _ in range(args.repeat)]
+        sites = {name: best_of([a[name] for a in alone]) for name in ("hsi", "to")}
         print(line("full tick, recording off", full["plain"]))
         print(line("full tick, recording on", full["recorded"]))
         print(line("controller side (no plant)", ctrl))
+        print(line("  HSI site alone (controller side)", sites["hsi"]))
+        print(line("  TO site alone (controller side)", sites["to"]))
         rec = full["recorded"]["median"] - full["plain"]["median"]
         print(f"  recording adds {rec:.1f} us per tick (median); fast mode runs "
               f"{1e3 / full['recorded']['median']:.0f}x real time with recording on")  # fmt: skip
         writer = ", ".join(f"{x:.1f}" for x in full["writer_cpu_us"])
         print(f"  the log writer process used {writer} us of CPU per tick (per run; it runs "
               "beside the tick, on the other core if there is one)")  # fmt: skip
-        out.update(pinocchio_floor_us=floor, full_tick_us=full, controller_side_us=ctrl)
+        out.update(pinocchio_floor_us=floor, full_tick_us=full, controller_side_us=ctrl,
+                   site_alone_us=sites)  # fmt: skip
 
         if args.rt_seconds > 0:
             print(f"\nreal-time mode: {args.rt_seconds:g} s at {cfg.rate_hz:g} Hz, recording on")

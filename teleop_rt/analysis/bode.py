@@ -69,11 +69,15 @@ from teleop_rt.analysis.impedance import (
     ImpedanceParams,
     displayed_impedance,
 )
-from teleop_rt.com.wave import WaveChannel
-from teleop_rt.config import ControllerSpec, DamperOperatorSpec, RobotSpec
+from teleop_rt.com.channel import make_ports
+from teleop_rt.com.link import InProcessLink
+from teleop_rt.config import ControllerSpec, DamperOperatorSpec, RobotSpec, SafetySpec
 from teleop_rt.control import ComputedTorque, Pid
+from teleop_rt.errors import SafetyStop
 from teleop_rt.hal.sim import SimBackend, initial_configuration
 from teleop_rt.model import RobotModel
+from teleop_rt.safety import RobotGuard
+from teleop_rt.site import HsiSite, ToSite
 from teleop_rt.world import JointDamperOperator, JointLoad, JointMass, JointSpringDamper
 
 SCARA_URDF = Path(__file__).resolve().parents[2] / "robots" / "urdf" / "scara_2dof.urdf"
@@ -155,48 +159,55 @@ class OpenChain:
         ]
         if p.env_mass:
             env.append(JointMass([p.env_mass] * n, dt))
-        self.hsi = SimBackend(plant_h, [operator], q0_h, dt)
-        self.to = SimBackend(plant_t, env, q0_t, dt)
+        # the sites a session runs (the same kernels: the control law is wired once), on
+        # parameters instead of a config; safety off: only non-finite values stop the chain
         ctrl_h = RobotModel.from_spec(hsi_robot, "h", smooth)
         ctrl_t = RobotModel.from_spec(to_robot, "t", smooth)
-        self.ct_h = ComputedTorque(ctrl_h, [p.m1] * n, compensate_friction[0])
-        self.ct_t = ComputedTorque(ctrl_t, [p.m2] * n, compensate_friction[1])
-        self.c1 = Pid(controller_spec(p.c1), n, dt, "c1")
-        self.c2 = Pid(controller_spec(p.c2), n, dt, "c2")
-        self.channel = WaveChannel([p.b] * n, self.delay_ticks, dt, p.wave_filter_hz)
-        # +1: C1 acts on tau_h - tau_c (teleop_rt.control); the sign test flips it to -1
-        self.c1_sign = 1.0
+        no_checks = SafetySpec(enabled=False)
+        port_h, port_t = make_ports("wave", [p.b] * n, self.delay_ticks, dt, p.wave_filter_hz)
+        self.hsi = HsiSite.from_parts(
+            ctrl_h, SimBackend(plant_h, [operator], q0_h, dt),
+            Pid(controller_spec(p.c1), n, dt, "c1"),
+            ComputedTorque(ctrl_h, [p.m1] * n, compensate_friction[0]),
+            RobotGuard(no_checks, ctrl_h, "hsi", dt), port_h, dt,
+        )  # fmt: skip
+        self.to = ToSite.from_parts(
+            ctrl_t, SimBackend(plant_t, env, q0_t, dt),
+            Pid(controller_spec(p.c2), n, dt, "c2"),
+            ComputedTorque(ctrl_t, [p.m2] * n, compensate_friction[1]),
+            RobotGuard(no_checks, ctrl_t, "to", dt), port_t, dt,
+        )  # fmt: skip
+        self.link = InProcessLink(n, self.delay_ticks)
         self.tick = 0
         self.other_joint_motion = 0.0  # max |q - q0| of the joints not excited, both robots
 
     def run(self, omega_o: np.ndarray | Sequence[float]) -> ChainRecord:
-        """Impose omega_o[i] on the excited joint for len(omega_o) ticks; record the signals."""
+        """Impose omega_o[i] on the excited joint for len(omega_o) ticks; record the signals.
+
+        Each tick is the sites' own (``Site.sense``, ``Site.update``) with one change: the
+        HSI port's flow is the imposed operator velocity instead of the HSI's (the chain is
+        cut at omega_o, Fig 2). A non-finite signal ends the chain with ``SafetyStop``."""
         w_list = np.asarray(omega_o, dtype=float).tolist()
         ticks = len(w_list)
         tau_h, v_h, v_t, tau_e = ([0.0] * ticks for _ in range(4))
-        n, j, sign = self.n, self.joint, self.c1_sign
+        n, j, link = self.n, self.joint, self.link
         others = [i for i in range(n) if i != j]
-        hsi, to, channel, c1, c2 = self.hsi, self.to, self.channel, self.c1, self.c2
-        ct_h, ct_t = self.ct_h, self.ct_t
-        omega_c, err_h, err_t, tau_t = (np.zeros(n) for _ in range(4))
+        hsi, to = self.hsi, self.to
+        flow, sent = hsi.port.flow, hsi.tx.x
+        th, te = hsi.signals.tau, to.signals.tau
+        fb_h, fb_t = hsi.feedback, to.feedback
         q0_h, q0_t, other = self.q0_h, self.q0_t, self.other_joint_motion
         for k in range(ticks):
-            fb_h, fb_t = hsi.read(), to.read()
-            th, te = fb_h.tau_ext, fb_t.tau_ext
-            omega_c[j] = w_list[k]
-            for i in range(n):
-                tau_t[i] = -te[i]
-            channel.step(omega_c, tau_t)
-            tau_c, omega_t, vt = channel.tau_c, channel.omega_t, fb_t.v
-            for i in range(n):
-                err_h[i] = sign * (th[i] - tau_c[i])
-                err_t[i] = omega_t[i] - vt[i]
-            a_h, a_t = c1.step(err_h), c2.step(err_t)
-            tau_h[k], v_h[k], v_t[k], tau_e[k] = th[j], fb_h.v[j], vt[j], tau_t[j]
+            hsi.sense(link)
+            flow[:] = 0.0
+            flow[j] = w_list[k]
+            sent[:] = flow
+            to.sense(link)
+            tau_h[k], v_h[k], v_t[k], tau_e[k] = th[j], fb_h.v[j], fb_t.v[j], te[j]
             for i in others:
                 other = max(other, abs(fb_h.q[i] - q0_h[i]), abs(fb_t.q[i] - q0_t[i]))
-            hsi.write(ct_h.step(fb_h.q, fb_h.v, a_h, th))
-            to.write(ct_t.step(fb_t.q, fb_t.v, a_t, te))
+            hsi.update(link)
+            to.update(link)
         self.tick += ticks
         self.other_joint_motion = other
         arr = np.asarray
@@ -456,7 +467,10 @@ def run_bounded(
     parts = []
     with np.errstate(over="ignore", invalid="ignore"):
         for start in range(0, len(omega_o), chunk):
-            rec = chain.run(omega_o[start : start + chunk])
+            try:
+                rec = chain.run(omega_o[start : start + chunk])
+            except SafetyStop:  # a signal went non-finite: rung up
+                return None
             for x in (rec.tau_h, rec.v_h, rec.v_t, rec.tau_e):
                 if not float(np.abs(x).max()) <= limit:  # also catches nan
                     return None

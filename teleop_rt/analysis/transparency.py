@@ -10,18 +10,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop_rt.flat import Block, as_floats, jit, vec
-
-T_P, T_TAU, OFFSET = range(3)
-HAS_OFFSET = 0
+from teleop_rt.flat import Block, Int, Scalar, Vector, as_floats, jit, vec
 
 
 class TransparencyAccumulator(Block):
     """Accumulates T_p and T_tau tick by tick (compiled ``accumulate``; nothing allocated)."""
 
-    VECTORS = ("t_p", "t_tau", "offset")
-    SCALARS = ("dt",)
-    INTS = ("has_offset",)
+    t_p = Vector("T_p per joint, rad^2 s")
+    t_tau = Vector("T_tau per joint, N^2 m^2 s")
+    offset = Vector("q_h - q_t at the first tick, rad")
+    dt = Scalar(param=True)
+    has_offset = Int()
 
     def __init__(self, n: int, dt: float, offset: list[float] | None = None) -> None:
         super().__init__(n)
@@ -39,6 +38,12 @@ class TransparencyAccumulator(Block):
         )  # fmt: skip
 
 
+T_P, T_TAU, OFFSET = (
+    TransparencyAccumulator.t_p.k,
+    TransparencyAccumulator.t_tau.k,
+    TransparencyAccumulator.offset.k,
+)
+HAS_OFFSET, DT = TransparencyAccumulator.has_offset.k, TransparencyAccumulator.dt.k
 N_VECTORS = len(TransparencyAccumulator.VECTORS)
 
 
@@ -54,7 +59,7 @@ def accumulate(
 ) -> None:
     """Add one tick's rectangle to T_p and T_tau (eq 18)."""
     t_p, t_tau, offset = vec(f, T_P, n), vec(f, T_TAU, n), vec(f, OFFSET, n)
-    dt = f[N_VECTORS * n]  # the one scalar, after the vectors
+    dt = f[N_VECTORS * n + DT]
     if not i[HAS_OFFSET]:
         for j in range(n):
             offset[j] = q_h[j] - q_t[j]

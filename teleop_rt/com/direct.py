@@ -8,11 +8,14 @@ signal names as ``WaveChannel`` (waves stay zero) let sessions and logs use eith
 
 from __future__ import annotations
 
-from teleop_rt.com.channel import DIRECT, ChannelBlock
+from teleop_rt.com.channel import TwoPort, make_ports
 
 
-class DirectChannel(ChannelBlock):
+class DirectChannel(TwoPort):
     """Velocity forward, torque back, each delayed by ``delay_ticks`` whole ticks."""
 
     def __init__(self, n: int, delay_ticks: int, dt: float) -> None:
-        super().__init__(n, delay_ticks, dt, DIRECT)
+        if delay_ticks < 0:
+            raise ValueError("delay_ticks must be >= 0")
+        port_h, port_t = make_ports("direct", [1.0] * n, delay_ticks, dt, None)
+        super().__init__(n, port_h, port_t, delay_ticks, dt)

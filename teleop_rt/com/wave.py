@@ -25,17 +25,12 @@ terminations show against stiff contact.
 
 from __future__ import annotations
 
-import math
-
-from teleop_rt.com.channel import WAVE, ChannelBlock
+from teleop_rt.com.channel import TwoPort, make_ports
 
 
-class WaveChannel(ChannelBlock):
-    """The COM two-port for n joints with a one-way delay of ``delay_ticks`` ticks.
-
-    Signals are numpy views of one flat block (see ``teleop_rt.flat``); ``step`` runs the
-    compiled exchange of ``teleop_rt.com.channel`` and updates them in place.
-    """
+class WaveChannel(TwoPort):
+    """The COM two-port for n joints with a one-way delay of ``delay_ticks`` ticks: the two
+    sites' wave ports (``teleop_rt.com.port``) joined by an in-process link."""
 
     def __init__(
         self,
@@ -45,14 +40,8 @@ class WaveChannel(ChannelBlock):
         filter_hz: float | None = None,
     ) -> None:
         b = [float(x) for x in wave_impedance]
-        if any(not x > 0 for x in b):
-            raise ValueError("wave impedance b must be > 0 on every joint")
-        super().__init__(len(b), delay_ticks, dt, WAVE)
-        self.b[:] = b
-        self.sqrt_2b[:] = [math.sqrt(2.0 * x) for x in b]
-        self.sqrt_2_over_b[:] = [math.sqrt(2.0 / x) for x in b]
-        # the filter acts on received waves; with D = 0 there are none (direct coupling)
-        self.filter_hz = filter_hz if delay_ticks > 0 else None
-        self.filtered = int(self.filter_hz is not None)
-        if self.filter_hz:
-            self.alpha = 1.0 - math.exp(-2.0 * math.pi * self.filter_hz * dt)
+        if delay_ticks < 0:
+            raise ValueError("delay_ticks must be >= 0")
+        port_h, port_t = make_ports("wave", b, delay_ticks, dt, filter_hz)
+        super().__init__(len(b), port_h, port_t, delay_ticks, dt)
+        self.filter_hz = port_h.filter_hz

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from teleop_rt.errors import ConfigError
-from teleop_rt.flat import Block
+from teleop_rt.flat import Block, Int, Vector
 
 if TYPE_CHECKING:
     from teleop_rt.config import SessionConfig
@@ -30,8 +30,10 @@ class Feedback(Block):
     (0: fresh this tick). The ``*_mv`` memoryviews of the same memory take element writes and
     buffer copies at a fraction of numpy's per-call cost."""
 
-    VECTORS = ("q", "v", "tau_ext")
-    INTS = ("age_ticks",)
+    q = Vector("joint angles, rad")
+    v = Vector("joint velocities, rad/s")
+    tau_ext = Vector("torque the outside applies to the robot, N m")
+    age_ticks = Int("ticks since the sensors last delivered (0: fresh)")
 
     def _bind(self) -> None:
         super()._bind()
@@ -44,8 +46,8 @@ class Feedback(Block):
 
 
 # where a kernel finds the feedback's signals (vector k at k * n; age_ticks is int 0)
-FB_Q, FB_V, FB_TAU_EXT = (Feedback.VECTORS.index(x) for x in ("q", "v", "tau_ext"))
-FB_AGE_TICKS = Feedback.INTS.index("age_ticks")
+FB_Q, FB_V, FB_TAU_EXT = Feedback.q.k, Feedback.v.k, Feedback.tau_ext.k
+FB_AGE_TICKS = Feedback.age_ticks.k
 
 
 class WorldSnapshot(Block):
@@ -53,7 +55,9 @@ class WorldSnapshot(Block):
     hand reference and force (HSI) or the environment force and contacts (TO: 1.0 in contact),
     for logging and replay. Vectors of 3 in the world frame, SI units."""
 
-    VECTORS = ("reference", "reference_velocity", "force")
+    reference = Vector("the operator's hand reference, m")
+    reference_velocity = Vector("its velocity, m/s")
+    force = Vector("operator force on the HSI tool, or environment force on the TO's, N")
 
     def __init__(self, n_contacts: int = 0) -> None:
         super().__init__(3, tail=n_contacts)
@@ -69,7 +73,8 @@ class WorldSnapshot(Block):
 
 # where a kernel finds the world snapshot's signals (vectors of 3, then the contacts)
 W_REFERENCE, W_REFERENCE_VELOCITY, W_FORCE = (
-    3 * WorldSnapshot.VECTORS.index(x) for x in ("reference", "reference_velocity", "force")
+    3 * x.k
+    for x in (WorldSnapshot.reference, WorldSnapshot.reference_velocity, WorldSnapshot.force)
 )
 W_CONTACTS = 3 * len(WorldSnapshot.VECTORS)
 
@@ -102,6 +107,40 @@ class Backend(ABC):
         """What the session summary should say of this backend once it is stopped (what went
         wrong while stopping, warnings that were not faults); none by default."""
         return []
+
+    def fuse(self, peer: Backend) -> FusedPlants | None:
+        """A capability, not a duty: where this backend and the peer's (the HSI's first) can
+        run inside a one-process session's compiled tick, the object that does it; None (the
+        default) keeps the plain ``read`` / ``write`` path."""
+        return None
+
+
+class FusedPlants(ABC):
+    """Two backends' periods run inside a lock-step session's tick kernels (a simulation's
+    fast path, ``teleop_rt.hal.sim_fused``): the same arithmetic as both backends' ``read``
+    and ``write``, in fewer calls. The session packs ``blocks`` after its own blocks
+    (``teleop_rt.lockstep.SESSION_BLOCKS``) and calls ``bind``; then per tick ``before`` in
+    place of both reads and the lock-step's first kernel, ``after`` in place of its second
+    (and, without a finding, the writes' commands), and ``advance`` for the rest of the
+    writes."""
+
+    blocks: list[Block]
+
+    @abstractmethod
+    def bind(self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray) -> None:
+        """The packed buffers and the session's offsets (all blocks), once packed."""
+
+    @abstractmethod
+    def before(self) -> int:
+        """Both reads and the lock-step's first half; the finding (0: none)."""
+
+    @abstractmethod
+    def after(self, rnea_h: np.ndarray, rnea_t: np.ndarray) -> int:
+        """The lock-step's second half and, without a finding, both motor commands."""
+
+    @abstractmethod
+    def advance(self) -> None:
+        """The rest of both writes: each plant's period."""
 
 
 # factory(config, side, controller model, operator=None): operator replaces the config's

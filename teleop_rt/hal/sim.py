@@ -10,9 +10,9 @@ The plant's state and its loads are flat blocks (``teleop_rt.flat``, ``teleop_rt
 into one pair of buffers; the arithmetic between Pinocchio's calls is compiled. The common case
 (semi-implicit Euler, one sub-step, no faults) is a ``write`` of three compiled calls around ABA
 and the tool Jacobian, and a ``read`` of one; sub-steps, RK4 and faults run the same compiled
-pieces from a Python loop. A session on two simulated plants packs their blocks with its own
-(``SimBackend.rebind``) and, in the common case, runs these pieces itself in its own compiled
-calls (``teleop_rt.sim_tick``).
+pieces from a Python loop. Two simulated plants in the common case offer to run inside a one-process
+session's compiled tick (``SimBackend.fuse``, ``teleop_rt.hal.sim_fused``): the session packs
+their blocks with its own (``SimBackend.rebind``).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import pinocchio as pin
 
 from teleop_rt.config import FaultSpec, SessionConfig
 from teleop_rt.errors import ConfigError
-from teleop_rt.flat import Block, Packed, as_floats, jit
+from teleop_rt.flat import Block, Int, Packed, Scalar, Vector, as_floats, jit
 from teleop_rt.hal.base import (
     FB_AGE_TICKS,
     FB_Q,
@@ -34,6 +34,7 @@ from teleop_rt.hal.base import (
     W_REFERENCE_VELOCITY,
     Backend,
     Feedback,
+    FusedPlants,
     register_backend,
 )
 from teleop_rt.model import RobotModel, friction_torque
@@ -64,15 +65,29 @@ class PlantState(Block):
     """The simulated robot: joint state, the torques on it (motor, loads, total) and its
     friction parameters; time and tick; the tool's velocity (world frame) when loads act there."""
 
-    VECTORS = ("q", "v", "tau_motor", "tau_load", "tau", "damping", "coulomb")
-    SCALARS = ("t", "dt", "h", "inv_v_s", "tool_vx", "tool_vy", "tool_vz")
-    INTS = ("tick",)
+    q = Vector("joint angles, rad")
+    v = Vector("joint velocities, rad/s")
+    tau_motor = Vector("the motor torque held over the period, N m")
+    tau_load = Vector("the loads' joint torques, N m")
+    tau = Vector("the total torque: motor + loads - friction, N m")
+    damping = Vector(param=True)
+    coulomb = Vector(param=True)
+    t = Scalar("time, s")
+    dt = Scalar(param=True)
+    h = Scalar("integration step, s", param=True)
+    inv_v_s = Scalar(param=True)
+    tool_vx = Scalar("the tool's velocity (world frame), m/s")
+    tool_vy = Scalar()
+    tool_vz = Scalar()
+    tick = Int()
 
 
-Q, V, TAU_MOTOR, TAU_LOAD, TAU, DAMPING, COULOMB = range(7)
-T, DT, H, INV_V_S, TOOL_V = range(5)  # scalar k at N_VECTORS * n + k
+P = PlantState
+Q, V, TAU_MOTOR, TAU_LOAD, TAU = P.q.k, P.v.k, P.tau_motor.k, P.tau_load.k, P.tau.k
+DAMPING, COULOMB = P.damping.k, P.coulomb.k
+T, DT, H, INV_V_S, TOOL_V = P.t.k, P.dt.k, P.h.k, P.inv_v_s.k, P.tool_vx.k  # (tool_vy, vz follow)
 N_VECTORS = len(PlantState.VECTORS)
-TICK = PlantState.INTS.index("tick")
+TICK = PlantState.tick.k
 
 
 # The kernels below index the packed buffers directly: ``o`` holds the plant's offsets (its
@@ -286,7 +301,7 @@ class SimBackend(Backend):
     def rebind(self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray) -> None:
         """Work on ``self.blocks`` where they are now: the buffers f, i that hold them and
         their ``offsets`` there (a view, in ``blocks``' order). A session that packs the
-        plant with its own blocks (``teleop_rt.sim_tick``) calls this after packing."""
+        plant with its own blocks (``teleop_rt.hal.sim_fused``) calls this after packing."""
         state, plant = self.state, self.plant
         self._buffers = (f, i, offsets, self.n)
         # Pinocchio's arguments, looked up once: the state's views and the tool's placement
@@ -297,11 +312,22 @@ class SimBackend(Backend):
     def compiled_common_case(self) -> bool:
         """One semi-implicit Euler step per write, ideal sensors, no faults, and ``read`` and
         ``write`` as defined here (not a subclass's): what the fused simulated tick
-        (``teleop_rt.sim_tick``) does in their place."""
+        (``teleop_rt.hal.sim_fused``) does in their place."""
         cls = type(self)
         own = cls.read is SimBackend.read and cls.write is SimBackend.write
         own = own and not {"read", "write"} & vars(self).keys()  # nor replaced on the instance
         return own and self._one_euler_step and self._ideal_sensors
+
+    def fuse(self, peer: Backend) -> FusedPlants | None:
+        """With the TO's plant (this one the HSI's), both in their common case: the pair run
+        inside the session's tick (``teleop_rt.hal.sim_fused``)."""
+        if not (isinstance(peer, SimBackend) and peer.n == self.n):
+            return None
+        if not (self.compiled_common_case and peer.compiled_common_case):
+            return None
+        from teleop_rt.hal.sim_fused import FusedSimPair
+
+        return FusedSimPair(self, peer)
 
     @property
     def tau_motor(self) -> np.ndarray:

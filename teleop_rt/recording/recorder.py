@@ -166,15 +166,15 @@ def row_sources(session: Session, layout: LogLayout) -> np.ndarray:
     }
     out: list[int] = []
     for topic in layout.topics[:3]:  # /hsi, /to, /channel; /timing is the record's own
-        side = {"/hsi": hsi, "/to": to}.get(topic.name)
+        site = {"/hsi": hsi, "/to": to}.get(topic.name)
         for field in topic.fields[2:]:
-            if side is None:
-                block, name = ch, field.name
+            if site is None:
+                block, name = ch.source(field.name)
             elif field.name in robot:
                 owner, name = robot[field.name].split(".")
-                block = getattr(side, owner)
+                block = getattr(site, owner)
             else:
-                block, name = side.backend.world, world[field.name]
+                block, name = site.world, world[field.name]
             first = packed.index_of(block, name)
             out += range(first, first + field.count)
     return np.array(out, dtype=np.int64)
@@ -205,7 +205,7 @@ def fill_row(
 
 def _metadata(session: Session) -> dict[str, str]:
     cfg = session.cfg
-    operator = cfg.operator.kind if cfg.backend == "sim" else "none"
+    operator = cfg.operator.kind if cfg.backend_for("hsi") == "sim" else "none"
     return {
         "software_version": __version__,
         "schema_version": str(SCHEMA_VERSION),
@@ -216,6 +216,8 @@ def _metadata(session: Session) -> dict[str, str]:
         "delay_ticks": str(cfg.delay_ticks),
         "name": cfg.name,
         "backend": cfg.backend,
+        "backend_hsi": cfg.backend_for("hsi"),
+        "backend_to": cfg.backend_for("to"),
         "operator": operator,
     }
 

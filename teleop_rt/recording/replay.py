@@ -39,6 +39,9 @@ def replay_config(data: LogData, overrides: list[str]) -> SessionConfig:
         raise LogError(f"{data.path}: the log holds no config.yaml attachment; cannot replay")
     raw = yaml.safe_load(data.config_yaml)
     raw["backend"] = "sim"
+    for side in ("hsi", "to"):  # a robot's own backend too (a CAN robot replays simulated)
+        if isinstance(raw.get(side), dict):
+            raw[side].pop("backend", None)
     raw = apply_overrides(raw, overrides)
     _restore_urdfs(raw, data)
     return from_dict(raw)

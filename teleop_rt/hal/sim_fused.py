@@ -1,0 +1,130 @@
+"""Two simulated plants run inside a one-process session's tick: the simulated backend's
+capability behind ``Backend.fuse`` (``teleop_rt.hal.base.FusedPlants``). The lock-step kernels
+(``teleop_rt.lockstep``) and both plants' compiled pieces (``teleop_rt.hal.sim``) in four
+compiled calls around the Pinocchio calls (six when loads act at the tools), instead of ten
+compiled calls and four backend method calls:
+
+    sense_and_prepare:  both plants' sensors; lockstep_before
+    (Python)            RNEA of each controller model
+    finish_and_command: lockstep_after; when safe, both plants' motor torques
+    (Python)            ABA of each plant
+    integrate:          both plants' Euler steps
+    (Python)            the tool Jacobian of each plant
+    next_ticks:         both plants' loads at the next tick
+
+It is the same arithmetic in the same order as ``read`` / ``write`` of two ``SimBackend``s, so
+a session gives bit-identical results either way. The plants' blocks follow the session's own
+(``SESSION_BLOCKS`` on), the TO's from block ``split`` on.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pinocchio as pin
+
+from teleop_rt.control import TAU
+from teleop_rt.flat import floats_of, ints_of, jit, vec
+from teleop_rt.hal.base import FusedPlants
+from teleop_rt.hal.sim import command, euler_step, next_tick, sense
+from teleop_rt.lockstep import (
+    HSI_SITE,
+    SESSION_BLOCKS,
+    TO_SITE,
+    lockstep_after,
+    lockstep_before,
+)
+from teleop_rt.site_tick import CT, FB, WORLD
+
+if TYPE_CHECKING:
+    from teleop_rt.hal.sim import SimBackend
+
+FB_H, FB_T, WORLD_H, WORLD_T = HSI_SITE + FB, TO_SITE + FB, HSI_SITE + WORLD, TO_SITE + WORLD
+CT_H, CT_T = HSI_SITE + CT, TO_SITE + CT
+
+
+@jit
+def sense_and_prepare(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, split: int) -> int:
+    """Both plants' ideal sensors into the sites' feedback and world blocks, then the
+    lock-step's first half; its finding."""
+    plant_h, plant_t = o[2 * SESSION_BLOCKS : 2 * split], o[2 * split :]
+    sense(f, i, plant_h, n, floats_of(f, o, FB_H), ints_of(i, o, FB_H), floats_of(f, o, WORLD_H))
+    sense(f, i, plant_t, n, floats_of(f, o, FB_T), ints_of(i, o, FB_T), floats_of(f, o, WORLD_T))
+    return lockstep_before(f, i, o, n)
+
+
+@jit
+def finish_and_command(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, split: int,
+    rnea_h: np.ndarray, rnea_t: np.ndarray,
+) -> int:  # fmt: skip
+    """The lock-step's second half; the safety finding (0: none), and only without one both
+    plants take their checked motor torques."""
+    code = lockstep_after(f, i, o, n, rnea_h, rnea_t)
+    if code:
+        return code
+    command(f, o[2 * SESSION_BLOCKS : 2 * split], n, vec(floats_of(f, o, CT_H), TAU, n))
+    command(f, o[2 * split :], n, vec(floats_of(f, o, CT_T), TAU, n))
+    return 0
+
+
+@jit
+def integrate(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, split: int, a_h: np.ndarray,
+    a_t: np.ndarray,
+) -> None:  # fmt: skip
+    """Both plants' Euler steps with their ABA accelerations."""
+    euler_step(f, i, o[2 * SESSION_BLOCKS : 2 * split], n, a_h)
+    euler_step(f, i, o[2 * split :], n, a_t)
+
+
+@jit
+def next_ticks(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, split: int,
+    jac_h: np.ndarray, x_h: np.ndarray, jac_t: np.ndarray, x_t: np.ndarray,
+) -> None:  # fmt: skip
+    """Both plants' time and loads at the next tick, their tools at x with Jacobians jac."""
+    next_tick(f, i, o[2 * SESSION_BLOCKS : 2 * split], n, jac_h, x_h)
+    next_tick(f, i, o[2 * split :], n, jac_t, x_t)
+
+
+class FusedSimPair(FusedPlants):
+    """The HSI's and the TO's simulated plants, stepped inside the session's kernels."""
+
+    def __init__(self, plant_h: SimBackend, plant_t: SimBackend) -> None:
+        self.plants = (plant_h, plant_t)
+        self.blocks = [*plant_h.blocks, *plant_t.blocks]
+        self.n = plant_h.n
+
+    def bind(self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray) -> None:
+        plant_h, plant_t = self.plants
+        first = SESSION_BLOCKS
+        self.split = split = first + len(plant_h.blocks)
+        end = split + len(plant_t.blocks)
+        assert offsets.size == 2 * end, "the plants' blocks must close the session's buffers"
+        plant_h.rebind(f, i, offsets[2 * first : 2 * split])
+        plant_t.rebind(f, i, offsets[2 * split : 2 * end])
+        self._args = (f, i, offsets, self.n, split)
+        # load (or, on a fresh install, compile) the four kernels now, on scratch copies
+        n, zeros, jac, x = self.n, np.zeros(self.n), np.zeros((6, self.n)), np.zeros(3)
+        sf, si = f.copy(), i.copy()
+        sense_and_prepare(sf, si, offsets, n, split)
+        finish_and_command(sf, si, offsets, n, split, zeros, zeros)
+        integrate(sf, si, offsets, n, split, zeros, zeros)
+        next_ticks(sf, si, offsets, n, split, jac, x, jac, x)
+
+    def before(self) -> int:
+        return sense_and_prepare(*self._args)
+
+    def after(self, rnea_h: np.ndarray, rnea_t: np.ndarray) -> int:
+        return finish_and_command(*self._args, rnea_h, rnea_t)
+
+    def advance(self) -> None:
+        plant_h, plant_t = self.plants
+        f, i, o, n, split = self._args
+        integrate(f, i, o, n, split, pin.aba(*plant_h._pin), pin.aba(*plant_t._pin))
+        next_ticks(
+            f, i, o, n, split,
+            plant_h._jacobian(), plant_h._x, plant_t._jacobian(), plant_t._x,
+        )  # fmt: skip

@@ -1,0 +1,112 @@
+"""Two sites and an in-process link stepped in lock-step: the one-process session's tick.
+
+The session packs both sites' blocks (``teleop_rt.site_tick.SITE_ORDER``, the HSI's then the
+TO's), the link, the channel monitor, the transparency metrics and the pair's own counters into
+one pair of buffers (``SESSION_ORDER``), so that one compiled call reaches everything:
+
+    lockstep_before:  both sites sense; the link delivers; both sites up to their models; the
+                      link takes this tick's packets; the monitor accounts the two-port's power
+    (Python)          RNEA of each robot
+    lockstep_after:   both sites' computed torque and checks; T_p, T_tau (eq 18)
+
+Each site's arithmetic is its own kernel on its own blocks: the same kernels run a site alone,
+in a process of its own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from teleop_rt.analysis.transparency import accumulate
+from teleop_rt.com.channel import monitor_step
+from teleop_rt.com.link import link_deliver, link_push
+from teleop_rt.flat import Block, Int, floats_of, ints_of, jit, vec
+from teleop_rt.hal.base import FB_Q
+from teleop_rt.safety import SATURATED
+from teleop_rt.site_tick import (
+    FB,
+    GUARD,
+    PORT,
+    RX,
+    S_TAU,
+    SIG,
+    SITE_BLOCKS,
+    TX,
+    site_after_models,
+    site_before_models,
+    site_sense,
+)
+
+HSI_SITE, TO_SITE = 0, SITE_BLOCKS  # each site's first block
+LINK, MONITOR, METRICS, PAIR = range(2 * SITE_BLOCKS, 2 * SITE_BLOCKS + 4)
+SESSION_BLOCKS = 2 * SITE_BLOCKS + 4  # blocks a backend's fused tick may follow
+
+
+class PairState(Block):
+    """What the pair of sites counts beyond each site's own."""
+
+    finding_site = Int("0: the HSI's, 1: the TO's finding")
+    saturated_ticks = Int("ticks in which either robot's torque was saturated")
+
+
+FINDING_SITE, SATURATED_TICKS = PairState.finding_site.k, PairState.saturated_ticks.k
+
+
+@jit
+def exchange(f: np.ndarray, i: np.ndarray, o: np.ndarray, oh: np.ndarray, ot: np.ndarray, n: int):
+    link_deliver(
+        floats_of(f, o, LINK), ints_of(i, o, LINK), n,
+        floats_of(f, oh, TX), ints_of(i, oh, TX), floats_of(f, oh, RX), ints_of(i, oh, RX),
+        floats_of(f, ot, TX), ints_of(i, ot, TX), floats_of(f, ot, RX), ints_of(i, ot, RX),
+    )  # fmt: skip
+
+
+@jit
+def lockstep_before(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
+    """Both sites from their fresh feedback to their models' accelerations; a finding (the
+    pair's ``finding_site`` says whose) before anything is exchanged."""
+    oh, ot = o[: 2 * SITE_BLOCKS], o[2 * SITE_BLOCKS : 4 * SITE_BLOCKS]
+    pair = ints_of(i, o, PAIR)
+    code = site_sense(f, i, oh, n)
+    if code:
+        pair[FINDING_SITE] = 0
+        return code
+    code = site_sense(f, i, ot, n)
+    if code:
+        pair[FINDING_SITE] = 1
+        return code
+    exchange(f, i, o, oh, ot, n)
+    site_before_models(f, i, oh, n)
+    site_before_models(f, i, ot, n)
+    link_push(
+        floats_of(f, o, LINK), ints_of(i, o, LINK), n,
+        floats_of(f, oh, TX), ints_of(i, oh, TX), floats_of(f, ot, TX), ints_of(i, ot, TX),
+    )  # fmt: skip
+    monitor_step(floats_of(f, o, MONITOR), n, floats_of(f, oh, PORT), floats_of(f, ot, PORT))
+    return 0
+
+
+@jit
+def lockstep_after(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, rnea_h: np.ndarray, rnea_t: np.ndarray
+) -> int:
+    """Both sites from their models' RNEA to checked motor torques; the finding (0: none)."""
+    oh, ot = o[: 2 * SITE_BLOCKS], o[2 * SITE_BLOCKS : 4 * SITE_BLOCKS]
+    pair = ints_of(i, o, PAIR)
+    code = site_after_models(f, i, oh, n, rnea_h)
+    if code:
+        pair[FINDING_SITE] = 0
+        return code
+    code = site_after_models(f, i, ot, n, rnea_t)
+    if code:
+        pair[FINDING_SITE] = 1
+        return code
+    if ints_of(i, oh, GUARD)[SATURATED] or ints_of(i, ot, GUARD)[SATURATED]:
+        pair[SATURATED_TICKS] += 1
+    fb_h, fb_t = floats_of(f, oh, FB), floats_of(f, ot, FB)
+    accumulate(
+        floats_of(f, o, METRICS), ints_of(i, o, METRICS), n,
+        vec(fb_h, FB_Q, n), vec(fb_t, FB_Q, n),
+        vec(floats_of(f, oh, SIG), S_TAU, n), vec(floats_of(f, ot, SIG), S_TAU, n),
+    )  # fmt: skip
+    return 0

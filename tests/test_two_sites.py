@@ -1,0 +1,111 @@
+"""The two-sites shape (issue 15): a one-process session is two sites joined by an in-process
+link, and it computes what main computed before the split, bit for bit (the reference figures
+of tests/reference_figures.py, recorded from main before the restructure); a site stepped
+alone against a Link gives the same numbers as the lock-step session."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from teleop_rt import config
+from teleop_rt.com.link import InProcessLink
+from teleop_rt.session import Session
+from tests.conftest import CONFIGS
+from tests.reference_figures import REFERENCE, cases, figures, key
+
+REFERENCE_FIGURES = json.loads(REFERENCE.read_text())
+
+
+@pytest.mark.parametrize("path, delay_ms", cases(), ids=[key(p, d) for p, d in cases()])
+def test_every_config_gives_mains_figures_bit_for_bit(path, delay_ms) -> None:
+    """T_p, T_tau, the channel energy and every logged field, exactly as main logged them
+    before the split (the same arithmetic in the same order)."""
+    ref, now = REFERENCE_FIGURES[key(path, delay_ms)], figures(path, delay_ms)
+    assert now["ticks"] == ref["ticks"]
+    for name in ("t_p", "t_tau", "channel_energy_j", "min_channel_energy_j"):
+        assert now[name] == ref[name], name
+    assert now["fields"].keys() == ref["fields"].keys()
+    differ = [f for f in ref["fields"] if now["fields"][f]["sha256"] != ref["fields"][f]["sha256"]]
+    assert not differ, differ
+
+
+def sites_alone(cfg: config.SessionConfig) -> tuple[Session, InProcessLink]:
+    """A session's two sites on buffers of their own, to be stepped through a Python link."""
+    session = Session(cfg, fuse=False)
+    for site in session.sites:
+        site.bind(type(session.packed)(site.blocks))
+    return session, InProcessLink(session.n, cfg.delay_ticks)
+
+
+@pytest.mark.parametrize("delay_ms", [0, 20])
+def test_sites_stepped_alone_over_a_link_equal_the_lock_step_session(delay_ms) -> None:
+    """The sites' own entry points (sense, update) against the Link interface compute what the
+    lock-step kernels compute, tick by tick: what a site in a process of its own will run."""
+    cfg = config.load(
+        CONFIGS / "paper_experiment.yaml", ["duration_s=2", f"channel.delay_ms={delay_ms}"]
+    )
+    lockstep = Session(cfg)
+    alone, link = sites_alone(cfg)
+    hsi, to = alone.hsi, alone.to
+    for k in range(cfg.n_ticks):
+        lockstep.step()
+        hsi.sense(link)
+        to.sense(link)
+        hsi.update(link)
+        to.update(link)
+        for a, b in ((lockstep.hsi, hsi), (lockstep.to, to)):
+            assert np.array_equal(a.tau_cmd, b.tau_cmd), k
+            assert np.array_equal(a.port.f, b.port.f), k
+            assert np.array_equal(a.feedback.q, b.feedback.q), k
+    assert np.abs(to.port.flow).max() > 0.01 and hsi.tick == to.tick == cfg.n_ticks
+
+
+def test_logged_signals_obey_the_laws_that_name_them(tmp_path) -> None:
+    """Every /channel column, and the controllers' outputs, against the equation that defines
+    it, on a logged run: two swapped field declarations (or a kernel index that disagrees with
+    a name) log one signal under another's name, and break one of these."""
+    from teleop_rt.recording.reader import read_log
+    from teleop_rt.recording.recorder import Recorder
+
+    cfg = config.load(CONFIGS / "paper_experiment.yaml", ["duration_s=3", "channel.delay_ms=20"])
+    session = Session(cfg)
+    session.run(recorder=Recorder(session, tmp_path / "laws.mcap"))
+    log = read_log(tmp_path / "laws.mcap")
+    h, t, c = log.topics["/hsi"], log.topics["/to"], log.topics["/channel"]
+    b = cfg.channel.wave_impedance
+    s2b, s2ob = np.sqrt(2.0 * b), np.sqrt(2.0 / b)
+    wc, tc, wt, tt = c["omega_c"], c["tau_c"], c["omega_t"], c["tau_t"]
+    assert np.array_equal(wc, h["v"]) and np.array_equal(tt, -t["tau_ext"])  # eq 8's ports
+    assert np.array_equal(tc, b * wc - s2b * c["v_l"])  # eq 9, HSI side
+    assert np.array_equal(c["u_l"], s2b * wc - c["v_l"])
+    assert np.array_equal(wt, (s2b * c["u_r"] - tt) / b)  # eq 9, TO side
+    assert np.array_equal(c["v_r"], c["u_r"] - s2ob * tt)
+    assert np.array_equal(c["power"], wc * tc - wt * tt)  # eq 8
+    np.testing.assert_allclose(np.cumsum(c["power"], axis=0) * cfg.dt, c["energy"], atol=1e-12)
+    np.testing.assert_array_equal(c["total_energy"], c["energy"].sum(axis=1))
+    kp_h, kp_t = cfg.hsi.controller.kp, cfg.to.controller.kp
+    assert np.array_equal(h["a_ref"], kp_h * (h["tau_ext"] - tc))  # eq 4: C1(tau_h - tau_c)
+    assert np.array_equal(t["a_ref"], kp_t * (wt - t["v"]))  # eq 14: C2(omega_t - v_t)
+    for name in ("omega_c", "tau_c", "u_l", "v_l", "u_r", "v_r", "power"):
+        assert np.abs(c[name]).max() > 1e-3, name  # none of them trivially zero
+
+
+def test_every_block_declares_each_field_once_where_its_kernels_find_it() -> None:
+    """The field tuples are derived from the declarations, and every named view sits where the
+    kernels' index says (vector k at k n, scalar k after the vectors)."""
+    session = Session(config.load(CONFIGS / "paper_experiment.yaml", ["duration_s=0.01"]))
+    for block in session.packed.blocks:
+        cls = type(block)
+        names = [*cls.VECTORS, *cls.SCALARS, *cls.INTS]
+        assert len(names) == len(set(names)), cls.__name__
+        for k, name in enumerate(cls.VECTORS):
+            view = getattr(block, name)
+            assert np.shares_memory(view, block.f[k * block.n : (k + 1) * block.n]), name
+            declared = vars(cls).get(name)
+            assert declared is None or declared.k == k, (cls.__name__, name)
+        for k, name in enumerate(cls.SCALARS):
+            block.f[len(cls.VECTORS) * block.n + k] = 0.25 + k
+            assert getattr(block, name) == 0.25 + k, (cls.__name__, name)
