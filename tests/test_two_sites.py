@@ -109,3 +109,28 @@ def test_every_block_declares_each_field_once_where_its_kernels_find_it() -> Non
         for k, name in enumerate(cls.SCALARS):
             block.f[len(cls.VECTORS) * block.n + k] = 0.25 + k
             assert getattr(block, name) == 0.25 + k, (cls.__name__, name)
+
+
+@pytest.mark.parametrize("can_side", ["hsi", "to"])
+def test_a_can_robot_against_a_simulated_one(can_side, tmp_path) -> None:
+    """The lab's usual set-up: one robot on CAN (here its emulated drives), the other simulated,
+    from the command line; the run completes and tracks like the all-simulated one (the CAN
+    side adds one tick of command delay, so the figures are close, not equal)."""
+    import subprocess
+    import sys
+
+    def run(*extra: str) -> dict:
+        out = subprocess.run(
+            [sys.executable, "-m", "teleop_rt.cli", "run", str(CONFIGS / "paper_experiment.yaml"),
+             "--duration", "2", "--no-log", "--json", "--set", "can.emulate=true", *extra],
+            capture_output=True, text=True, timeout=600, cwd=tmp_path,
+        )  # fmt: skip
+        assert out.returncode == 0, out.stderr[-2000:]
+        return json.loads(out.stdout)
+
+    mixed, sim = run("--backend", f"{can_side}:can"), run()
+    assert mixed["ticks"] == sim["ticks"] == 2000 and mixed["stopped_early"] is None
+    differs = [k for k in ("t_p_total", "t_tau_total") if mixed[k] != sim[k]]
+    assert differs, "the CAN side did not run"
+    assert mixed["t_tau_total"] == pytest.approx(sim["t_tau_total"], rel=0.2)
+    assert mixed["t_p_total"] == pytest.approx(sim["t_p_total"], rel=0.5)
