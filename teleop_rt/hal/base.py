@@ -161,7 +161,7 @@ def register_backend(name: str) -> Callable[[BackendFactory], BackendFactory]:
 
 def available_backends() -> list[str]:
     _load_builtin()
-    return sorted(_REGISTRY)
+    return sorted({*_REGISTRY, *_entry_point_names()})
 
 
 def create_backend(
@@ -169,13 +169,40 @@ def create_backend(
 ) -> Backend:
     """Build the backend ``name`` for side 'hsi' or 'to'; ConfigError for an unknown name."""
     _load_builtin()
-    try:
-        factory = _REGISTRY[name]
-    except KeyError:
+    factory = _REGISTRY.get(name) or _from_entry_point(name)
+    if factory is None:
         raise ConfigError(
             f"backend: unknown backend {name!r} (available: {', '.join(available_backends())})"
-        ) from None
+        )
     return factory(cfg, side, model, operator=operator)
+
+
+ENTRY_POINT_GROUP = "teleop_rt.backends"
+
+
+def _from_entry_point(name: str) -> BackendFactory | None:
+    """A third-party backend, found by name as python-can finds its interfaces: a package
+    declares ``[project.entry-points."teleop_rt.backends"] NAME = "module:factory"``, the
+    factory taking ``(config, side, model, operator=None)``. Loaded only when asked for."""
+    from importlib.metadata import entry_points
+
+    for ep in entry_points(group=ENTRY_POINT_GROUP, name=name):
+        try:
+            factory = ep.load()
+        except Exception as err:  # its package is broken: say which, not a traceback
+            raise ConfigError(
+                f"backend: {name!r} is declared by {ep.value!r} but does not load "
+                f"({type(err).__name__}: {err})"
+            ) from None
+        _REGISTRY[name] = factory
+        return factory
+    return None
+
+
+def _entry_point_names() -> list[str]:
+    from importlib.metadata import entry_points
+
+    return [ep.name for ep in entry_points(group=ENTRY_POINT_GROUP)]
 
 
 def _load_builtin() -> None:
