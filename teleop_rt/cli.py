@@ -182,8 +182,9 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
 def _print_warnings(session) -> None:
     from teleop_rt.analysis.contact import contact_warnings
+    from teleop_rt.safety import safety_warnings
 
-    for line in contact_warnings(session.cfg, session.to.model):
+    for line in [*safety_warnings(session.cfg), *contact_warnings(session.cfg, session.to.model)]:
         print(f"teleop-rt: warning: {line}", file=sys.stderr)
 
 

@@ -181,6 +181,11 @@ class SafetySpec(Strict):
     tracking_error_ticks: Annotated[int, Field(ge=0)] = 20
     # the tool frame outside its box is a stop (one forward-kinematics call per boxed robot)
     workspace: WorkspaceLimits = WorkspaceLimits()
+    # plausibility of the measurements (sensor faults), checked whatever ``enabled`` says:
+    # |tau_ext| above this (N m per joint; default 3 x the URDF effort limit) and |v| above
+    # this (rad/s per joint; default 2 x the URDF velocity limit) stop within the tick
+    measured_torque_limit_nm: PerJointPositive | None = None
+    measured_velocity_limit_rad_s: PerJointPositive | None = None
     # the stop itself: the HSI is damped, the TO is brought to rest, then both get zero torque
     stop_damping_nm_s_per_rad: NonNegFloat = 0.5
     stop_max_ticks: Annotated[int, Field(ge=0)] = 500

@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from teleop_rt.config import SafetySpec
+from teleop_rt.config import SafetySpec, SessionConfig, per_joint
 from teleop_rt.errors import SafetyStop
 from teleop_rt.flat import Block, Int, Scalar, Vector, as_floats, jit, vec
 from teleop_rt.hal.base import Feedback
@@ -56,8 +56,36 @@ class RobotLimits:
 # what a check found (0: nothing); MEASURED_*: a non-finite measurement; SATURATION: a torque
 # at its limit for too long
 OK, STALE, ANGLE, SPEED, TRACKING, TORQUE_NAN, TORQUE_LIMIT = range(7)
-MEASURED_ANGLE, MEASURED_SPEED, MEASURED_TORQUE = range(7, 10)
+MEASURED_ANGLE, MEASURED_SPEED, MEASURED_TORQUE, IMPLAUSIBLE_TORQUE, IMPLAUSIBLE_SPEED = range(
+    7, 12
+)
 SATURATION = 100
+# default plausibility bounds of measurements, as multiples of the URDF's limits
+MEASURED_TORQUE_FACTOR, MEASURED_VELOCITY_FACTOR = 3.0, 2.0
+
+
+def safety_warnings(cfg: SessionConfig) -> list[str]:
+    """What ``check`` and ``run`` should warn about in the config's safety section."""
+    spec, out = cfg.safety, []
+    if not spec.enabled:
+        out.append(
+            "safety.enabled is false: no limit, saturation, tracking or workspace checks; only "
+            "non-finite or implausible measurements and non-finite torques still stop the robots"
+        )
+    elif spec.torque_limits == "off":
+        out.append("safety.torque_limits is off: commanded torques are not bounded")
+    return out
+
+
+def plausible(
+    given: float | list[float] | None, urdf: list[float | None], factor: float, n: int, key: str
+) -> list[float]:
+    """Per-joint plausibility bounds: the config's, else factor x the URDF limit (inf where the
+    URDF gives none)."""
+    values = per_joint(given, n, key)
+    if values is not None:
+        return values
+    return [factor * x if x is not None else math.inf for x in urdf]
 
 
 class RobotGuard(Block):
@@ -75,6 +103,8 @@ class RobotGuard(Block):
     prev_v = Vector("last tick's velocity (tracking)")
     prev_a = Vector("last tick's commanded acceleration (tracking)")
     run = Vector("ticks in a row off the commanded acceleration")
+    tau_ext_max = Vector("plausible measured |tau_ext|, N m (inf: no bound)", param=True)
+    v_measured_max = Vector("plausible measured |v|, rad/s (inf: no bound)", param=True)
     tolerance = Scalar("tracking tolerance, rad/s^2", param=True)
     inv_dt = Scalar(param=True)
     value = Scalar("the offending value of a finding")
@@ -102,6 +132,14 @@ class RobotGuard(Block):
         self.vmax[:] = [x if x is not None else inf for x in velocity]
         effort = lim.effort if spec.torque_limits != "off" else [None] * self.n
         self.emax[:] = [x if x is not None else inf for x in effort]
+        self.tau_ext_max[:] = plausible(
+            spec.measured_torque_limit_nm, lim.effort, MEASURED_TORQUE_FACTOR, self.n,
+            "safety.measured_torque_limit_nm",
+        )  # fmt: skip
+        self.v_measured_max[:] = plausible(
+            spec.measured_velocity_limit_rad_s, lim.velocity, MEASURED_VELOCITY_FACTOR, self.n,
+            "safety.measured_velocity_limit_rad_s",
+        )  # fmt: skip
         self.stop_on_torque = int(spec.torque_limits == "stop")
         self.enabled = int(spec.enabled)
         self.saturation_stop_ticks = spec.saturation_stop_ticks
@@ -156,6 +194,15 @@ class RobotGuard(Block):
             MEASURED_ANGLE: lambda: f"angle is {x}",
             MEASURED_SPEED: lambda: f"speed is {x}",
             MEASURED_TORQUE: lambda: f"measured torque is {x}",
+            IMPLAUSIBLE_TORQUE: lambda: (
+                f"measured torque {x:.4g} N m is implausible (above {self.tau_ext_max[j]:.4g}: "
+                "a sensor fault? safety.measured_torque_limit_nm)"
+            ),
+            IMPLAUSIBLE_SPEED: lambda: (
+                f"measured speed {x:.4g} rad/s is implausible (above "
+                f"{self.v_measured_max[j]:.4g}: a sensor fault? "
+                "safety.measured_velocity_limit_rad_s)"
+            ),
         }[code]()
         joint_name = self.limits.joint_names[j]
         return SafetyStop(f"tick {tick}: {self.name} joint {j} ({joint_name}): {what}")
@@ -183,6 +230,7 @@ G = RobotGuard
 LO, HI, VMAX, EMAX, PREV_V, PREV_A, RUN = (
     x.k for x in (G.lo, G.hi, G.vmax, G.emax, G.prev_v, G.prev_a, G.run)
 )
+TAU_EXT_MAX, V_MEASURED_MAX = G.tau_ext_max.k, G.v_measured_max.k
 TOLERANCE, INV_DT, VALUE = G.tolerance.k, G.inv_dt.k, G.value.k
 ENABLED, STALE_TICKS, TRACKING_TICKS, STOP_ON_TORQUE = (
     G.enabled.k,
@@ -210,7 +258,8 @@ def _found(f: np.ndarray, i: np.ndarray, n: int, code: int, j: int, x: float) ->
 def measured_fault(
     f: np.ndarray, i: np.ndarray, n: int, q: np.ndarray, v: np.ndarray, tau_ext: np.ndarray
 ) -> int:
-    """The first non-finite measurement (angle, speed, torque), or OK."""
+    """The first non-finite measurement (angle, speed, torque), then the first implausible one
+    (torque, speed beyond the plausibility bounds), or OK."""
     j = _first_non_finite(q, n)
     if j >= 0:
         return _found(f, i, n, MEASURED_ANGLE, j, q[j])
@@ -220,6 +269,12 @@ def measured_fault(
     j = _first_non_finite(tau_ext, n)
     if j >= 0:
         return _found(f, i, n, MEASURED_TORQUE, j, tau_ext[j])
+    tmax, vmax = vec(f, TAU_EXT_MAX, n), vec(f, V_MEASURED_MAX, n)
+    for j in range(n):
+        if not -tmax[j] <= tau_ext[j] <= tmax[j]:
+            return _found(f, i, n, IMPLAUSIBLE_TORQUE, j, tau_ext[j])
+        if not -vmax[j] <= v[j] <= vmax[j]:
+            return _found(f, i, n, IMPLAUSIBLE_SPEED, j, v[j])
     return OK
 
 

@@ -3,7 +3,10 @@ session with the tick, robot, joint and reason, and the log keeps every tick up 
 
 from __future__ import annotations
 
+import json
 import math
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -174,3 +177,48 @@ def test_workspace_stop_in_a_session_keeps_the_log(tmp_path) -> None:
 def test_a_contradictory_workspace_box_is_a_config_error(box: str) -> None:
     with pytest.raises(ConfigError, match=r"safety\.workspace\.to"):
         config.load(PAPER, [f"safety.workspace.to={box}"])
+
+
+def run_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "teleop_rt.cli", *args], capture_output=True, text=True,
+        timeout=600, cwd=cwd,
+    )  # fmt: skip
+
+
+def test_safety_off_still_never_sends_a_nan_torque(tmp_path: Path) -> None:
+    """safety.enabled: false with a NaN torque sensor: the session stops at the fault's tick
+    (zero torque then), and check and run warn that the safety layer is off."""
+    nan_fault = "plant.faults=[{kind: nan, robot: to, joint: 1, start_s: 0.5, duration_s: 0.2}]"
+    args = [str(PAPER), "--set", "safety.enabled=false", "--set", nan_fault]
+    check = run_cli("check", *args, cwd=tmp_path)
+    assert check.returncode == 0 and "warning: safety.enabled is false" in check.stderr
+    out = run_cli("run", *args, "--duration", "2", "--json", "--no-log", cwd=tmp_path)
+    assert out.returncode == 3, out.stderr
+    summary = json.loads(out.stdout)
+    assert summary["ticks"] == 500 and "measured torque is nan" in summary["stopped_early"]
+    assert "warning: safety.enabled is false" in out.stderr
+
+
+def test_an_implausible_measured_torque_stops_within_the_tick() -> None:
+    """A 1e6 N m sensor bias (far beyond 3 x the URDF effort limit) stops the session at the
+    first tick that measures it, before any motor is commanded from it."""
+    bias = "plant.faults=[{kind: bias, robot: hsi, joint: 0, start_s: 0.3, magnitude: 1.0e6}]"
+    session = Session(config.load(PAPER, ["duration_s=1", bias]))
+    summary = session.run()
+    assert summary.safety_stop and summary.ticks == 300
+    assert "hsi joint 0 (shoulder): measured torque 1e+06 N m is implausible (above 60" in (
+        summary.stopped_early
+    )
+    assert np.abs(session.hsi.backend.tau_motor).max() <= 20.0  # never driven from it
+
+
+def test_the_plausibility_bounds_are_configurable() -> None:
+    bias = "plant.faults=[{kind: bias, robot: to, joint: 1, start_s: 0.1, magnitude: 5.0}]"
+    untracked = ["duration_s=0.3", bias, "safety.tracking_error_ticks=0"]  # (a bias derails it)
+    quiet = Session(config.load(PAPER, untracked)).run()
+    assert not quiet.safety_stop, quiet.stopped_early  # 5 N m is plausible for a 10 N m joint
+    tight = [*untracked, "safety.measured_torque_limit_nm=[100.0, 4.0]"]
+    stopped = Session(config.load(PAPER, tight)).run()
+    assert stopped.safety_stop and stopped.ticks == 100
+    assert "to joint 1 (elbow): measured torque 5 N m is implausible" in stopped.stopped_early

@@ -41,8 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from teleop_rt import config  # noqa: E402
-from teleop_rt.com.link import Link  # noqa: E402
-from teleop_rt.com.port import Packet  # noqa: E402
+from teleop_rt.com.link import InProcessLink  # noqa: E402
 from teleop_rt.errors import TeleopError  # noqa: E402
 from teleop_rt.flat import Packed  # noqa: E402
 from teleop_rt.hal.base import Backend, Feedback, register_backend  # noqa: E402
@@ -146,41 +145,34 @@ def controller_side(cfg, samples: dict[str, list], ticks: int) -> np.ndarray:
     return time_ticks(replayed_session(cfg, samples).step, ticks)
 
 
-class _EchoLink(Link):
-    """A link for one site alone: it gets back a copy of its own packet of the last tick
-    (the transport's cost is the network issue's to measure, not this one's)."""
-
-    def __init__(self, n: int) -> None:
-        self.last = Packet(n)
-        self.sent: Packet | None = None
-
-    def send(self, side: int, packet: Packet) -> None:
-        self.sent = packet
-
-    def receive(self, side: int, into: Packet) -> None:
-        into.f[:] = self.last.f
-        into.i[:] = self.last.i
-
-    def end_tick(self, side: int) -> None:
-        self.last.f[:] = self.sent.f
-        self.last.i[:] = self.sent.i
-
-
 def each_site_alone(cfg, samples: dict[str, list], ticks: int) -> dict[str, np.ndarray]:
-    """One site's controller-side tick on buffers of its own, as a site in a process of its
-    own runs it (sense, link, update; its backend replays recorded feedback)."""
+    """Each site's controller-side tick on buffers of its own, as a site in a process of its
+    own runs it (sense, the link, update; its backend replays recorded feedback): both sites
+    over a Python InProcessLink, each timed around its own calls."""
     session = replayed_session(cfg, samples)
-    out = {}
-    for site in session.sites:
+    hsi, to = session.sites
+    for site in (hsi, to):
         site.bind(Packed(site.blocks))
-        link = _EchoLink(session.n)
-
-        def tick(site=site, link=link) -> None:
-            site.sense(link)
-            site.update(link)
-
-        out[site.name] = time_ticks(tick, ticks)
-    return out
+    link = InProcessLink(session.n, cfg.delay_ticks)
+    t_h, t_t = np.zeros(ticks, dtype=np.int64), np.zeros(ticks, dtype=np.int64)
+    perf = time.perf_counter_ns
+    gc.collect()
+    gc.disable()
+    try:
+        for k in range(ticks):
+            t0 = perf()
+            hsi.sense(link)
+            t1 = perf()
+            to.sense(link)
+            t2 = perf()
+            hsi.update(link)
+            t3 = perf()
+            to.update(link)
+            t4 = perf()
+            t_h[k], t_t[k] = (t1 - t0) + (t3 - t2), (t2 - t1) + (t4 - t3)
+    finally:
+        gc.enable()
+    return {"hsi": t_h / 1e3, "to": t_t / 1e3}
 
 
 # --- sections --------------------------------------------------------------------------------
