@@ -32,6 +32,10 @@ from teleop_rt.config import (
     per_joint,
 )
 from teleop_rt.flat import Block, jit
+from teleop_rt.hal.base import W_CONTACTS as SNAP_CONTACTS
+from teleop_rt.hal.base import W_FORCE as SNAP_FORCE
+from teleop_rt.hal.base import W_REFERENCE as SNAP_REFERENCE
+from teleop_rt.hal.base import W_REFERENCE_VELOCITY as SNAP_REFERENCE_VELOCITY
 from teleop_rt.model import RobotModel
 
 # load_kind codes; a hand's trajectory is the block right after the hand
@@ -407,6 +411,77 @@ def push_mass(f: np.ndarray, fo: int, dt: float) -> None:
     if f[fo + _MASS] > 0.0:
         f[fo + _S_DOT] += dt * f[fo + _F] / f[fo + _MASS]
         f[fo + _S] += dt * f[fo + _S_DOT]
+
+
+# --- the one place that dispatches on a load's kind ----------------------------------------------
+# The plant's kernels (teleop_rt.hal.sim) walk a robot's loads through these: a new kind of load
+# is a block above, its kernels, a branch in each function here, and its builder below.
+# ``o`` holds the loads' block offsets (float, int) from block 1 on (block 0 is the plant).
+
+
+@jit
+def load_width(i: np.ndarray, o: np.ndarray, b: int) -> int:
+    """Blocks the load at block b takes: a hand is followed by its trajectory."""
+    return 2 if i[o[2 * b + 1] + KIND] == HAND else 1
+
+
+@jit
+def advance_load(f: np.ndarray, i: np.ndarray, o: np.ndarray, b: int, h: float) -> None:
+    """A stateful load's own integration step of h (a mass pushed behind a plane)."""
+    if i[o[2 * b + 1] + KIND] == HALF_SPACE:
+        push_mass(f, o[2 * b], h)
+
+
+@jit
+def cartesian_load(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, b: int, t: float,
+    x: float, y: float, z: float, vx: float, vy: float, vz: float,
+) -> int:  # fmt: skip
+    """A Cartesian load's force on the tool at (x, y, z) moving at (vx, vy, vz), at time t, into
+    its block; the float index of that force (-1: not a Cartesian load)."""
+    fo, io = o[2 * b], o[2 * b + 1]
+    kind = i[io + KIND]
+    if kind == HAND:
+        hand_force(f, fo, f, i, o[2 * b + 2], o[2 * b + 3], t, x, y, z, vx, vy, vz)
+        return fo + HAND_FORCE
+    if kind == HALF_SPACE:
+        half_space_force(f, i, fo, io, x, y, z, vx, vy, vz)
+        return fo + HALF_SPACE_FORCE
+    return -1
+
+
+@jit
+def joint_load(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, b: int, n: int, t: float,
+    q: int, v: int, out: int,
+) -> None:  # fmt: skip
+    """A joint load's torque at time t, joint state at f[q:], f[v:], added to f[out:]."""
+    fo, io = o[2 * b], o[2 * b + 1]
+    kind = i[io + KIND]
+    if kind != HAND and kind != HALF_SPACE:
+        joint_load_torque(f, i, fo, io, n, t, q, v, out)
+
+
+@jit
+def snapshot_load(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, b: int, world: np.ndarray, contact: int
+) -> int:
+    """What the world snapshot shows of the load: a hand's reference and force (returns -1),
+    an environment plane's contact flag at contact slot ``contact`` (returns its force's float
+    index, to be summed), nothing of a joint load (returns -2)."""
+    fo, io = o[2 * b], o[2 * b + 1]
+    kind = i[io + KIND]
+    if kind == HAND:
+        trajectory = o[2 * b + 2]
+        for a in range(3):
+            world[SNAP_REFERENCE + a] = f[trajectory + POS + a]
+            world[SNAP_REFERENCE_VELOCITY + a] = f[trajectory + VEL + a]
+            world[SNAP_FORCE + a] = f[fo + HAND_FORCE + a]
+        return -1
+    if kind == HALF_SPACE:
+        world[SNAP_CONTACTS + contact] = 1.0 if i[io + CONTACT] else 0.0
+        return fo + HALF_SPACE_FORCE
+    return -2
 
 
 # --- building from the config -----------------------------------------------------------------

@@ -28,10 +28,7 @@ from teleop_rt.hal.base import (
     FB_Q,
     FB_TAU_EXT,
     FB_V,
-    W_CONTACTS,
     W_FORCE,
-    W_REFERENCE,
-    W_REFERENCE_VELOCITY,
     Backend,
     Feedback,
     FusedPlants,
@@ -39,22 +36,15 @@ from teleop_rt.hal.base import (
 )
 from teleop_rt.model import RobotModel, friction_torque
 from teleop_rt.world import (
-    CONTACT,
-    HALF_SPACE,
-    HALF_SPACE_FORCE,
-    HAND,
-    HAND_FORCE,
-    KIND,
-    POS,
-    VEL,
     Load,
     ScriptedHand,
+    advance_load,
     build_environment,
     build_operator,
-    half_space_force,
-    hand_force,
-    joint_load_torque,
-    push_mass,
+    cartesian_load,
+    joint_load,
+    load_width,
+    snapshot_load,
 )
 
 # seeds of the two plants' noise generators differ so their noise is independent
@@ -122,9 +112,10 @@ def euler_step(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, a: np.ndarra
     then v, then q with the new v."""
     s = o[0]
     h = f[s + N_VECTORS * n + H]
-    for b in range(1, o.size // 2):
-        if i[o[2 * b + 1] + KIND] == HALF_SPACE:
-            push_mass(f, o[2 * b], h)
+    b = 1
+    while b < o.size // 2:
+        advance_load(f, i, o, b, h)
+        b += load_width(i, o, b)
     for j in range(n):
         vj = f[s + V * n + j] + h * a[j]
         f[s + V * n + j] = vj
@@ -152,30 +143,18 @@ def evaluate_loads(
     blocks = o.size // 2
     b = 1
     while b < blocks:
-        fo, io = o[2 * b], o[2 * b + 1]
-        kind = i[io + KIND]
-        if kind == HAND:  # its trajectory follows it
-            hand_force(f, fo, f, i, o[2 * b + 2], o[2 * b + 3], t, x[0], x[1], x[2], vx, vy, vz)
+        force = cartesian_load(f, i, o, b, t, x[0], x[1], x[2], vx, vy, vz)
+        if force >= 0:
             cartesian = True
-            force = fo + HAND_FORCE
             fx, fy, fz = fx + f[force], fy + f[force + 1], fz + f[force + 2]
-            b += 1
-        elif kind == HALF_SPACE:
-            half_space_force(f, i, fo, io, x[0], x[1], x[2], vx, vy, vz)
-            cartesian = True
-            force = fo + HALF_SPACE_FORCE
-            fx, fy, fz = fx + f[force], fy + f[force + 1], fz + f[force + 2]
-        b += 1
+        b += load_width(i, o, b)
     tau_load = s + TAU_LOAD * n
     for j in range(n):  # tau = J^T F
         f[tau_load + j] = jac[0, j] * fx + jac[1, j] * fy + jac[2, j] * fz if cartesian else 0.0
     b = 1
     while b < blocks:
-        fo, io = o[2 * b], o[2 * b + 1]
-        kind = i[io + KIND]
-        if kind != HAND and kind != HALF_SPACE:
-            joint_load_torque(f, i, fo, io, n, t, s + Q * n, s + V * n, tau_load)
-        b += 2 if kind == HAND else 1
+        joint_load(f, i, o, b, n, t, s + Q * n, s + V * n, tau_load)
+        b += load_width(i, o, b)
 
 
 @jit
@@ -196,21 +175,13 @@ def sense(
     contact = 0
     b = 1
     while b < o.size // 2:
-        fo, io = o[2 * b], o[2 * b + 1]
-        if i[io + KIND] == HAND:
-            trajectory = o[2 * b + 2]
-            for a in range(3):
-                world[W_REFERENCE + a] = f[trajectory + POS + a]
-                world[W_REFERENCE_VELOCITY + a] = f[trajectory + VEL + a]
-                world[W_FORCE + a] = f[fo + HAND_FORCE + a]
+        shown = snapshot_load(f, i, o, b, world, contact)
+        if shown == -1:
             hand = True
-            b += 1
-        elif i[io + KIND] == HALF_SPACE:
-            force = fo + HALF_SPACE_FORCE
-            fx, fy, fz = fx + f[force], fy + f[force + 1], fz + f[force + 2]
-            world[W_CONTACTS + contact] = 1.0 if i[io + CONTACT] else 0.0
+        elif shown >= 0:
+            fx, fy, fz = fx + f[shown], fy + f[shown + 1], fz + f[shown + 2]
             contact += 1
-        b += 1
+        b += load_width(i, o, b)
     if not hand and contact:
         world[W_FORCE], world[W_FORCE + 1], world[W_FORCE + 2] = fx, fy, fz
 
