@@ -73,3 +73,133 @@ def test_a_long_integer_in_a_config_file_is_one_line(tmp_path, capsys) -> None:
     path = tmp_path / "seed.yaml"
     path.write_text(text + f"\nseed: {'7' * 5000}\n")
     assert_refused(["check", str(path)], capsys, str(path), "integer too long")
+
+
+# --- logs -------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def real_log(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    """A real 1.2 s log of the paper experiment (three chunks), as bytes."""
+    path = tmp_path_factory.mktemp("log") / "paper.mcap"
+    assert main(["run", PAPER, "--duration", "1.2", "--json", "--log", str(path)]) == 0
+    return path.read_bytes()
+
+
+def _damaged(src: bytes, kind: str, where: float | int) -> bytes:
+    """``src`` cut at, or with 16 bytes flipped / 256 bytes zeroed from, an offset (a fraction
+    of the file, or bytes from its start, or from its end when negative)."""
+    n = len(src)
+    at = int(where * n) if isinstance(where, float) else where % n
+    if kind == "cut":
+        return src[:at]
+    out = bytearray(src)
+    if kind == "flip":
+        out[at : at + 16] = bytes(b ^ 0xFF for b in out[at : at + 16])
+    else:
+        out[at : at + 256] = bytes(len(out[at : at + 256]))
+    return bytes(out)
+
+
+# header, metadata, the attachments, the first chunk's header, every part of the three chunks,
+# the summary metadata, the summary section, the footer and the closing magic
+SPOTS = [9, 70, 400, 3000, 7000, 7250, 0.05, 0.12, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9]
+SPOTS += [0.95, -1500, -600, -200, -40, -12]
+VARIANTS = [("cut", s) for s in SPOTS[1:]] + [("flip", s) for s in SPOTS[:-2]]
+VARIANTS += [("zero", s) for s in SPOTS[1:-2:]]
+
+
+@pytest.mark.parametrize("kind,where", VARIANTS, ids=[f"{k}@{w}" for k, w in VARIANTS])
+def test_damaged_logs_work_or_are_one_line(real_log, kind, where, tmp_path, capsys) -> None:
+    """replay, metrics (whole and windowed) and plot of a damaged log: each either works or
+    says what is wrong in one line with exit code 2."""
+    path = tmp_path / "damaged.mcap"
+    path.write_bytes(_damaged(real_log, kind, where))
+    for argv in (
+        ["metrics", str(path)],
+        ["metrics", str(path), "--json", "--from", "0.5", "--to", "1.0"],
+        ["plot", str(path), "-o", str(tmp_path / "plot.png")],
+        ["replay", str(path), "--json", "--no-log"],
+    ):
+        code, _, err = cli(argv, capsys)
+        assert "Traceback" not in err, argv
+        if code == 0:
+            assert all(line.startswith("teleop-rt: warning: ") for line in err.splitlines()), err
+        else:
+            assert code == 2, (argv, err)
+            assert_one_error_line(err, str(path))
+
+
+def test_enough_damaged_variants() -> None:
+    assert len(VARIANTS) >= 60
+
+
+def test_replay_of_a_log_cut_before_its_first_tick(real_log, tmp_path, capsys) -> None:
+    path = tmp_path / "cut.mcap"
+    path.write_bytes(real_log[:50_000])  # inside the first chunk: no tick readable
+    for argv in (["replay", str(path), "--no-log"], ["metrics", str(path)], ["plot", str(path)]):
+        assert_refused(argv, capsys, "holds no ticks", "file ends at byte 50000")
+    assert not path.with_suffix(".png").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, named",
+    [
+        (["--from", "100"], "the window 100 s to the end holds no ticks"),
+        (["--to", "0"], "the window 0 s to 0 s holds no ticks"),
+        (["--from", "0.5001", "--to", "0.5009"], "holds no ticks"),  # between two ticks
+    ],
+)
+def test_an_empty_window_is_no_result(real_log, argv, named, tmp_path, capsys) -> None:
+    path = tmp_path / "log.mcap"
+    path.write_bytes(real_log)
+    assert_refused(["metrics", str(path), *argv], capsys, named, "ticks run from 0 to 1.199 s")
+    assert_refused(["metrics", str(path), "--json", *argv], capsys, named)
+
+
+def test_a_damaged_attachment_is_named_by_replay(real_log, tmp_path, capsys) -> None:
+    """A flipped bit in the config or a URDF attachment (CRC mismatch) would replay another
+    session: replay refuses, naming the attachment; metrics and plot do not need them."""
+    for needle, name in ((b"duration_s:", "config.yaml"), (b"<robot", "urdf/hsi.urdf")):
+        damaged = bytearray(real_log)
+        damaged[real_log.index(needle) + 2] ^= 0x20
+        path = tmp_path / f"{name.replace('/', '-')}.mcap"
+        path.write_bytes(bytes(damaged))
+        assert_refused(["replay", str(path), "--no-log"], capsys, name, "damaged")
+        assert cli(["metrics", str(path)], capsys)[0] == 0
+
+
+@pytest.mark.parametrize(
+    "text, named",
+    [
+        ("- 1\n- 2\n", "is not a mapping"),
+        ("a: [1,\n", "not valid YAML"),
+        ("hsi: x\n", "hsi: Input should be a valid dictionary"),
+        ("seed: " + "9" * 5000 + "\n", "integer too long"),
+        ("", "the config is empty"),
+    ],
+    ids=["list", "invalid-yaml", "hsi-x", "long-int", "empty"],
+)
+def test_replay_of_a_bad_config_attachment(text, named, tmp_path, monkeypatch, capsys) -> None:
+    import log_fixtures
+
+    monkeypatch.setattr(log_fixtures, "config_yaml", lambda *args: text)
+    log = log_fixtures.write_synthetic_log(tmp_path / "a.mcap", 300)
+    assert_refused(["replay", str(log.path), "--no-log"], capsys, "config.yaml attachment", named)
+
+
+@pytest.mark.parametrize("rate", ["1e-300", "1e300", "inf", "nan", "0", "9" * 5000])
+def test_an_impossible_log_rate_is_one_line(rate, tmp_path, capsys) -> None:
+    from log_fixtures import write_synthetic_log
+
+    log = write_synthetic_log(tmp_path / "a.mcap", 300, meta={"rate_hz": rate})
+    for argv in (["metrics", str(log.path)], ["replay", str(log.path), "--no-log"]):
+        err = assert_refused(argv, capsys, "rate_hz", "tick rate")
+        assert len(err) < 300
+
+
+@pytest.mark.parametrize("key", ["delay_ticks", "joints", "env_elements"])
+@pytest.mark.parametrize("value", ["x", "-3", "9" * 5000])
+def test_bad_integer_metadata_is_one_line(key, value, tmp_path, capsys) -> None:
+    from log_fixtures import write_synthetic_log
+
+    log = write_synthetic_log(tmp_path / "a.mcap", 300, meta={key: value})
+    assert_refused(["metrics", str(log.path)], capsys, key)
