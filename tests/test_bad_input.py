@@ -4,6 +4,11 @@ CLI (``main(argv)`` or a subprocess) and wants exit code 2 and one ``teleop-rt: 
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -203,3 +208,58 @@ def test_bad_integer_metadata_is_one_line(key, value, tmp_path, capsys) -> None:
 
     log = write_synthetic_log(tmp_path / "a.mcap", 300, meta={key: value})
     assert_refused(["metrics", str(log.path)], capsys, key)
+
+
+# --- signals before the session runs ----------------------------------------------------------
+def _started_loading(pid: int) -> bool:
+    """Whether the process has mapped Pinocchio: main() is running and importing the session
+    (long before its first tick: the kernels still have to load)."""
+    try:
+        return "pinocchio" in Path(f"/proc/{pid}/maps").read_text()
+    except FileNotFoundError:  # exited
+        return True
+
+
+@pytest.mark.parametrize(
+    "sig, code, line",
+    [
+        (signal.SIGTERM, 143, "teleop-rt: stopped by SIGTERM"),
+        (signal.SIGINT, 130, "teleop-rt: interrupted"),
+    ],
+)
+def test_a_signal_while_starting_is_a_clean_exit(sig, code, line) -> None:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    argv = [sys.executable, "-m", "teleop_rt.cli", "run", PAPER, "--duration", "60", "--no-log"]
+    proc = subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
+    try:
+        for _ in range(60_000):
+            if _started_loading(proc.pid):
+                break
+            time.sleep(0.001)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == code, err
+    assert err == line + "\n" and out == ""  # before the run: no summary
+
+
+def test_only_the_first_signal_raises() -> None:
+    """A second SIGTERM while the first one's exception unwinds (through except and finally
+    blocks that close files) does not cut that short; the old handler is back afterwards."""
+    from teleop_rt.exit_signals import Terminated, exit_on_signals
+
+    before = signal.getsignal(signal.SIGTERM)
+    caught = []
+    with exit_on_signals():
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # interrupted by the handler's exception
+        except Terminated as stop:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.01)  # a second exception would be raised here
+            caught.append(stop.exit_code)
+    assert caught == [143]
+    assert signal.getsignal(signal.SIGTERM) is before
