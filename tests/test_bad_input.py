@@ -263,3 +263,29 @@ def test_only_the_first_signal_raises() -> None:
             caught.append(stop.exit_code)
     assert caught == [143]
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+# --- URDFs --------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "text, reason",
+    [
+        ("<robot name='x'><link name='a'>", "XML mismatched element at line 1"),
+        ("not xml", "XML parsing text at line 1"),
+        (
+            "<robot name='x'><link name='a'/><link name='b'/><joint name='j' type='revolute'>"
+            "<parent link='a'/><child link='b'/></joint></robot>",
+            "Joint [j] is of type REVOLUTE but it does not specify limits",
+        ),
+    ],
+    ids=["unclosed", "not-xml", "no-limits"],
+)
+def test_a_broken_urdf_is_one_line_with_urdfdoms_reason(text, reason, tmp_path) -> None:
+    """urdfdom writes its diagnostics to the C-level stderr (fd 2) before Pinocchio raises:
+    they become the reason in the one line, not lines of their own (a subprocess sees fd 2)."""
+    urdf = tmp_path / "broken.urdf"
+    urdf.write_text(text)
+    argv = [sys.executable, "-m", "teleop_rt.cli", "check", PAPER, "--set", f"to.robot.urdf={urdf}"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    done = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert_one_error_line(done.stderr, "to.robot.urdf", "broken.urdf is not a valid URDF", reason)
