@@ -14,6 +14,7 @@ from pathlib import Path
 
 from teleop_rt import __version__
 from teleop_rt.errors import SafetyStop, TeleopError
+from teleop_rt.exit_signals import Terminated, exit_on_signals
 
 EXIT_INTERRUPTED = 130
 
@@ -401,6 +402,18 @@ def _print_bode(result) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    with exit_on_signals():  # from the start; a running session has its own (exit_signals.py)
+        try:
+            return _main(argv)
+        except Terminated as stop:
+            print(f"teleop-rt: {stop}", file=sys.stderr)
+            return stop.exit_code
+        except KeyboardInterrupt:
+            print("teleop-rt: interrupted", file=sys.stderr)
+            return EXIT_INTERRUPTED
+
+
+def _main(argv: Sequence[str] | None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
     handler = {
@@ -416,9 +429,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except TeleopError as err:
         print(f"teleop-rt: error: {err}", file=sys.stderr)
         return err.exit_code
-    except KeyboardInterrupt:
-        print("teleop-rt: interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
     except BrokenPipeError:  # e.g. `teleop-rt metrics LOG --json | head`
         sys.stderr.close()  # nothing more can be said; keep Python from complaining at exit
         return 0

@@ -23,7 +23,7 @@ from pydantic import (
     model_validator,
 )
 
-from teleop_rt.errors import ConfigError
+from teleop_rt.errors import ConfigError, quote
 from teleop_rt.hal.can.config import CanSpec
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
@@ -34,7 +34,13 @@ PerJointNonNeg = NonNegFloat | list[NonNegFloat]
 
 MAX_CONFIG_BYTES = 1_000_000
 MAX_DELAY_MS = 10_000.0  # 10 s one way: beyond any teleoperation link, and bounded memory
+MIN_RATE_HZ, MAX_RATE_HZ = 10, 100_000
 MAX_TICKS = 100_000_000  # timing statistics are preallocated per tick (16 bytes each)
+# Counts of ticks: a detection window longer than the longest session never fires, and every
+# count must fit the int64 buffers the tick reads it from (teleop_rt.flat).
+TickCount = Annotated[int, Field(ge=0, le=MAX_TICKS)]
+MAX_STOP_TICKS = 100_000  # a staged stop that long is no stop (100 s at 1 kHz)
+MAX_SEED = 2**63 - 1
 
 
 class Strict(BaseModel):
@@ -80,6 +86,13 @@ class ControllerSpec(Strict):
         if self.kind == "p" and (_any_nonzero(self.ki) or _any_nonzero(self.kd)):
             raise ValueError("kind 'p' takes only kp; set kind: pid to use ki or kd")
         return self
+
+    @field_validator("kp")
+    @classmethod
+    def _p_needs_kp(cls, kp: float | list[float], info: Any) -> float | list[float]:
+        if info.data.get("kind") == "p" and not all(kp if isinstance(kp, list) else [kp]):
+            raise ValueError("must be > 0 with kind 'p' (a zero gain controls nothing)")
+        return kp
 
 
 def _any_nonzero(x: float | list[float]) -> bool:
@@ -171,14 +184,14 @@ class SafetySpec(Strict):
     torque_limits: Literal["saturate", "stop", "off"] = "saturate"  # URDF effort limits
     # a torque pinned at its limit this many ticks in a row is a fault (a loop gone unstable,
     # a stuck joint), not a transient: stop. 0 never stops for saturation.
-    saturation_stop_ticks: Annotated[int, Field(ge=0)] = 200
+    saturation_stop_ticks: TickCount = 200
     # feedback that has not been refreshed for this many ticks is stale: stop
-    stale_ticks: Annotated[int, Field(ge=1)] = 3
+    stale_ticks: Annotated[int, Field(ge=1, le=MAX_TICKS)] = 3
     # a joint whose measured acceleration misses the commanded virtual dynamics (eq 3 / 13) by
     # more than this, this many ticks in a row, does not follow its torque (saturated or
     # blocked actuator, broken model): stop. 0 ticks switches the check off.
     tracking_error_rad_s2: PositiveFloat = 20.0
-    tracking_error_ticks: Annotated[int, Field(ge=0)] = 20
+    tracking_error_ticks: TickCount = 20
     # the tool frame outside its box is a stop (one forward-kinematics call per boxed robot)
     workspace: WorkspaceLimits = WorkspaceLimits()
     # plausibility of the measurements (sensor faults), checked whatever ``enabled`` says:
@@ -188,7 +201,7 @@ class SafetySpec(Strict):
     measured_velocity_limit_rad_s: PerJointPositive | None = None
     # the stop itself: the HSI is damped, the TO is brought to rest, then both get zero torque
     stop_damping_nm_s_per_rad: NonNegFloat = 0.5
-    stop_max_ticks: Annotated[int, Field(ge=0)] = 500
+    stop_max_ticks: Annotated[int, Field(ge=0, le=MAX_STOP_TICKS)] = 500
 
 
 class DamperOperatorSpec(Strict):
@@ -282,9 +295,9 @@ class SessionConfig(Strict):
     """A whole session: rate, duration, both robots, the channel, plant, operator, environment."""
 
     name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")] = "session"
-    rate_hz: Annotated[int, Field(ge=10, le=100_000)] = 1000
+    rate_hz: Annotated[int, Field(ge=MIN_RATE_HZ, le=MAX_RATE_HZ)] = 1000
     duration_s: PositiveFloat = 10.0
-    seed: Annotated[int, Field(ge=0)] = 0
+    seed: Annotated[int, Field(ge=0, le=MAX_SEED)] = 0
     backend: str = "sim"  # a name from the backend registry (teleop_rt.hal)
     hsi: SideSpec
     to: SideSpec
@@ -426,20 +439,35 @@ def read_yaml(path: Path) -> Any:
         raise ConfigError(f"{path}: no such config file") from None
     except OSError as err:
         raise ConfigError(f"{path}: cannot read ({err.strerror})") from None
+    return parse_yaml(raw, str(path))
+
+
+def parse_yaml(raw: bytes, where: str) -> Any:
+    """Parse config YAML (``where`` names its source in the errors: a file, a log attachment)."""
     if len(raw) > MAX_CONFIG_BYTES:
-        raise ConfigError(f"{path}: config larger than {MAX_CONFIG_BYTES} bytes")
+        raise ConfigError(f"{where}: config larger than {MAX_CONFIG_BYTES} bytes")
     try:
         data = yaml.load(raw, Loader=_NoAliasLoader)  # noqa: S506 - SafeLoader subclass
     except RecursionError:
-        raise ConfigError(f"{path}: not valid YAML: nested too deeply") from None
+        raise ConfigError(f"{where}: not valid YAML: nested too deeply") from None
+    except ValueError as err:  # a scalar YAML resolves but Python cannot convert
+        raise ConfigError(f"{where}: not valid YAML: {_value_problem(err)}") from None
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
-        where = f" (line {mark.line + 1})" if mark is not None else ""
+        line = f" (line {mark.line + 1})" if mark is not None else ""
         problem = getattr(err, "problem", None) or str(err).splitlines()[0]
-        raise ConfigError(f"{path}: not valid YAML{where}: {problem}") from None
+        raise ConfigError(f"{where}: not valid YAML{line}: {problem}") from None
     if data is None:
-        raise ConfigError(f"{path}: the config file is empty")
+        raise ConfigError(f"{where}: the config is empty")
     return data
+
+
+def _value_problem(err: ValueError) -> str:
+    """What YAML's scalar conversion (int, timestamp) refused, without Python's advice."""
+    text = str(err)
+    if "integer string conversion" in text:
+        return f"an integer too long to read ({text.rsplit(': ', 1)[-1].split(';')[0]})"
+    return text
 
 
 class _NoAliasLoader(yaml.SafeLoader):
@@ -468,7 +496,9 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
         try:
             value = yaml.safe_load(text)
         except (yaml.YAMLError, RecursionError):
-            raise ConfigError(f"--set {key}: value {text!r} is not valid YAML") from None
+            raise ConfigError(f"--set {key}: value {quote(text)} is not valid YAML") from None
+        except ValueError as err:
+            raise ConfigError(f"--set {key}: value {quote(text)}: {_value_problem(err)}") from None
         node: Any = data
         parts = key.split(".")
         for depth, part in enumerate(parts):

@@ -29,3 +29,11 @@ class SafetyStop(TeleopError):
     """The session was stopped to keep the hardware safe (exit code 3)."""
 
     exit_code = 3
+
+
+def quote(text: str, limit: int = 60) -> str:
+    """A user's value for a one-line message: its repr, cut in the middle when long."""
+    if len(text) <= limit:
+        return repr(text)
+    half = limit // 2 - 2
+    return f"{text[:half]!r}...{text[-half:]!r} ({len(text)} characters)"

@@ -10,6 +10,12 @@ compensates it (it is part of the paper's n(q, v)).
 from __future__ import annotations
 
 import math
+import os
+import re
+import sys
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -142,11 +148,12 @@ def load_pinocchio_model(spec: RobotSpec, name: str) -> pin.Model:
         if not path.is_file():
             raise ModelError(f"{name}.robot.urdf: no such file: {path}")
         try:
-            return pin.buildModelFromUrdf(str(path))
+            with _c_stderr_captured() as diagnostics:
+                return pin.buildModelFromUrdf(str(path))
         except (ValueError, RuntimeError) as err:
-            first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+            why = _first_urdfdom_error(diagnostics.text) or str(err).strip().split("\n")[0]
             raise ModelError(
-                f"{name}.robot.urdf: {path.name} is not a valid URDF: {first}"
+                f"{name}.robot.urdf: {path.name} is not a valid URDF: {why or type(err).__name__}"
             ) from None
     try:
         import example_robot_data
@@ -160,3 +167,55 @@ def load_pinocchio_model(spec: RobotSpec, name: str) -> pin.Model:
         raise ModelError(
             f"{name}.robot.example_robot: cannot load {spec.example_robot!r} ({err})"
         ) from None
+
+
+class _Captured:
+    text = ""
+
+
+@contextmanager
+def _c_stderr_captured() -> Iterator[_Captured]:
+    """File descriptor 2 into a temporary file while inside. urdfdom reports what is wrong with
+    a URDF through console_bridge, which writes to the C-level stderr before Pinocchio raises;
+    an exception out of the block keeps that text for its one line (``.text``); a success
+    passes it on."""
+    captured = _Captured()
+    if sys.stderr is not None:  # None when the process was started without a stderr
+        sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr at all: nothing to keep apart
+        yield captured
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        failed = True
+        try:
+            yield captured
+            failed = False
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+            tmp.seek(0)
+            data = tmp.read()
+            captured.text = data.decode(errors="replace")
+            if data and not failed:
+                os.write(2, data)  # warnings of a URDF that loaded: not ours to hide
+
+
+_TINYXML = re.compile(r"Error=XML_ERROR_(\w+) ErrorID=\d+ \(0x[0-9a-f]+\) Line number=(\d+)(: .*)?")
+
+
+def _first_urdfdom_error(text: str) -> str:
+    """urdfdom's first message ('Error:   Joint [j] ... limits' / '   at line 607 in ...'),
+    TinyXML's codes in words ('XML mismatched element at line 1: XMLElement name=link')."""
+    for line in text.splitlines():
+        line = line.strip()
+        if line.startswith("Error:"):
+            message = " ".join(line.removeprefix("Error:").split())
+            xml = _TINYXML.fullmatch(message)
+            if xml:
+                kind, number, rest = xml.groups()
+                return f"XML {kind.lower().replace('_', ' ')} at line {number}{rest or ''}"
+            return message
+    return ""

@@ -13,7 +13,7 @@ from log_fixtures import field_slice, synthetic_rows, write_synthetic_log
 from teleop_rt.analysis.transparency import TransparencyAccumulator
 from teleop_rt.loop import TimingStats
 from teleop_rt.recording.metrics import format_metrics, log_metrics, metrics_main
-from teleop_rt.recording.reader import LogData, read_log
+from teleop_rt.recording.reader import LogData, LogError, read_log
 from teleop_rt.recording.schema import LogLayout
 
 
@@ -150,9 +150,8 @@ def test_window(tmp_path, capsys):
     assert m["timing"]["compute_us"]["p99"] == np.percentile(compute, 99) / 1e3
     # the window's own first tick as offset would give other figures
     assert m["t_p"] != accumulate(log, slice(750, 2000), start=750).t_p.tolist()
-    empty = run_json(capsys, log.path, t_from=10.0)
-    assert empty["ticks"] == 0 and empty["t_p"] == [0.0, 0.0]
-    assert empty["timing"]["compute_us"] == {"p50": 0.0, "p99": 0.0, "p99.9": 0.0, "max": 0.0}
+    with pytest.raises(LogError, match="window 10 s to the end holds no ticks"):
+        metrics_main(log.path, as_json=True, t_from=10.0)  # zeros would be no result
 
 
 def test_timing_equals_timing_stats(tmp_path):

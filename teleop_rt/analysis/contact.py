@@ -20,11 +20,18 @@ K_max with margin.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
 def contact_stiffness_limit(b: float, m2: float, c2: float, dt: float) -> float:
-    """K_max (N m/rad) of the sampled TO contact loop for a P velocity controller."""
+    """K_max (N m/rad) of the sampled TO contact loop for a P velocity controller.
+
+    c2 = 0 (a PID's pure I or D term) closes no proportional loop: K_max grows without bound as
+    c2 falls (T2 = M2/c2), so there is no limit from this analysis."""
+    if c2 == 0:
+        return math.inf
     t2 = m2 / c2
     if dt / t2 >= 2.0:
         return 0.0  # the velocity loop alone is already unstable at this tick

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from teleop_rt.loop import TimingStats, format_percentiles
-from teleop_rt.recording.reader import LogData, LogError, read_log
+from teleop_rt.recording.reader import LogData, LogError, read_log, require_ticks
 
 TOPICS = ("/hsi", "/to", "/channel", "/timing")
 _COMPARED = ("ticks", "t_p", "t_tau", "channel_energy_j", "min_channel_energy_j")
@@ -143,12 +143,26 @@ def _check_window(t_from: float | None, t_to: float | None) -> None:
         raise LogError(f"--from {t_from:g} --to {t_to:g}: the window is empty")
 
 
+def _empty_window(data: LogData, t_from: float | None, t_to: float | None) -> LogError:
+    """The error of a window without ticks, saying where the log's ticks are."""
+    lo, hi = f"{t_from or 0.0:g} s", "the end" if t_to is None else f"{t_to:g} s"
+    ticks = read_log(data.path, ("/timing",)).topics["/timing"]["tick"]
+    if len(ticks):
+        where = f"the log's ticks run from {data.dt * ticks[0]:g} to {data.dt * ticks[-1]:g} s"
+    else:
+        where = "the log holds no ticks at all" + (f": {data.cut_reason}" if data.truncated else "")
+    return LogError(f"{data.path}: the window {lo} to {hi} holds no ticks ({where})")
+
+
 def metrics_main(
     path: str | Path, as_json: bool = False, t_from: float | None = None, t_to: float | None = None
 ) -> int:
     """``teleop-rt metrics LOG [--json] [--from S] [--to S]``: print the figures; exit code."""
     _check_window(t_from, t_to)
     data = read_log(path, TOPICS, t_from, t_to)
+    if not data.ticks and (t_from is not None or t_to is not None):
+        raise _empty_window(data, t_from, t_to)
+    require_ticks(data)
     offset = None
     if data.ticks and int(data.topics["/hsi"]["tick"][0]) != 0:
         offset = session_offset(path, data.dt)

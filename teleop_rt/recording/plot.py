@@ -11,7 +11,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from teleop_rt.recording.reader import LogData, LogError, read_log
+from teleop_rt.recording.reader import LogData, LogError, read_log, require_ticks
 
 TOPICS = ("/hsi", "/to", "/channel")
 MAX_POINTS = 20_000  # per line; longer signals are drawn as their min / max envelope
@@ -78,6 +78,7 @@ def plot_log(data: LogData, out_png: str | Path, title: str | None = None) -> Pa
 def plot_main(path: str | Path, out: str | Path | None = None) -> int:
     """``teleop-rt plot LOG [-o OUT.png]`` (default: the log's path with .png); exit code."""
     data = read_log(path, TOPICS)
+    require_ticks(data)  # an empty figure is no plot
     target = plot_log(data, Path(path).with_suffix(".png") if out is None else out)
     if data.truncated:
         print(f"teleop-rt: warning: {data.path}: {data.cut_reason}", file=sys.stderr)

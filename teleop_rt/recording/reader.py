@@ -15,6 +15,7 @@ import io
 import json
 import math
 import mmap
+import zlib
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,7 +26,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Header, Metadata, Schema
 
-from teleop_rt.errors import TeleopError
+from teleop_rt.errors import TeleopError, quote
 from teleop_rt.recording.schema import CDR_HEADER, SCHEMA_VERSION, LogLayout, Topic
 
 if TYPE_CHECKING:
@@ -71,15 +72,50 @@ class LogData:
     def ticks(self) -> int:
         return min((len(a) for a in self.topics.values()), default=0)
 
-    def config(self) -> SessionConfig | None:
-        """The session config stored in the log (None if the log has no config.yaml)."""
+    damaged: dict[str, str] = field(default_factory=dict)  # attachment name -> what is wrong
+
+    def attachment(self, name: str) -> bytes | None:
+        """An attachment's bytes (None if the log has none by that name); LogError if damaged."""
+        if name in self.damaged:
+            raise LogError(f"{self.path}: the {name} attachment is damaged ({self.damaged[name]})")
+        return self.attachments.get(name)
+
+    def raw_config(self) -> dict | None:
+        """The config.yaml attachment as a plain mapping (None if the log has none); LogError
+        if it is damaged, not YAML or not a mapping."""
+        self.attachment("config.yaml")
         if self.config_yaml is None:
             return None
-        import yaml
-
         from teleop_rt import config
 
-        return config.from_dict(yaml.safe_load(self.config_yaml))
+        where = f"{self.path}: the config.yaml attachment"
+        try:
+            data = config.parse_yaml(self.config_yaml.encode(), where)
+        except config.ConfigError as err:
+            raise LogError(str(err)) from None
+        if not isinstance(data, dict):
+            raise LogError(f"{where} is not a mapping but {quote(repr(data))}")
+        return data
+
+    def config(self) -> SessionConfig | None:
+        """The session config stored in the log (None if the log has no config.yaml); LogError
+        naming the attachment if it is not a valid config."""
+        raw = self.raw_config()
+        if raw is None:
+            return None
+        from teleop_rt import config
+
+        try:
+            return config.from_dict(raw)
+        except config.ConfigError as err:
+            raise LogError(f"{self.path}: the config.yaml attachment: {err}") from None
+
+
+def require_ticks(data: LogData) -> None:
+    """LogError unless ``data`` holds a tick: figures of no ticks are no result."""
+    if not data.ticks:
+        why = f" ({data.cut_reason})" if data.truncated and data.cut_reason else ""
+        raise LogError(f"{data.path}: the log holds no ticks{why}")
 
 
 class _Damaged(Exception):
@@ -128,6 +164,7 @@ class _Reader:
         self.path, self.buf = path, buf
         self.metadata: dict[str, dict[str, str]] = {}
         self.attachments: dict[str, bytes] = {}
+        self.damaged: dict[str, str] = {}
         self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.chunks: list[_Chunk] = []
@@ -205,7 +242,11 @@ class _Reader:
             self.metadata[meta.name] = meta.metadata
         elif op == Opcode.ATTACHMENT:
             att = _read(Attachment, body)
-            self.attachments[att.name] = att.data
+            crc = int.from_bytes(body[-4:], "little")  # of all fields before it; 0: not computed
+            if crc and zlib.crc32(body[:-4]) != crc:
+                self.damaged[att.name] = "CRC mismatch"
+            else:
+                self.attachments[att.name] = att.data
 
     # -- pass 2: messages --------------------------------------------------------------------
 
@@ -249,16 +290,23 @@ class _Reader:
                 "(killed or crashed)"
             )
         config_yaml = self.attachments.get("config.yaml")
+        if config_yaml is not None:
+            try:
+                config_yaml = config_yaml.decode()
+            except UnicodeDecodeError:
+                self.damaged["config.yaml"] = "not UTF-8 text"
+                config_yaml = None
         return LogData(
             path=self.path,
             meta=meta,
             layout=layout,
-            config_yaml=None if config_yaml is None else config_yaml.decode(),
+            config_yaml=config_yaml,
             attachments=self.attachments,
             summary=summary,
             truncated=truncated,
             cut_reason=cut,
             topics=arrays,
+            damaged=self.damaged,
         )
 
     def _messages(self, chunk: _Chunk, names: set[str], lo: int, hi: int, parts) -> None:
@@ -311,27 +359,38 @@ class _Reader:
             by = f" (written by '{self.library}')" if self.library else ""
             raise self.fail(f"not a teleop_rt log: no '{META}' metadata record{by}")
         ints = {}
-        for key in _META_INTS:
+        for key in (*_META_INTS, "delay_ticks"):  # delay_ticks: optional
+            if key not in meta:
+                if key == "delay_ticks":
+                    continue
+                raise self.fail(f"'{META}' metadata lacks '{key}'")
             try:
-                ints[key] = int(meta[key])
-            except KeyError:
-                raise self.fail(f"'{META}' metadata lacks '{key}'") from None
+                ints[key] = int(meta[key]) if len(meta[key]) <= 20 else None
             except ValueError:
+                ints[key] = None
+            if ints[key] is None or ints[key] < 0:
                 raise self.fail(
-                    f"'{META}' metadata: {key} = {meta[key]!r} is not an integer"
+                    f"'{META}' metadata: {key} = {quote(meta[key])} is not an integer >= 0"
                 ) from None
         try:
             rate = float(meta["rate_hz"])
         except (KeyError, ValueError):
             raise self.fail(f"'{META}' metadata: missing or bad rate_hz") from None
+        from teleop_rt.config import MAX_RATE_HZ, MIN_RATE_HZ
+
+        if not MIN_RATE_HZ <= rate <= MAX_RATE_HZ:  # also NaN; the times of ticks need it
+            raise self.fail(
+                f"'{META}' metadata: rate_hz = {quote(meta['rate_hz'])} is not a session's tick "
+                f"rate ({MIN_RATE_HZ} to {MAX_RATE_HZ} Hz)"
+            )
         if ints["schema_version"] > SCHEMA_VERSION:
             raise self.fail(
                 f"log schema version {ints['schema_version']} (teleop_rt "
                 f"{meta.get('software_version', '?')}) is newer than this software reads "
                 f"({SCHEMA_VERSION}); upgrade teleop_rt"
             )
-        if ints["joints"] < 1 or ints["env_elements"] < 0 or not rate > 0:
-            raise self.fail(f"'{META}' metadata: impossible joints / env_elements / rate_hz")
+        if ints["joints"] < 1:
+            raise self.fail(f"'{META}' metadata: joints = 0")
         return LogLayout(ints["joints"], ints["env_elements"]), meta
 
     def _decode(self, topic: Topic, parts: list[np.ndarray]) -> np.ndarray:

@@ -20,11 +20,10 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from teleop_rt.config import SessionConfig, apply_overrides, from_dict
 from teleop_rt.model import RobotModel
-from teleop_rt.recording.reader import LogData, LogError
+from teleop_rt.recording.reader import LogData, LogError, require_ticks
 from teleop_rt.session import Session
 from teleop_rt.world import LoggedTrajectory, ScriptedHand
 
@@ -35,9 +34,9 @@ PERSON_HAND_DAMPING_N_S_PER_M = 40.0
 
 def replay_config(data: LogData, overrides: list[str]) -> SessionConfig:
     """The logged session's config with overrides, on the simulated backend."""
-    if not data.config_yaml:
+    if data.config() is None:  # the attachment alone first: its errors name it, not --set
         raise LogError(f"{data.path}: the log holds no config.yaml attachment; cannot replay")
-    raw = yaml.safe_load(data.config_yaml)
+    raw = data.raw_config()
     raw["backend"] = "sim"
     for side in ("hsi", "to"):  # a robot's own backend too (a CAN robot replays simulated)
         if isinstance(raw.get(side), dict):
@@ -51,8 +50,11 @@ def _restore_urdfs(raw: dict, data: LogData) -> None:
     """Replay with the URDFs the session ran with (attached to the log), not whatever the
     recorded paths hold today: an edited URDF would silently change the replay."""
     for side in ("hsi", "to"):
-        robot = raw.get(side, {}).get("robot", {})
-        attached = data.attachments.get(f"urdf/{side}.urdf")
+        robot = raw.get(side)
+        robot = robot.get("robot") if isinstance(robot, dict) else None
+        if not isinstance(robot, dict):  # --set made it something else: from_dict says what
+            continue
+        attached = data.attachment(f"urdf/{side}.urdf")
         if robot.get("urdf") and attached is not None:
             target = _replay_dir() / f"{side}.urdf"
             target.write_bytes(attached)
@@ -84,11 +86,7 @@ def replay_operator(cfg: SessionConfig, data: LogData) -> ScriptedHand | None:
         k, d = cfg.operator.stiffness_n_per_m, cfg.operator.damping_n_s_per_m
     else:
         k, d = PERSON_HAND_STIFFNESS_N_PER_M, PERSON_HAND_DAMPING_N_S_PER_M
-    return ScriptedHand(LoggedTrajectory(pos, vel, log_dt(data)), k, d)
-
-
-def log_dt(data: LogData) -> float:
-    return 1.0 / float(data.meta["rate_hz"])
+    return ScriptedHand(LoggedTrajectory(pos, vel, data.dt), k, d)
 
 
 def _tool_motion(cfg: SessionConfig, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -103,7 +101,8 @@ def build_replay(data: LogData, overrides: list[str]) -> tuple[Session, int]:
     for topic in ("/hsi",):
         if topic not in data.topics:
             raise LogError(f"{data.path}: no {topic} messages to replay")
+    require_ticks(data)
     cfg = replay_config(data, overrides)
     session = Session(cfg, operator=replay_operator(cfg, data))
     # as long as the log, also when --set rate_hz changed the tick
-    return session, round(len(data.topics["/hsi"]) * log_dt(data) / cfg.dt)
+    return session, round(len(data.topics["/hsi"]) * data.dt / cfg.dt)

@@ -1,0 +1,54 @@
+"""SIGTERM and SIGINT outside a running session: a clean exit (143 / 130), never a traceback.
+
+Python's default SIGTERM kills the process where it stands (exit -15). While the CLI imports,
+loads kernels or builds a session, SIGTERM raises ``Terminated`` here instead and SIGINT, as
+by default, ``KeyboardInterrupt``, each once, for ``main`` to turn into one line and 128 + the
+signal number. A running session installs its own handlers (``loop.StopSignals``, a stop at
+the next tick boundary) and puts these back when it ends.
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+
+class Terminated(BaseException):
+    """A signal ended the process outside a session's run (BaseException: no ``except
+    Exception`` on the way swallows it)."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(f"stopped by {signal.Signals(signum).name}")
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+@contextmanager
+def exit_on_signals() -> Iterator[None]:
+    """Within: the first SIGTERM raises ``Terminated``, the first SIGINT ``KeyboardInterrupt``;
+    later ones are ignored (the process is already on its way out, through ``except`` and
+    ``finally`` blocks a second exception would cut short). The previous handlers come back
+    on leaving."""
+    if threading.current_thread() is not threading.main_thread():
+        yield  # only the main thread may install handlers (and receives the signals)
+        return
+    raised = False
+
+    def handle(signum: int, frame: object) -> None:
+        nonlocal raised
+        if not raised:
+            raised = True
+            raise KeyboardInterrupt if signum == signal.SIGINT else Terminated(signum)
+
+    sigs = (signal.SIGTERM, signal.SIGINT)
+    previous = {sig: signal.signal(sig, handle) for sig in sigs}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)

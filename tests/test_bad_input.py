@@ -1,0 +1,291 @@
+"""Bad input from the outside (issue 18, "one clear line, never a traceback"): configs and
+overrides, damaged logs, empty windows, broken URDFs and early signals. Every case drives the
+CLI (``main(argv)`` or a subprocess) and wants exit code 2 and one ``teleop-rt: error:`` line."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from teleop_rt.cli import main
+from tests.test_cli import assert_one_error_line
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = str(ROOT / "configs" / "paper_experiment.yaml")
+
+
+def cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> tuple[int, str, str]:
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_refused(argv: list[str], capsys: pytest.CaptureFixture[str], *named: str) -> str:
+    code, _, err = cli(argv, capsys)
+    assert code == 2, err
+    assert_one_error_line(err, *named)
+    return err
+
+
+# --- config values ----------------------------------------------------------------------------
+@pytest.mark.parametrize("side", ["to", "hsi"])
+def test_zero_p_gain_is_refused_naming_the_key(side, capsys) -> None:
+    assert_refused(
+        ["check", PAPER, "--set", f"{side}.controller.kp=0"], capsys, f"{side}.controller.kp"
+    )
+    assert_refused(["run", PAPER, "--set", f"{side}.controller.kp=[20, 0]"], capsys, "kp")
+
+
+def test_zero_kp_of_a_pid_has_no_contact_limit(capsys) -> None:
+    """A PID without its P term is a controller (pure I): the P contact analysis sets no limit
+    and warns about nothing, even against the stiff wall."""
+    sets = ["--set", "to.controller.kind=pid", "--set", "to.controller.kp=0"]
+    sets += ["--set", "to.controller.ki=5"]
+    code, out, err = cli(["check", str(ROOT / "configs" / "stiff_wall.yaml"), *sets], capsys)
+    assert code == 0 and "ok" in out and err == "", err
+
+
+TICK_COUNTS = [
+    "safety.stale_ticks",
+    "safety.saturation_stop_ticks",
+    "safety.tracking_error_ticks",
+    "safety.stop_max_ticks",
+]
+
+
+@pytest.mark.parametrize("key", TICK_COUNTS)
+@pytest.mark.parametrize("value", [2**63, 10**8 + 1, 2**70])
+def test_tick_counts_have_an_upper_bound(key, value, capsys) -> None:
+    assert_refused(["check", PAPER, "--set", f"{key}={value}"], capsys, key, "less than")
+
+
+def test_a_long_seed_is_refused(capsys) -> None:
+    # 5000 digits: more than Python converts; 4000: converted, above the bound
+    err = assert_refused(["check", PAPER, "--set", "seed=" + "9" * 5000], capsys, "seed")
+    assert len(err) < 300, "the value is not echoed whole"
+    assert_refused(["check", PAPER, "--set", "seed=" + "9" * 4000], capsys, "seed", "less than")
+    assert_refused(["check", PAPER, "--set", f"seed={2**63}"], capsys, "seed")
+
+
+def test_a_long_integer_in_a_config_file_is_one_line(tmp_path, capsys) -> None:
+    text = Path(PAPER).read_text().replace("../robots", str(ROOT / "robots"))
+    path = tmp_path / "seed.yaml"
+    path.write_text(text + f"\nseed: {'7' * 5000}\n")
+    assert_refused(["check", str(path)], capsys, str(path), "integer too long")
+
+
+# --- logs -------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def real_log(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    """A real 1.2 s log of the paper experiment (three chunks), as bytes."""
+    path = tmp_path_factory.mktemp("log") / "paper.mcap"
+    assert main(["run", PAPER, "--duration", "1.2", "--json", "--log", str(path)]) == 0
+    return path.read_bytes()
+
+
+def _damaged(src: bytes, kind: str, where: float | int) -> bytes:
+    """``src`` cut at, or with 16 bytes flipped / 256 bytes zeroed from, an offset (a fraction
+    of the file, or bytes from its start, or from its end when negative)."""
+    n = len(src)
+    at = int(where * n) if isinstance(where, float) else where % n
+    if kind == "cut":
+        return src[:at]
+    out = bytearray(src)
+    if kind == "flip":
+        out[at : at + 16] = bytes(b ^ 0xFF for b in out[at : at + 16])
+    else:
+        out[at : at + 256] = bytes(len(out[at : at + 256]))
+    return bytes(out)
+
+
+# header, metadata, the attachments, the first chunk's header, every part of the three chunks,
+# the summary metadata, the summary section, the footer and the closing magic
+SPOTS = [9, 70, 400, 3000, 7000, 7250, 0.05, 0.12, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9]
+SPOTS += [0.95, -1500, -600, -200, -40, -12]
+VARIANTS = [("cut", s) for s in SPOTS[1:]] + [("flip", s) for s in SPOTS[:-2]]
+VARIANTS += [("zero", s) for s in SPOTS[1:-2:]]
+
+
+@pytest.mark.parametrize("kind,where", VARIANTS, ids=[f"{k}@{w}" for k, w in VARIANTS])
+def test_damaged_logs_work_or_are_one_line(real_log, kind, where, tmp_path, capsys) -> None:
+    """replay, metrics (whole and windowed) and plot of a damaged log: each either works or
+    says what is wrong in one line with exit code 2."""
+    path = tmp_path / "damaged.mcap"
+    path.write_bytes(_damaged(real_log, kind, where))
+    for argv in (
+        ["metrics", str(path)],
+        ["metrics", str(path), "--json", "--from", "0.5", "--to", "1.0"],
+        ["plot", str(path), "-o", str(tmp_path / "plot.png")],
+        ["replay", str(path), "--json", "--no-log"],
+    ):
+        code, _, err = cli(argv, capsys)
+        assert "Traceback" not in err, argv
+        if code == 0:
+            assert all(line.startswith("teleop-rt: warning: ") for line in err.splitlines()), err
+        else:
+            assert code == 2, (argv, err)
+            assert_one_error_line(err, str(path))
+
+
+def test_enough_damaged_variants() -> None:
+    assert len(VARIANTS) >= 60
+
+
+def test_replay_of_a_log_cut_before_its_first_tick(real_log, tmp_path, capsys) -> None:
+    path = tmp_path / "cut.mcap"
+    path.write_bytes(real_log[:50_000])  # inside the first chunk: no tick readable
+    for argv in (["replay", str(path), "--no-log"], ["metrics", str(path)], ["plot", str(path)]):
+        assert_refused(argv, capsys, "holds no ticks", "file ends at byte 50000")
+    assert not path.with_suffix(".png").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, named",
+    [
+        (["--from", "100"], "the window 100 s to the end holds no ticks"),
+        (["--to", "0"], "the window 0 s to 0 s holds no ticks"),
+        (["--from", "0.5001", "--to", "0.5009"], "holds no ticks"),  # between two ticks
+    ],
+)
+def test_an_empty_window_is_no_result(real_log, argv, named, tmp_path, capsys) -> None:
+    path = tmp_path / "log.mcap"
+    path.write_bytes(real_log)
+    assert_refused(["metrics", str(path), *argv], capsys, named, "ticks run from 0 to 1.199 s")
+    assert_refused(["metrics", str(path), "--json", *argv], capsys, named)
+
+
+def test_a_damaged_attachment_is_named_by_replay(real_log, tmp_path, capsys) -> None:
+    """A flipped bit in the config or a URDF attachment (CRC mismatch) would replay another
+    session: replay refuses, naming the attachment; metrics and plot do not need them."""
+    for needle, name in ((b"duration_s:", "config.yaml"), (b"<robot", "urdf/hsi.urdf")):
+        damaged = bytearray(real_log)
+        damaged[real_log.index(needle) + 2] ^= 0x20
+        path = tmp_path / f"{name.replace('/', '-')}.mcap"
+        path.write_bytes(bytes(damaged))
+        assert_refused(["replay", str(path), "--no-log"], capsys, name, "damaged")
+        assert cli(["metrics", str(path)], capsys)[0] == 0
+
+
+@pytest.mark.parametrize(
+    "text, named",
+    [
+        ("- 1\n- 2\n", "is not a mapping"),
+        ("a: [1,\n", "not valid YAML"),
+        ("hsi: x\n", "hsi: Input should be a valid dictionary"),
+        ("seed: " + "9" * 5000 + "\n", "integer too long"),
+        ("", "the config is empty"),
+    ],
+    ids=["list", "invalid-yaml", "hsi-x", "long-int", "empty"],
+)
+def test_replay_of_a_bad_config_attachment(text, named, tmp_path, monkeypatch, capsys) -> None:
+    import log_fixtures
+
+    monkeypatch.setattr(log_fixtures, "config_yaml", lambda *args: text)
+    log = log_fixtures.write_synthetic_log(tmp_path / "a.mcap", 300)
+    assert_refused(["replay", str(log.path), "--no-log"], capsys, "config.yaml attachment", named)
+
+
+@pytest.mark.parametrize("rate", ["1e-300", "1e300", "inf", "nan", "0", "9" * 5000])
+def test_an_impossible_log_rate_is_one_line(rate, tmp_path, capsys) -> None:
+    from log_fixtures import write_synthetic_log
+
+    log = write_synthetic_log(tmp_path / "a.mcap", 300, meta={"rate_hz": rate})
+    for argv in (["metrics", str(log.path)], ["replay", str(log.path), "--no-log"]):
+        err = assert_refused(argv, capsys, "rate_hz", "tick rate")
+        assert len(err) < 300
+
+
+@pytest.mark.parametrize("key", ["delay_ticks", "joints", "env_elements"])
+@pytest.mark.parametrize("value", ["x", "-3", "9" * 5000])
+def test_bad_integer_metadata_is_one_line(key, value, tmp_path, capsys) -> None:
+    from log_fixtures import write_synthetic_log
+
+    log = write_synthetic_log(tmp_path / "a.mcap", 300, meta={key: value})
+    assert_refused(["metrics", str(log.path)], capsys, key)
+
+
+# --- signals before the session runs ----------------------------------------------------------
+def _started_loading(pid: int) -> bool:
+    """Whether the process has mapped Pinocchio: main() is running and importing the session
+    (long before its first tick: the kernels still have to load)."""
+    try:
+        return "pinocchio" in Path(f"/proc/{pid}/maps").read_text()
+    except FileNotFoundError:  # exited
+        return True
+
+
+@pytest.mark.parametrize(
+    "sig, code, line",
+    [
+        (signal.SIGTERM, 143, "teleop-rt: stopped by SIGTERM"),
+        (signal.SIGINT, 130, "teleop-rt: interrupted"),
+    ],
+)
+def test_a_signal_while_starting_is_a_clean_exit(sig, code, line) -> None:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    argv = [sys.executable, "-m", "teleop_rt.cli", "run", PAPER, "--duration", "60", "--no-log"]
+    proc = subprocess.Popen(
+        argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+    )
+    try:
+        for _ in range(60_000):
+            if _started_loading(proc.pid):
+                break
+            time.sleep(0.001)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == code, err
+    assert err == line + "\n" and out == ""  # before the run: no summary
+
+
+def test_only_the_first_signal_raises() -> None:
+    """A second SIGTERM while the first one's exception unwinds (through except and finally
+    blocks that close files) does not cut that short; the old handler is back afterwards."""
+    from teleop_rt.exit_signals import Terminated, exit_on_signals
+
+    before = signal.getsignal(signal.SIGTERM)
+    caught = []
+    with exit_on_signals():
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(5)  # interrupted by the handler's exception
+        except Terminated as stop:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.01)  # a second exception would be raised here
+            caught.append(stop.exit_code)
+    assert caught == [143]
+    assert signal.getsignal(signal.SIGTERM) is before
+
+
+# --- URDFs --------------------------------------------------------------------------------------
+@pytest.mark.parametrize(
+    "text, reason",
+    [
+        ("<robot name='x'><link name='a'>", "XML mismatched element at line 1"),
+        ("not xml", "XML parsing text at line 1"),
+        (
+            "<robot name='x'><link name='a'/><link name='b'/><joint name='j' type='revolute'>"
+            "<parent link='a'/><child link='b'/></joint></robot>",
+            "Joint [j] is of type REVOLUTE but it does not specify limits",
+        ),
+    ],
+    ids=["unclosed", "not-xml", "no-limits"],
+)
+def test_a_broken_urdf_is_one_line_with_urdfdoms_reason(text, reason, tmp_path) -> None:
+    """urdfdom writes its diagnostics to the C-level stderr (fd 2) before Pinocchio raises:
+    they become the reason in the one line, not lines of their own (a subprocess sees fd 2)."""
+    urdf = tmp_path / "broken.urdf"
+    urdf.write_text(text)
+    argv = [sys.executable, "-m", "teleop_rt.cli", "check", PAPER, "--set", f"to.robot.urdf={urdf}"]
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    done = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
+    assert done.returncode == 2, done.stderr
+    assert_one_error_line(done.stderr, "to.robot.urdf", "broken.urdf is not a valid URDF", reason)
