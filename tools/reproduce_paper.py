@@ -40,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from teleop_rt import config  # noqa: E402
+from teleop_rt.analysis import experiment  # noqa: E402
 from teleop_rt.analysis.bode import BodeResult, measure_displayed_impedance  # noqa: E402
 from teleop_rt.analysis.discrete import (  # noqa: E402
     DT,
@@ -407,27 +408,15 @@ def run_experiment(delay_ms: int, duration_s: float, overrides: tuple[str, ...] 
 
 
 def experiment_geometry(cfg) -> dict:
-    """Phases of the scripted task, from the config: the free-space stroke (to the second
-    waypoint), the wall (its surface and the last half of the hold against it), the final
-    target of the task."""
-    wps = cfg.operator.waypoints
-    wall = next(e for e in cfg.environment if e.kind == "wall")
-    normal = np.asarray(wall.normal[:2], float) / np.linalg.norm(wall.normal[:2])
-    point = np.asarray(wall.point_m[:2], float)
-    hold = None
-    for a, b in zip(wps, wps[1:], strict=False):
-        inside = float((point - np.asarray(a.position_m[:2])) @ normal) > 0
-        if a.position_m == b.position_m and inside:
-            hold = (0.5 * (a.t_s + b.t_s), b.t_s)
-    if hold is None:
-        raise ValueError("the experiment has no hold against its wall")
+    """Phases of the scripted task (teleop_rt.analysis.experiment), and the paper's length."""
+    g = experiment.experiment_geometry(cfg)
     return {
-        "free_end_s": wps[1].t_s,
-        "wall_point": point,
-        "wall_normal": normal,
-        "wall_hold_s": hold,
-        "final_target": np.asarray(wps[-1].position_m[:2], float),
-        "last_waypoint_s": wps[-1].t_s,
+        "free_end_s": g.free_end_s,
+        "wall_point": g.wall_point,
+        "wall_normal": g.wall_normal,
+        "wall_hold_s": g.wall_hold_s,
+        "final_target": g.final_target,
+        "last_waypoint_s": g.last_waypoint_s,
         "paper_duration_s": 12.0,
     }
 
@@ -441,21 +430,15 @@ def experiment_numbers(run: dict, geo: dict) -> dict:
     t_eff = effective_delay_s(run["delay_ms"] * 1e-3)
     # free space: tau_h = m a_h + d v_h per joint (a_h: the tick's acceleration)
     free = t < geo["free_end_s"]
-    v = run["v_h"]
-    a = np.vstack([np.diff(v, axis=0), np.zeros((1, v.shape[1]))]) / dt
-    masses = []
-    for j in range(v.shape[1]):
-        x = np.column_stack([a[free, j], v[free, j]])
-        coef, *_ = np.linalg.lstsq(x, run["tau_h"][free, j], rcond=None)
-        masses.append(float(coef[0]))
+    masses = experiment.displayed_mass(run["v_h"], run["tau_h"], dt, free)
     peak_tau = float(np.abs(run["tau_h"][free]).max())
     peak_force = float(np.linalg.norm(run["force"][free], axis=1).max())
     # wall: penetration along the wall normal, averaged over the last half of the hold
     h0, h1 = geo["wall_hold_s"]
     hold = (t >= h0) & (t < h1)
     nrm, pt = geo["wall_normal"], geo["wall_point"]
-    pen_h = float(np.mean((pt - run["x_h"][hold]) @ nrm))
-    pen_t = float(np.mean((pt - run["x_t"][hold]) @ nrm))
+    pen_h = float(np.mean(experiment.penetration(run["x_h"][hold], pt, nrm)))
+    pen_t = float(np.mean(experiment.penetration(run["x_t"][hold], pt, nrm)))
     f_n = float(np.mean(-run["force"][hold] @ nrm))  # the hand pushing into the wall, N
     dq = (run["q_h"] - run["q_t"])[hold].mean(axis=0)
     dq_expected = run["tau_h"][hold].mean(axis=0) * t_eff / b  # eq 30: compliance T / b
@@ -466,11 +449,7 @@ def experiment_numbers(run: dict, geo: dict) -> dict:
         np.linalg.norm(run["x_h"] - geo["final_target"], axis=1),
         np.linalg.norm(run["x_t"] - geo["final_target"], axis=1),
     )
-    outside = np.flatnonzero(err > TASK_TOL_M)
-    if len(outside) and outside[-1] == len(t) - 1:
-        task = math.nan  # not done by the end of the run
-    else:
-        task = float(t[outside[-1] + 1]) if len(outside) else 0.0
+    task = experiment.task_time(t, err, TASK_TOL_M)
     err_12 = float(err[min(len(t) - 1, round(geo["paper_duration_s"] / dt) - 1)])
     return {
         "delay_ms": run["delay_ms"],
@@ -484,7 +463,7 @@ def experiment_numbers(run: dict, geo: dict) -> dict:
         "pen_to_m": pen_t,
         "deviation_m": pen_h - pen_t,
         "wall_force_n": f_n,
-        "stiffness_cart": f_n / pen_h if pen_h > 0 else math.inf,
+        "stiffness_cart": experiment.felt_stiffness(f_n, pen_h),
         "joint_compliance_err": dq_err,
         "task_time_s": task,
         "error_at_12s_m": err_12,

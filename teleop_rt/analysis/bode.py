@@ -177,6 +177,8 @@ class OpenChain:
             ComputedTorque(ctrl_t, [p.m2] * n, compensate_friction[1]),
             RobotGuard(no_checks, ctrl_t, "to", dt), port_t, dt,
         )  # fmt: skip
+        for site in (self.hsi, self.to):  # an analysis imposes what it likes: no bounds
+            site.guard.tau_ext_max[:] = site.guard.v_measured_max[:] = math.inf
         self.link = InProcessLink(n, self.delay_ticks)
         self.tick = 0
         self.other_joint_motion = 0.0  # max |q - q0| of the joints not excited, both robots
