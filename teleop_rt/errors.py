@@ -29,3 +29,11 @@ class SafetyStop(TeleopError):
     """The session was stopped to keep the hardware safe (exit code 3)."""
 
     exit_code = 3
+
+
+class RecordingFailure(TeleopError):
+    """The log cannot record every tick (writer stalled, dead or unable to write): the session
+    stops at the tick boundary (``recording.on_loss: stop``); a session whose log is incomplete
+    exits with code 4 either way."""
+
+    exit_code = 4

@@ -22,7 +22,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import BinaryIO
+from typing import BinaryIO, ClassVar
 
 import numpy as np
 
@@ -269,6 +269,12 @@ class StopSignals:
     Only the main thread can install signal handlers; elsewhere it is a no-op flag."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    installed: ClassVar[list[StopSignals]] = []  # lets a wait elsewhere (the log) see a stop
+
+    @classmethod
+    def pending(cls) -> bool:
+        """Whether an installed instance has been asked to stop."""
+        return any(s.requested for s in cls.installed)
 
     def __init__(self) -> None:
         self.requested = False
@@ -291,8 +297,11 @@ class StopSignals:
             return
         for sig in self.SIGNALS:
             self._previous[sig] = signal.signal(sig, self._handle)
+        StopSignals.installed.append(self)
 
     def uninstall(self) -> None:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous.clear()
+        if self in StopSignals.installed:
+            StopSignals.installed.remove(self)

@@ -30,7 +30,7 @@ from teleop_rt.com.direct import DirectChannel
 from teleop_rt.com.wave import WaveChannel
 from teleop_rt.config import SessionConfig, per_joint
 from teleop_rt.control import ComputedTorque, Pid
-from teleop_rt.errors import ConfigError, SafetyStop
+from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop
 from teleop_rt.flat import Packed
 from teleop_rt.hal.base import Backend, create_backend
 from teleop_rt.hal.sim import SimBackend
@@ -293,6 +293,8 @@ class Session:
             error = f"safety stop: {exc}"
             safety_stop = True
             notes.append(f"after the stop: {self._bring_to_rest()}")
+        except RecordingFailure as exc:  # on_loss: stop; a normal stop, as by Ctrl-C
+            error = f"recording failed: {exc}"
         except BaseException as exc:
             error = f"{type(exc).__name__}: {exc}"
             raise
