@@ -2,7 +2,7 @@
 
 Anything that is the user's input's fault ends as one line on stderr and a non-zero exit code
 (2 for a bad config or argument), never a traceback. ``run`` and ``replay`` exit with 0 (a
-complete run and log), 3 (a safety stop, ``--overrun stop``), 4 (the log is
+complete run and log), 3 (a safety stop, ``--overrun stop``, ``--max-missed``), 4 (the log is
 incomplete: its writer stalled, died or could not write), 130 / 143 (ended by SIGINT / SIGTERM).
 """
 
@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from teleop_rt import __version__
-from teleop_rt.errors import RecordingFailure, SafetyStop, TeleopError
+from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop, TeleopError
 
 EXIT_INTERRUPTED = 130
 
@@ -45,6 +45,12 @@ def _build_parser() -> argparse.ArgumentParser:
         choices=["catch_up", "skip", "stop"],
         default="catch_up",
         help="what a late tick does in real-time mode (default: catch_up)",
+    )
+    run.add_argument(
+        "--max-missed",
+        type=_non_negative_int,
+        metavar="N",
+        help="real-time mode: a safety stop (exit 3) at the (N+1)th missed deadline",
     )
     run.add_argument("--backend", metavar="NAME", help="backend to use instead of the config's")
     run.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
@@ -126,6 +132,12 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _non_negative_int(text: str) -> int:
+    if not text.isdigit() or len(text) > 18:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return int(text)
+
+
 def _load_config(args: argparse.Namespace, extra: list[str] | None = None):
     from teleop_rt import config
 
@@ -161,6 +173,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         extra.append(f"duration_s={args.duration}")
     if args.backend is not None:
         extra.append(f"backend={args.backend}")
+    if args.max_missed is not None and not args.realtime:
+        raise ConfigError("--max-missed counts missed deadlines: it needs --realtime")
     cfg = _load_config(args, extra)
     session = Session(cfg)
     _print_warnings(session)
@@ -175,8 +189,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     recorder = None if args.no_log else _recorder(session, args.log_out, wait_for_room=lossless)
     with progress_bar(cfg.n_ticks, enabled=not (args.json or args.realtime)) as progress:
         summary = session.run(
-            realtime=args.realtime, overrun=args.overrun, progress=progress, recorder=recorder
-        )
+            realtime=args.realtime, overrun=args.overrun, progress=progress, recorder=recorder,
+            max_missed=args.max_missed,
+        )  # fmt: skip
     _print_summary(summary, args.json, recorder)
     return exit_code(summary, recorder)
 

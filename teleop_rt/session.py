@@ -247,19 +247,21 @@ class Session:
         progress: Callable[[int, int], None] | None = None,
         observer: Callable[[Session], None] | None = None,
         recorder: Recorder | None = None,
+        max_missed: int | None = None,
     ) -> Summary:
         """Run ``ticks`` ticks (default: the config's duration) and return the summary.
 
         ``observer(session)`` is called after every tick (tests); ``recorder`` records every
         tick and is closed (the log finalized, with the summary) however the run ends.
-        ``progress(done, total)`` is called about 20 times a second of wall time. SIGINT and
+        ``progress(done, total)`` is called about 20 times a second of wall time. ``max_missed``:
+        more missed deadlines than this stop the run (``TickClock``). SIGINT and
         SIGTERM end the run at the next tick boundary; an exception ends it at once, and the
         log still holds every completed tick.
         """
         total = self.cfg.n_ticks if ticks is None else ticks
         period_ns = int(round(self.dt * 1e9))
         stats = TimingStats(total, period_ns)
-        clock = TickClock(period_ns, realtime, overrun)
+        clock = TickClock(period_ns, realtime, overrun, max_missed=max_missed)
         grant = acquire_realtime() if realtime else None
         notes = list(grant.notes) if grant else []
         stop = StopSignals()
