@@ -1,7 +1,9 @@
 """Command line: ``teleop-rt run | check | metrics | replay | plot | bode``.
 
 Anything that is the user's input's fault ends as one line on stderr and a non-zero exit code
-(2 for a bad config or argument), never a traceback.
+(2 for a bad config or argument), never a traceback. ``run`` and ``replay`` exit with 0 (a
+complete run and log), 3 (a safety stop, ``--overrun stop``, ``--max-missed``), 4 (the log is
+incomplete: its writer stalled, died or could not write), 130 / 143 (ended by SIGINT / SIGTERM).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from teleop_rt import __version__
-from teleop_rt.errors import SafetyStop, TeleopError
+from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop, TeleopError
 from teleop_rt.exit_signals import Terminated, exit_on_signals
 
 EXIT_INTERRUPTED = 130
@@ -55,6 +57,12 @@ def _build_parser() -> argparse.ArgumentParser:
         choices=["catch_up", "skip", "stop"],
         default="catch_up",
         help="what a late tick does in real-time mode (default: catch_up)",
+    )
+    run.add_argument(
+        "--max-missed",
+        type=_non_negative_int,
+        metavar="N",
+        help="real-time mode: a safety stop (exit 3) at the (N+1)th missed deadline",
     )
     add_backend_arg(run)
     run.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
@@ -156,6 +164,12 @@ def _backend_overrides(choices: list[tuple[str, str]]) -> list[str]:
     return out
 
 
+def _non_negative_int(text: str) -> int:
+    if not text.isdigit() or len(text) > 18:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return int(text)
+
+
 def _load_config(args: argparse.Namespace, extra: list[str] | None = None):
     from teleop_rt import config
 
@@ -196,6 +210,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
     extra = []
     if args.duration is not None:
         extra.append(f"duration_s={args.duration}")
+    if args.max_missed is not None and not args.realtime:
+        raise ConfigError("--max-missed counts missed deadlines: it needs --realtime")
     cfg = _load_config(args, extra)
     session = Session(cfg)
     _print_warnings(session)
@@ -205,41 +221,60 @@ def _cmd_run(args: argparse.Namespace) -> int:
             f"running {cfg.duration_s:g} s in real time at {cfg.rate_hz} Hz (Ctrl-C stops)",
             file=sys.stderr,
         )
-    recorder = None if args.no_log else _recorder(session, args.log_out)
+    # no deadline in fast mode with simulated robots: a full ring may wait for the writer
+    lossless = not args.realtime and cfg.backend == "sim"
+    recorder = None if args.no_log else _recorder(session, args.log_out, wait_for_room=lossless)
     with progress_bar(cfg.n_ticks, enabled=not (args.json or args.realtime)) as progress:
         summary = session.run(
-            realtime=args.realtime, overrun=args.overrun, progress=progress, recorder=recorder
-        )
+            realtime=args.realtime, overrun=args.overrun, progress=progress, recorder=recorder,
+            max_missed=args.max_missed,
+        )  # fmt: skip
     _print_summary(summary, args.json, recorder)
-    return exit_code(summary)
+    return exit_code(summary, recorder)
 
 
-def _recorder(session, log: str | None, suffix: str = ""):
+def _recorder(session, log: str | None, suffix: str = "", wait_for_room: bool = False):
     from teleop_rt.recording.recorder import Recorder, default_log_path
 
     path = Path(log) if log else default_log_path(session.cfg.name + suffix)
-    return Recorder(session, path)
+    return Recorder(session, path, wait_for_room=wait_for_room)
 
 
 def _print_summary(summary, as_json: bool, recorder) -> None:
     from teleop_rt.report import print_summary
 
+    status = recorder.status() if recorder else None
     if as_json:
         out = summary.to_dict()
         out["log"] = str(recorder.path) if recorder else None
+        out["recording"] = status
         json.dump(out, sys.stdout, indent=2)
         print()
     else:
         print_summary(summary)
         if recorder is not None:
-            print(f"log: {recorder.path}")
+            print(f"log: {recorder.path}" + ("" if status["complete"] else " (INCOMPLETE)"))
+    _say_if_incomplete(recorder)
 
 
-def exit_code(summary) -> int:
-    """0 for a complete run; 128 + the signal number for a run a signal ended (130, 143);
-    3 for a safety stop."""
+def _say_if_incomplete(recorder) -> None:
+    """One line on stderr when the log lacks ticks (why, and how many were dropped)."""
+    status = recorder.status() if recorder else None
+    if status is not None and not status["complete"]:
+        print(
+            f"teleop-rt: log {recorder.path} is incomplete: {status['failure']} "
+            f"(ticks dropped: {status['dropped_rows']})",
+            file=sys.stderr,
+        )
+
+
+def exit_code(summary, recorder=None) -> int:
+    """0 for a complete run and log; 3 for a safety stop; 4 if the log is incomplete; 128 +
+    the signal number for a run a signal ended (130, 143)."""
     if summary.safety_stop:
         return SafetyStop.exit_code
+    if recorder is not None and not recorder.status()["complete"]:
+        return RecordingFailure.exit_code
     if summary.stop_signal:
         return 128 + summary.stop_signal
     return EXIT_INTERRUPTED if summary.stopped_early else 0
@@ -260,15 +295,17 @@ def _cmd_plot(args: argparse.Namespace) -> int:
 def _cmd_replay(args: argparse.Namespace) -> int:
     from teleop_rt.recording.metrics import log_metrics
     from teleop_rt.recording.reader import read_log
-    from teleop_rt.recording.replay import build_replay
+    from teleop_rt.recording.replay import before_first_gap, build_replay
     from teleop_rt.report import print_comparison, progress_bar
 
-    data = read_log(args.log)
+    data, gap_note = before_first_gap(read_log(args.log))
+    if gap_note:
+        print(f"teleop-rt: warning: {gap_note}", file=sys.stderr)
     original = log_metrics(data)
     session, ticks = build_replay(data, args.overrides)
     recorder = None
     if not args.no_log:  # its own log, never the input (Recorder refuses existing files)
-        recorder = _recorder(session, args.log_out, suffix="-replay")
+        recorder = _recorder(session, args.log_out, suffix="-replay", wait_for_room=True)
     with progress_bar(ticks, enabled=not args.json) as progress:
         summary = session.run(ticks=ticks, progress=progress, recorder=recorder)
     if args.json:
@@ -290,12 +327,13 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         print_comparison(original, summary, args.overrides)
         if recorder is not None:
             print(f"replay log: {recorder.path}")
+    _say_if_incomplete(recorder)
     if args.plot and recorder is not None:
         from teleop_rt.recording.plot import plot_log
 
         plot_log(read_log(recorder.path), args.plot)
         print(f"plot: {args.plot}")
-    return exit_code(summary)
+    return exit_code(summary, recorder)
 
 
 def _cmd_bode(args: argparse.Namespace) -> int:

@@ -204,6 +204,17 @@ class SafetySpec(Strict):
     stop_max_ticks: Annotated[int, Field(ge=0, le=MAX_STOP_TICKS)] = 500
 
 
+class RecordingSpec(Strict):
+    """The log (teleop_rt/recording/recorder.py): the tick never waits for its writer."""
+
+    # rows the writer cannot take (its ring full, the writer dead, the disk full): "stop" ends
+    # the session at the tick boundary as Ctrl-C does; "continue" keeps the robots running and
+    # counts the ticks missing from the log. Either way the log is reported incomplete (exit 4).
+    on_loss: Literal["stop", "continue"] = "stop"
+    # how far the writer may fall behind the loop before rows are lost (the ring's size)
+    ring_s: Annotated[float, Field(gt=0, le=600, allow_inf_nan=False)] = 64.0
+
+
 class DamperOperatorSpec(Strict):
     """The paper's operator (Z_o = const): a damper between the HSI joints and the ground."""
 
@@ -304,6 +315,7 @@ class SessionConfig(Strict):
     channel: ChannelSpec = ChannelSpec()
     plant: PlantSpec = PlantSpec()
     safety: SafetySpec = SafetySpec()
+    recording: RecordingSpec = RecordingSpec()
     operator: Operator
     environment: list[Environment] = Field(default_factory=list)
     can: CanSpec | None = None  # the CAN backend's buses and drives (teleop_rt.hal.can)

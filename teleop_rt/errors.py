@@ -37,3 +37,11 @@ def quote(text: str, limit: int = 60) -> str:
         return repr(text)
     half = limit // 2 - 2
     return f"{text[:half]!r}...{text[-half:]!r} ({len(text)} characters)"
+
+
+class RecordingFailure(TeleopError):
+    """The log cannot record every tick (writer stalled, dead or unable to write): the session
+    stops at the tick boundary (``recording.on_loss: stop``); a session whose log is incomplete
+    exits with code 4 either way."""
+
+    exit_code = 4

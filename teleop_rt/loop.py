@@ -4,10 +4,14 @@ Real-time mode: deadlines are absolute, ``next_ns += period_ns`` (never ``sleep(
 drifts); the clock sleeps until ``spin_ns`` before the deadline, then spins on the monotonic
 clock. Fast mode runs ticks back to back (simulation time only).
 
-Overrun policy, applied when a tick's work ends after the next deadline:
+Overrun policy, applied when a tick's work ends after the next deadline (a missed deadline):
 * ``catch_up``: keep the schedule; the following ticks start late until they have caught up;
 * ``skip``: drop the missed deadlines and continue on the next future one (time base kept);
 * ``stop``: raise ``OverrunStop``.
+``max_missed`` N raises ``OverrunStop`` at the (N + 1)th missed deadline whatever the policy.
+The late tick itself has run and is counted (``TimingStats``, the log) like any other: the stop
+is raised when the next tick waits for its deadline, so the summary's missed deadlines
+include the one that stopped the run.
 """
 
 from __future__ import annotations
@@ -22,7 +26,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import BinaryIO
+from typing import BinaryIO, ClassVar
 
 import numpy as np
 
@@ -48,9 +52,13 @@ class TickClock:
         spin_ns: int = 200_000,
         now_ns=time.monotonic_ns,
         sleep=time.sleep,
+        max_missed: int | None = None,
     ) -> None:
         if overrun not in OVERRUN_POLICIES:
             raise ValueError(f"overrun policy must be one of {OVERRUN_POLICIES}, got {overrun!r}")
+        self.max_missed = max_missed
+        self.missed = 0
+        self.stop_reason: str | None = None  # raised as OverrunStop at the next wait()
         self.period_ns = period_ns
         self.realtime = realtime
         self.overrun = overrun
@@ -64,7 +72,10 @@ class TickClock:
         self.deadline_ns = self.now_ns()
 
     def wait(self) -> int:
-        """Wait for the current tick's deadline; return the lateness in ns (0 in fast mode)."""
+        """Wait for the current tick's deadline; return the lateness in ns (0 in fast mode).
+        Raise ``OverrunStop`` if the last tick's miss ends the run."""
+        if self.stop_reason is not None:
+            raise OverrunStop(self.stop_reason)
         if not self.realtime:
             return 0
         now = self.now_ns()
@@ -83,10 +94,16 @@ class TickClock:
         next_deadline = self.deadline_ns + self.period_ns
         missed = end_ns > next_deadline
         if missed:
-            if self.overrun == "stop":
-                raise OverrunStop(
+            self.missed += 1
+            if self.overrun == "stop" and self.stop_reason is None:
+                self.stop_reason = (
                     f"tick overran its deadline by {(end_ns - next_deadline) / 1e3:.0f} us "
                     "(overrun policy: stop)"
+                )
+            if self.max_missed is not None and self.missed > self.max_missed:
+                self.stop_reason = self.stop_reason or (
+                    f"{self.missed} deadlines missed, more than the {self.max_missed} allowed "
+                    "(--max-missed)"
                 )
             if self.overrun == "skip":
                 # deadlines before end_ns are dropped; one at end_ns is still on time
@@ -269,6 +286,12 @@ class StopSignals:
     Only the main thread can install signal handlers; elsewhere it is a no-op flag."""
 
     SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    installed: ClassVar[list[StopSignals]] = []  # lets a wait elsewhere (the log) see a stop
+
+    @classmethod
+    def pending(cls) -> bool:
+        """Whether an installed instance has been asked to stop."""
+        return any(s.requested for s in cls.installed)
 
     def __init__(self) -> None:
         self.requested = False
@@ -291,8 +314,11 @@ class StopSignals:
             return
         for sig in self.SIGNALS:
             self._previous[sig] = signal.signal(sig, self._handle)
+        StopSignals.installed.append(self)
 
     def uninstall(self) -> None:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._previous.clear()
+        if self in StopSignals.installed:
+            StopSignals.installed.remove(self)

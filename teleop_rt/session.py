@@ -32,7 +32,7 @@ from teleop_rt.analysis.transparency import TransparencyAccumulator
 from teleop_rt.com.channel import ChannelMonitor
 from teleop_rt.com.link import InProcessLink
 from teleop_rt.config import SessionConfig
-from teleop_rt.errors import ConfigError, SafetyStop
+from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop
 from teleop_rt.flat import Block, Packed
 from teleop_rt.hal.base import FusedPlants
 from teleop_rt.lockstep import SESSION_BLOCKS, PairState, lockstep_after, lockstep_before
@@ -256,19 +256,21 @@ class Session:
         progress: Callable[[int, int], None] | None = None,
         observer: Callable[[Session], None] | None = None,
         recorder: Recorder | None = None,
+        max_missed: int | None = None,
     ) -> Summary:
         """Run ``ticks`` ticks (default: the config's duration) and return the summary.
 
         ``observer(session)`` is called after every tick (tests); ``recorder`` records every
         tick and is closed (the log finalized, with the summary) however the run ends.
-        ``progress(done, total)`` is called about 20 times a second of wall time. SIGINT and
+        ``progress(done, total)`` is called about 20 times a second of wall time. ``max_missed``:
+        more missed deadlines than this stop the run (``TickClock``). SIGINT and
         SIGTERM end the run at the next tick boundary; an exception ends it at once, and the
         log still holds every completed tick.
         """
         total = self.cfg.n_ticks if ticks is None else ticks
         period_ns = int(round(self.dt * 1e9))
         stats = TimingStats(total, period_ns)
-        clock = TickClock(period_ns, realtime, overrun)
+        clock = TickClock(period_ns, realtime, overrun, max_missed=max_missed)
         grant = acquire_realtime() if realtime else None
         notes = list(grant.notes) if grant else []
         stop = StopSignals()
@@ -302,6 +304,8 @@ class Session:
             error = f"safety stop: {exc}"
             safety_stop = True
             notes.append(f"after the stop: {self._bring_to_rest()}")
+        except RecordingFailure as exc:  # on_loss: stop; a normal stop, as by Ctrl-C
+            error = f"recording failed: {exc}"
         except BaseException as exc:
             error = f"{type(exc).__name__}: {exc}"
             raise

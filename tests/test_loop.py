@@ -207,15 +207,33 @@ def test_skip_counts_the_dropped_deadlines(end: int, deadline: int, skipped: int
     assert clock.deadline_ns >= end  # never a deadline in the past
 
 
-def test_stop_raises_overrun_stop() -> None:
+def test_stop_raises_overrun_stop_before_the_next_tick() -> None:
     clock, fake = make("stop")
     clock.start()
     run_ticks(clock, fake, [500_000, 999_000])  # on time: no stop
     assert clock.deadline_ns == START + 2 * PERIOD
-    with pytest.raises(OverrunStop) as info:
-        clock.finish(START + 3 * PERIOD + 250_000)
+    # the late tick has run: it is reported missed (and counted) like any other ...
+    assert clock.finish(START + 3 * PERIOD + 250_000) is True
+    assert clock.missed == 1
+    with pytest.raises(OverrunStop) as info:  # ... and the next one does not start
+        clock.wait()
     assert isinstance(info.value, SafetyStop) and isinstance(info.value, TeleopError)
     assert "250 us" in str(info.value) and "stop" in str(info.value)
+
+
+@pytest.mark.parametrize("policy", ["catch_up", "skip"])
+def test_max_missed_stops_at_one_more_than_allowed(policy: str) -> None:
+    clock, fake = make(policy)
+    clock.max_missed = 2
+    clock.start()
+    late = START + 10 * PERIOD
+    for _ in range(3):
+        clock.wait()
+        late += 10 * PERIOD
+        assert clock.finish(late) is True  # each tick misses its deadline
+    assert clock.missed == 3
+    with pytest.raises(OverrunStop, match="3 deadlines missed, more than the 2 allowed"):
+        clock.wait()
 
 
 def test_unknown_policy_is_refused() -> None:

@@ -56,6 +56,8 @@ def log_metrics(data: LogData, offset: np.ndarray | None = None) -> dict:
         "min_channel_energy_j": min(0.0, float(finite.min())) if len(finite) else 0.0,
         "timing": _timing(timing, int(round(dt * 1e9))),
         "first_tick": int(hsi["tick"][0]) if n else None,
+        "gaps": [list(g) for g in data.gaps],
+        "missing_ticks": data.missing_ticks,
         "truncated": data.truncated,
         "cut_reason": data.cut_reason,
     }
@@ -78,8 +80,9 @@ def _timing(timing: np.ndarray, period_ns: int) -> dict:
 
 
 def agrees_with_live(metrics: dict, summary: dict | None) -> bool | None:
-    """Whether a whole log's figures equal its live summary exactly (None: nothing to compare)."""
-    if summary is None or metrics["first_tick"] not in (0, None):
+    """Whether a whole log's figures equal its live summary exactly (None: nothing to compare,
+    as for a log with gaps, whose figures cover the recorded ticks only)."""
+    if summary is None or metrics["first_tick"] not in (0, None) or metrics["gaps"]:
         return None
     same = all(metrics[key] == summary.get(key) for key in _COMPARED)
     live = summary.get("timing", {})
@@ -130,9 +133,17 @@ def format_metrics(m: dict) -> str:
     agrees = m.get("live_summary_agrees")
     if agrees is not None:
         lines.append(row("live summary", "agrees exactly" if agrees else "DIFFERS from the log"))
+    if m["gaps"]:
+        lines.append(row("log gaps", gap_text(m["gaps"], m["missing_ticks"])))
     if m["truncated"]:
         lines.append(row("log cut short", m["cut_reason"] or ""))
     return "\n".join(lines)
+
+
+def gap_text(gaps: list, missing: int) -> str:
+    """'N ticks missing in M ranges (a-b, ...)': the figures cover the recorded ticks only."""
+    shown = ", ".join(f"{a}-{b}" for a, b in gaps[:3]) + (", ..." if len(gaps) > 3 else "")
+    return f"{missing} ticks missing in {len(gaps)} range(s) ({shown}); figures of the rest"
 
 
 def _check_window(t_from: float | None, t_to: float | None) -> None:
@@ -174,6 +185,9 @@ def metrics_main(
         print()
     else:
         print(format_metrics(m))
+    if data.gaps:
+        print(f"teleop-rt: warning: {data.path}: {gap_text(m['gaps'], m['missing_ticks'])}",
+              file=sys.stderr)  # fmt: skip
     if data.truncated:
         print(f"teleop-rt: warning: {data.path}: {data.cut_reason}", file=sys.stderr)
     return 0

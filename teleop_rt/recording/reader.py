@@ -58,6 +58,9 @@ class LogData:
     truncated: bool
     cut_reason: str | None
     topics: dict[str, np.ndarray] = field(default_factory=dict)
+    # tick ranges [first, last] missing inside the ticks read (rows the session dropped when
+    # its writer fell behind, at the end too if the summary counts more ticks): not a cut
+    gaps: list[tuple[int, int]] = field(default_factory=list)
 
     @property
     def rate_hz(self) -> float:
@@ -73,6 +76,10 @@ class LogData:
         return min((len(a) for a in self.topics.values()), default=0)
 
     damaged: dict[str, str] = field(default_factory=dict)  # attachment name -> what is wrong
+
+    @property
+    def missing_ticks(self) -> int:
+        return sum(last - first + 1 for first, last in self.gaps)
 
     def attachment(self, name: str) -> bytes | None:
         """An attachment's bytes (None if the log has none by that name); LogError if damaged."""
@@ -307,6 +314,7 @@ class _Reader:
             cut_reason=cut,
             topics=arrays,
             damaged=self.damaged,
+            gaps=_gaps(arrays, first, stop, summary),
         )
 
     def _messages(self, chunk: _Chunk, names: set[str], lo: int, hi: int, parts) -> None:
@@ -456,6 +464,27 @@ class _Reader:
         if not isinstance(summary, dict):
             raise self.fail(f"'{SUMMARY_META}' json is not an object")
         return summary
+
+
+def _gaps(
+    arrays: dict[str, np.ndarray], first: int, stop: int, summary: dict | None
+) -> list[tuple[int, int]]:
+    """Ticks missing from [first, stop) (the window) before, between and (if the summary says
+    how many ticks ran) after the ticks read; the topics hold the same ticks by now."""
+    if not arrays:
+        return []
+    tick = next(iter(arrays.values()))["tick"].astype(np.int64)
+    end = stop
+    ran = summary.get("ticks") if summary is not None else None
+    if isinstance(ran, int) and 0 <= ran <= 2**62:
+        end = min(stop, ran)
+    elif len(tick):
+        end = int(tick[-1]) + 1  # a cut log: what came after the cut is not a gap
+    else:
+        return []
+    bounds = np.concatenate(([first - 1], tick, [end]))
+    jumps = np.flatnonzero(np.diff(bounds) > 1)
+    return [(int(bounds[j]) + 1, int(bounds[j + 1]) - 1) for j in jumps]
 
 
 def _op_name(op: int) -> str:

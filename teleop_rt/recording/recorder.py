@@ -1,16 +1,33 @@
-"""Per-tick recording without blocking the tick.
+"""Per-tick recording that never holds the tick.
 
 ``Recorder.record`` copies the tick's signals from the session's packed state into one row of
 a shared-memory ring (one compiled call) and publishes it; the writer process
 (``teleop_rt.recording.writer``) turns rows into MCAP messages on the other core. The ring holds
-``capacity`` rows (65 s at 1 kHz by default); the producer waits only if the writer falls a whole
-ring behind, so no row is ever dropped.
+``recording.ring_s`` seconds of rows.
+
+The tick never waits for the writer (real time): a row that finds the ring full is dropped and
+counted, its tick range kept for the summary (the reader finds the gap from the ticks logged).
+A dead writer or one that cannot write (a full disk: it says so in the control block) is seen
+without a system call per tick: the control block is read, and the process polled, every
+``CHECK_TICKS`` ticks and whenever the ring is full. Any loss is a recording failure: the
+session stops at the tick boundary (``recording.on_loss: stop``, raising ``RecordingFailure``)
+or runs on without a log (``continue``), and the log is reported incomplete. In fast mode with
+simulated robots (``wait_for_room``) no deadline exists, so a full ring waits for a writer that
+makes progress, keeping the log whole and the run deterministic.
+
+Closing is bounded: the writer may take as long as it needs while it makes progress; one that
+makes none for ``CLOSE_STALL_S`` (or a second Ctrl-C) is killed and the log reported incomplete.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+import errno
+import math
 import multiprocessing
+import os
+import resource
+import signal
 import struct
 import time
 from multiprocessing.shared_memory import SharedMemory
@@ -21,15 +38,31 @@ import numpy as np
 import yaml
 
 from teleop_rt import __version__
-from teleop_rt.errors import TeleopError
+from teleop_rt.errors import RecordingFailure, TeleopError
 from teleop_rt.flat import jit
+from teleop_rt.loop import StopSignals
 from teleop_rt.recording.schema import SCHEMA_VERSION, LogLayout
-from teleop_rt.recording.writer import CLOSED, CONSUMED, CONTROL_BYTES, PUBLISHED, writer_main
+from teleop_rt.recording.writer import (
+    CLOSED,
+    CONSUMED,
+    CONTROL_BYTES,
+    ERRNO,
+    HEARTBEAT,
+    PUBLISHED,
+    STATUS,
+    WRITE_FAILED,
+    writer_main,
+)
 
 if TYPE_CHECKING:
     from teleop_rt.session import Session
 
 DEFAULT_LOG_DIR = Path("logs")
+CHECK_TICKS = 256  # the writer's health is read every this many ticks (and on a full ring)
+MIN_RING_ROWS = 16
+MAX_GAPS = 1024  # dropped tick ranges kept one by one; more are merged into the last
+STALL_S = 2.0  # a full ring in fast mode: a writer without progress this long has failed
+CLOSE_STALL_S = 3.0  # closing: a writer without progress this long is killed
 
 
 class LogPathError(TeleopError):
@@ -64,26 +97,58 @@ def create_log_file(path: Path) -> Path:
 
 
 class Recorder:
-    """Owns the ring and the writer process of one log file."""
+    """Owns the ring and the writer process of one log file, and the policy on losing rows.
 
-    def __init__(self, session: Session, path: Path, capacity: int = 65536) -> None:
+    ``wait_for_room``: a full ring waits for the writer (fast mode with simulated robots only:
+    nothing real is held) instead of dropping the row."""
+
+    def __init__(
+        self,
+        session: Session,
+        path: Path,
+        capacity: int | None = None,
+        wait_for_room: bool = False,
+    ) -> None:
         cfg = session.cfg
         self.path = create_log_file(Path(path))
         self.layout = LogLayout(session.n, len(cfg.environment))
         self.session = session
         width = self.layout.row_width
+        if capacity is None:
+            capacity = max(MIN_RING_ROWS, math.ceil(cfg.recording.ring_s * cfg.rate_hz))
         self.capacity = capacity
         self.row_bytes = width * 8
+        self.stop_on_loss = cfg.recording.on_loss == "stop"
+        self.wait_for_room = wait_for_room
         self._count = struct.Struct("@q")
-        self.shm = SharedMemory(create=True, size=CONTROL_BYTES + capacity * self.row_bytes)
+        size = CONTROL_BYTES + capacity * self.row_bytes
+        try:
+            _check_room_for_ring(size)
+            self.shm = SharedMemory(create=True, size=size)
+        except OSError as err:
+            self.path.unlink()  # created empty just now, by this recorder
+            raise TeleopError(
+                f"cannot make the log's ring of {size / 1e6:.1f} MB in shared memory "
+                f"({err.strerror}); a smaller recording.ring_s needs less"
+            ) from None
         self.buf = self.shm.buf
+        self.ctrl = np.ndarray((CONTROL_BYTES // 8,), np.int64, self.shm.buf)
         # the ring as rows of float64 (native order, as the writer reads it), and where each
         # signal column of a row sits in the session's packed state
         self.ring = np.ndarray((capacity, width), np.float64, self.shm.buf, CONTROL_BYTES)
+        self.ring.fill(0.0)  # its pages now, not as page faults on the tick path
         self.gather = row_sources(session, self.layout)
         fill_row(np.zeros(width), session.packed.f, self.gather, 0, 0.0, 0, 0, False)  # load
         self.published = 0
         self._consumed_known = 0
+        # what did not reach the log: rows dropped, their tick ranges (preallocated: the
+        # tick path allocates nothing), the first failure, and whether the writer is gone
+        self.dropped = 0
+        self._gaps = np.zeros((MAX_GAPS, 2), np.int64)
+        self._n_gaps = 0
+        self.failure: str | None = None
+        self.writer_gone = False
+        self._full = False  # the ring was full at the last look
         # fork: the writer starts in milliseconds (spawn would re-import numpy and mcap, and
         # needs an importable __main__); it touches nothing of the parent but the ring
         method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
@@ -108,12 +173,19 @@ class Recorder:
         self.closed = False
 
     def record(self, compute_ns: int, lateness_ns: int, missed: bool) -> None:
-        """Copy the tick the session just ran (its tick - 1) into the ring and publish it."""
+        """Copy the tick the session just ran (its tick - 1) into the ring and publish it, or
+        drop it if the writer cannot take it; raise ``RecordingFailure`` on a loss when the
+        config says stop."""
         s = self.session
         k = s.tick - 1
         i = self.published
-        if i - self._consumed_known >= self.capacity:
-            self._wait_for_room(i)
+        if (
+            k % CHECK_TICKS == 0 or i - self._consumed_known >= self.capacity or self.writer_gone
+        ) and not self._room(i, k):
+            self._drop(k)
+            if self.stop_on_loss:
+                raise RecordingFailure(self.failure)
+            return
         fill_row(
             self.ring[i % self.capacity], s.packed.f, self.gather, k, k * s.dt,
             compute_ns, lateness_ns, missed,
@@ -121,32 +193,151 @@ class Recorder:
         self.published = i + 1
         self._count.pack_into(self.buf, PUBLISHED * 8, i + 1)
 
-    def _wait_for_room(self, i: int) -> None:
-        while True:
-            self._consumed_known = self._count.unpack_from(self.buf, CONSUMED * 8)[0]
-            if i - self._consumed_known < self.capacity:
-                return
-            if not self.process.is_alive():
-                raise TeleopError(f"log writer for {self.path} stopped unexpectedly")
-            time.sleep(0.0005)
+    def _room(self, i: int, k: int) -> bool:
+        """Whether row i (tick k) can go into the ring; on False, ``failure`` says why."""
+        if self.writer_gone:
+            return False
+        self._consumed_known = int(self.ctrl[CONSUMED])
+        full = i - self._consumed_known >= self.capacity
+        if k % CHECK_TICKS == 0 or (full and not self._full):  # not a system call per tick
+            self._check_writer(k)
+            if self.writer_gone:
+                return False
+        self._full = full
+        if not full:
+            return True
+        if self.wait_for_room and self._wait_for_room(i, k):
+            self._full = False
+            return True
+        self._fail(
+            f"the log writer fell {self.capacity} rows behind at tick {k} (its ring was full); "
+            "ticks were dropped"
+        )
+        return False
 
-    def close(self, summary: dict | None, timeout_s: float = 120.0) -> None:
-        """Publish the end, hand over the summary, wait for the file to be finished."""
-        if self.closed:
+    def _check_writer(self, k: int) -> None:
+        """A writer that cannot write or has died: nothing more reaches the log."""
+        if self.ctrl[STATUS] == WRITE_FAILED:
+            why = f"cannot write {self.path} ({os.strerror(int(self.ctrl[ERRNO]))})"
+        elif not self.process.is_alive():
+            why = f"the log writer {_ended(self.process.exitcode)}"
+        else:
             return
+        self.writer_gone = True
+        self._fail(f"{why} at tick {k}; rows not yet on disk are lost")
+
+    def _fail(self, reason: str, also: bool = False) -> None:
+        """Keep the first cause; ``also`` adds what came of it (a writer killed at close)."""
+        if self.failure is None:
+            self.failure = reason
+        elif also:
+            self.failure += f"; then {reason}"
+
+    def _wait_for_room(self, i: int, k: int) -> bool:
+        """Fast mode: wait while the writer makes progress (a batch frees room in tens of ms);
+        no progress for STALL_S, a dead writer or a stop request (Ctrl-C) end the wait."""
+        progress, since = self._progress(), time.monotonic()
+        while True:
+            time.sleep(0.0005)
+            self._consumed_known = int(self.ctrl[CONSUMED])
+            if i - self._consumed_known < self.capacity:
+                return True
+            self._check_writer(k)
+            if self.writer_gone or StopSignals.pending():
+                return False
+            now = self._progress()
+            if now != progress:
+                progress, since = now, time.monotonic()
+            elif time.monotonic() - since > STALL_S:
+                self.wait_for_room = False  # from here on a full ring drops rows, as in real time
+                self._fail(f"the log writer made no progress for {STALL_S:g} s at tick {k}")
+                return False
+
+    def _progress(self) -> tuple[int, int]:
+        return int(self.ctrl[CONSUMED]), int(self.ctrl[HEARTBEAT])
+
+    def _drop(self, k: int) -> None:
+        self.dropped += 1
+        j = self._n_gaps
+        if j and self._gaps[j - 1, 1] == k - 1:
+            self._gaps[j - 1, 1] = k
+        elif j < MAX_GAPS:
+            self._gaps[j, 0] = self._gaps[j, 1] = k
+            self._n_gaps = j + 1
+        else:  # out of room: the last range grows over what it skips (the count stays exact)
+            self._gaps[j - 1, 1] = k
+
+    def status(self) -> dict:
+        """Whether the log holds every tick: rows dropped (never handed to the writer), their
+        tick ranges [first, last], and the first failure (None if there was none)."""
+        return {
+            "complete": self.failure is None and self.dropped == 0,
+            "dropped_rows": self.dropped,
+            "gaps": self._gaps[: self._n_gaps].tolist(),
+            "failure": self.failure,
+        }
+
+    def close(self, summary: dict | None) -> dict:
+        """Publish the end, hand over the summary (with ``status()``), wait for the file to be
+        finished (bounded: see CLOSE_STALL_S); return the final ``status()``."""
+        if self.closed:
+            return self.status()
         self.closed = True
         try:
-            if summary is not None:
-                self._summary_tx.send(summary)
-            self._count.pack_into(self.buf, CLOSED * 8, 1)
-            self.process.join(timeout_s)
-            if self.process.is_alive():  # pragma: no cover - a stuck disk
-                self.process.terminate()
-                raise TeleopError(f"log writer for {self.path} did not finish in {timeout_s} s")
+            try:
+                if summary is not None:
+                    self._summary_tx.send({**summary, "recording": self.status()})
+                self._count.pack_into(self.buf, CLOSED * 8, 1)
+                self._finish()
+            except KeyboardInterrupt:  # a second Ctrl-C: the user will not wait
+                self._end_writer("a second interrupt while the log was being finished")
         finally:
-            self.buf = self.ring = None
+            self.buf = self.ring = self.ctrl = None
             self.shm.close()
             self.shm.unlink()
+        return self.status()
+
+    def _finish(self) -> None:
+        progress, since = self._progress(), time.monotonic()
+        while True:
+            self.process.join(0.05)
+            if self.process.exitcode is not None:
+                break
+            now = self._progress()
+            if now != progress:
+                progress, since = now, time.monotonic()
+            elif time.monotonic() - since > CLOSE_STALL_S:
+                self._end_writer(f"no progress for {CLOSE_STALL_S:g} s while finishing the log")
+                return
+        if self.ctrl[STATUS] == WRITE_FAILED:
+            self._fail(f"cannot write {self.path} ({os.strerror(int(self.ctrl[ERRNO]))})")
+        elif self.process.exitcode != 0:
+            self._fail(f"the log writer {_ended(self.process.exitcode)} while finishing")
+
+    def _end_writer(self, why: str) -> None:
+        self.process.kill()  # SIGKILL: it ignores SIGINT and SIGTERM, and may be stopped
+        self.process.join(5.0)
+        self._fail(f"{why}: the writer was killed and the log is cut short", also=True)
+
+
+def _check_room_for_ring(size: int) -> None:
+    """Raise OSError if the ring cannot be made whole: checked before, as a shared-memory file
+    larger than RLIMIT_FSIZE fails inside SharedMemory with a traceback from its resource
+    tracker, and one larger than the free space of /dev/shm kills the process (SIGBUS) when
+    a row is written to a page that cannot be allocated."""
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+    if limit != resource.RLIM_INFINITY and size > limit:
+        raise OSError(errno.EFBIG, f"more than the file size limit of {limit} bytes")
+    if os.path.isdir("/dev/shm"):
+        fs = os.statvfs("/dev/shm")
+        if size > fs.f_bavail * fs.f_frsize:
+            raise OSError(errno.ENOSPC, f"/dev/shm has {fs.f_bavail * fs.f_frsize} bytes free")
+
+
+def _ended(exitcode: int | None) -> str:
+    if exitcode is not None and exitcode < 0:
+        return f"was killed by {signal.Signals(-exitcode).name}"
+    return f"exited with code {exitcode}"
 
 
 def row_sources(session: Session, layout: LogLayout) -> np.ndarray:

@@ -23,7 +23,7 @@ import numpy as np
 
 from teleop_rt.config import SessionConfig, apply_overrides, from_dict
 from teleop_rt.model import RobotModel
-from teleop_rt.recording.reader import LogData, LogError, require_ticks
+from teleop_rt.recording.reader import LogData, LogError, read_log, require_ticks
 from teleop_rt.session import Session
 from teleop_rt.world import LoggedTrajectory, ScriptedHand
 
@@ -86,7 +86,23 @@ def replay_operator(cfg: SessionConfig, data: LogData) -> ScriptedHand | None:
         k, d = cfg.operator.stiffness_n_per_m, cfg.operator.damping_n_s_per_m
     else:
         k, d = PERSON_HAND_STIFFNESS_N_PER_M, PERSON_HAND_DAMPING_N_S_PER_M
-    return ScriptedHand(LoggedTrajectory(pos, vel, data.dt), k, d)
+    return ScriptedHand(LoggedTrajectory(pos, vel, log_dt(data)), k, d)
+
+
+def before_first_gap(data: LogData) -> tuple[LogData, str | None]:
+    """The ticks a replay can use: the logged operator input is tick-locked, so a log with
+    gaps (rows dropped while its writer fell behind) is replayed up to the first; and a note."""
+    if not data.gaps:
+        return data, None
+    first, last = data.gaps[0]
+    if first == 0:
+        raise LogError(f"{data.path}: ticks 0-{last} are missing; nothing to replay before them")
+    note = f"{data.path} has gaps (ticks {first}-{last} first); replayed its first {first} ticks"
+    return read_log(data.path, t_to=first * log_dt(data)), note
+
+
+def log_dt(data: LogData) -> float:
+    return 1.0 / float(data.meta["rate_hz"])
 
 
 def _tool_motion(cfg: SessionConfig, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -97,11 +113,14 @@ def _tool_motion(cfg: SessionConfig, q: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 
 def build_replay(data: LogData, overrides: list[str]) -> tuple[Session, int]:
-    """The replay session and the number of ticks to run (as many as the log holds)."""
+    """The replay session and the number of ticks to run (as many as the log holds; a log with
+    gaps is replayed up to its first: ``before_first_gap``)."""
     for topic in ("/hsi",):
         if topic not in data.topics:
             raise LogError(f"{data.path}: no {topic} messages to replay")
     require_ticks(data)
+    if data.gaps:
+        raise LogError(f"{data.path}: ticks {data.gaps[0][0]}-{data.gaps[0][1]} are missing")
     cfg = replay_config(data, overrides)
     session = Session(cfg, operator=replay_operator(cfg, data))
     # as long as the log, also when --set rate_hz changed the tick
