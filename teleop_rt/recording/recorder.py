@@ -20,11 +20,18 @@ from typing import TYPE_CHECKING
 import numpy as np
 import yaml
 
-from teleop_rt import __version__
 from teleop_rt.errors import TeleopError
 from teleop_rt.flat import jit
 from teleop_rt.recording.schema import SCHEMA_VERSION, LogLayout
-from teleop_rt.recording.writer import CLOSED, CONSUMED, CONTROL_BYTES, PUBLISHED, writer_main
+from teleop_rt.recording.writer import (
+    CLOSED,
+    CONSUMED,
+    CONTROL_BYTES,
+    PUBLISHED,
+    START_NS,
+    writer_main,
+)
+from teleop_rt.version import software_version
 
 if TYPE_CHECKING:
     from teleop_rt.session import Session
@@ -64,9 +71,17 @@ def create_log_file(path: Path) -> Path:
 
 
 class Recorder:
-    """Owns the ring and the writer process of one log file."""
+    """Owns the ring and the writer process of one log file.
 
-    def __init__(self, session: Session, path: Path, capacity: int = 65536) -> None:
+    ``metadata``: further ``teleop_rt`` metadata keys (the CLI's config path and overrides)."""
+
+    def __init__(
+        self,
+        session: Session,
+        path: Path,
+        capacity: int = 65536,
+        metadata: dict[str, str] | None = None,
+    ) -> None:
         cfg = session.cfg
         self.path = create_log_file(Path(path))
         self.layout = LogLayout(session.n, len(cfg.environment))
@@ -84,6 +99,9 @@ class Recorder:
         fill_row(np.zeros(width), session.packed.f, self.gather, 0, 0.0, 0, 0, False)  # load
         self.published = 0
         self._consumed_known = 0
+        self._period_ns = round(cfg.dt * 1e9)
+        # the session's start on the wall clock: now, until the first tick says when it ran
+        self._count.pack_into(self.buf, START_NS * 8, time.time_ns())
         # fork: the writer starts in milliseconds (spawn would re-import numpy and mcap, and
         # needs an importable __main__); it touches nothing of the parent but the ring
         method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
@@ -96,8 +114,8 @@ class Recorder:
                 capacity,
                 (self.layout.n, self.layout.n_env),
                 str(self.path),
-                round(cfg.dt * 1e9),
-                _metadata(session),
+                self._period_ns,
+                {**_metadata(session), **(metadata or {})},
                 _attachments(session),
                 self._summary_rx,
             ),
@@ -114,6 +132,9 @@ class Recorder:
         i = self.published
         if i - self._consumed_known >= self.capacity:
             self._wait_for_room(i)
+        if i == 0:  # once: UTC of tick 0, which log times count from (read before PUBLISHED)
+            start = time.time_ns() - compute_ns - k * self._period_ns
+            self._count.pack_into(self.buf, START_NS * 8, start)
         fill_row(
             self.ring[i % self.capacity], s.packed.f, self.gather, k, k * s.dt,
             compute_ns, lateness_ns, missed,
@@ -207,12 +228,13 @@ def _metadata(session: Session) -> dict[str, str]:
     cfg = session.cfg
     operator = cfg.operator.kind if cfg.backend == "sim" else "none"
     return {
-        "software_version": __version__,
+        "software_version": software_version(),
         "schema_version": str(SCHEMA_VERSION),
         "joints": str(session.n),
         "env_elements": str(len(cfg.environment)),
         "rate_hz": str(cfg.rate_hz),
-        "period_ns": str(round(cfg.dt * 1e9)),  # log time of tick k is k * period_ns
+        # log time of tick k: start_time_ns + k * period_ns (the writer adds the start time)
+        "period_ns": str(round(cfg.dt * 1e9)),
         "delay_ticks": str(cfg.delay_ticks),
         "name": cfg.name,
         "backend": cfg.backend,
