@@ -1,9 +1,11 @@
-"""Command line: ``teleop-rt run | check | metrics | replay | plot | bode``.
+"""Command line: ``teleop-rt run | check | info | metrics | replay | plot | bode``.
 
 Anything that is the user's input's fault ends as one line on stderr and a non-zero exit code
 (2 for a bad config or argument), never a traceback. ``run`` and ``replay`` exit with 0 (a
 complete run and log), 3 (a safety stop, ``--overrun stop``, ``--max-missed``), 4 (the log is
 incomplete: its writer stalled, died or could not write), 130 / 143 (ended by SIGINT / SIGTERM).
+Output files (plots, JSON) are checked before any work and never overwritten without ``--force``
+(``teleop_rt.output``); logs are never overwritten at all.
 """
 
 from __future__ import annotations
@@ -71,6 +73,16 @@ def _build_parser() -> argparse.ArgumentParser:
     check = sub.add_parser("check", help="validate a config (and load its robots) without running")
     add_config_args(check)
     add_backend_arg(check)
+    check.add_argument(
+        "--print",
+        dest="print_config",
+        action="store_true",
+        help="print the resolved config (overrides applied, every default filled in) as YAML",
+    )
+
+    info = sub.add_parser("info", help="what a log holds: start, duration, topics, session, status")
+    info.add_argument("log", help="an MCAP log written by teleop-rt run or replay")
+    info.add_argument("--json", action="store_true", help="print it as JSON")
 
     metrics = sub.add_parser("metrics", help="transparency, energy and timing figures of a log")
     metrics.add_argument("log", help="an MCAP log written by teleop-rt run or replay")
@@ -84,19 +96,35 @@ def _build_parser() -> argparse.ArgumentParser:
     replay.add_argument("log", help="an MCAP log written by teleop-rt run")
     add_set_arg(replay, "change the logged session, e.g. --set channel.delay_ms=100 (repeatable)")
     replay.add_argument("--json", action="store_true", help="print both summaries as JSON")
-    replay.add_argument("--plot", metavar="PNG", help="also plot the replay's log to PNG")
-    add_log_args(replay)
+    replay.add_argument(
+        "--plot", metavar="IMAGE", help="also plot the replay (format by extension: .png, .pdf)"
+    )
+    add_force_arg(replay, "--plot")
+    add_log_args(replay, "logs/<name>-replay-<UTC time>.mcap")
 
-    plot = sub.add_parser("plot", help="plot HSI vs TO angles and torques and channel energy")
+    plot = sub.add_parser(
+        "plot", help="plot HSI vs TO angles and torques, tool paths and the channel energy"
+    )
     plot.add_argument("log", help="an MCAP log")
-    plot.add_argument("-o", "--output", metavar="PNG", help="image to write (default: LOG.png)")
+    plot.add_argument(
+        "-o",
+        "--output",
+        metavar="IMAGE",
+        help="image to write, format by extension: .png, .pdf, .svg, ... (default: LOG.png)",
+    )
+    add_force_arg(plot, "the image")
+    plot.add_argument("--from", dest="t_from", type=float, metavar="S", help="start time, s")
+    plot.add_argument("--to", dest="t_to", type=float, metavar="S", help="end time, s")
 
     bode = sub.add_parser(
         "bode", help="measure the displayed impedance Z_h(j omega) and compare with the models"
     )
     add_config_args(bode)
     bode.add_argument("--json", dest="json_out", metavar="OUT", help="write JSON ('-': stdout)")
-    bode.add_argument("--plot", metavar="PNG", help="magnitude and phase plot")
+    bode.add_argument(
+        "--plot", metavar="IMAGE", help="magnitude and phase plot (format by extension)"
+    )
+    add_force_arg(bode, "the --json and --plot files")
     bode.add_argument("--joint", type=int, default=1, help="excited joint, 0-based (default 1)")
     bode.add_argument("--omegas", metavar="W1,W2,...", help="frequencies, rad/s")
     bode.add_argument("--omega-min", type=float, default=0.5, help="rad/s (default 0.5)")
@@ -107,7 +135,10 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     for name, unit in (("stiffness", "N m/rad"), ("damping", "N m s/rad"), ("mass", "kg m^2")):
         bode.add_argument(
-            f"--env-{name}", type=float, default=0.0, help=f"joint-space environment, {unit}"
+            f"--env-{name}",
+            type=float,
+            default=None,
+            help=f"joint-space environment Z_e of the excited joint, {unit} (default 0)",
         )
     bode.add_argument(
         "--max-seconds",
@@ -124,13 +155,17 @@ def add_set_arg(p: argparse.ArgumentParser, help_text: str) -> None:
     )
 
 
-def add_log_args(p: argparse.ArgumentParser) -> None:
+def add_force_arg(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--force", action="store_true", help=f"overwrite {what} if it exists")
+
+
+def add_log_args(p: argparse.ArgumentParser, default: str = "logs/<name>-<UTC time>.mcap") -> None:
     group = p.add_mutually_exclusive_group()
     group.add_argument(
         "--log",
         dest="log_out",
         metavar="PATH",
-        help="MCAP log to write (default: logs/<name>-<UTC time>.mcap; never overwrites)",
+        help=f"MCAP log to write (default: {default}; never overwrites)",
     )
     group.add_argument("--no-log", action="store_true", help="do not record this run")
 
@@ -188,6 +223,11 @@ def _cmd_check(args: argparse.Namespace) -> int:
     cfg = _load_config(args)
     session = Session(cfg)  # builds models and backends: catches joint-count mismatches too
     _print_warnings(session)
+    if args.print_config:
+        import yaml
+
+        print(yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False), end="")
+        return 0
     print(
         f"{args.config}: ok ({session.n} joints, {cfg.n_ticks} ticks at {cfg.rate_hz} Hz, "
         f"delay {cfg.delay_ticks} ticks, backends {_backends_text(cfg)})"
@@ -199,7 +239,14 @@ def _print_warnings(session) -> None:
     from teleop_rt.analysis.contact import contact_warnings
     from teleop_rt.safety import safety_warnings
 
-    for line in [*safety_warnings(session.cfg), *contact_warnings(session.cfg, session.to.model)]:
+    cfg = session.cfg
+    lines = [*safety_warnings(cfg), *contact_warnings(cfg, session.to.model)]
+    if cfg.can is not None and "can" not in cfg.backends.values():
+        lines.append(
+            f"the config's can section is not used: the backends are {_backends_text(cfg)} "
+            "(--backend can, or hsi:can / to:can, uses it)"
+        )
+    for line in lines:
         print(f"teleop-rt: warning: {line}", file=sys.stderr)
 
 
@@ -222,8 +269,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     # no deadline in fast mode with simulated robots: a full ring may wait for the writer
-    lossless = not args.realtime and cfg.backend == "sim"
-    recorder = None if args.no_log else _recorder(session, args.log_out, wait_for_room=lossless)
+    lossless = not args.realtime and set(cfg.backends.values()) == {"sim"}
+    metadata = {"config": str(args.config), "overrides": json.dumps([*args.overrides, *extra])}
+    recorder = (
+        None
+        if args.no_log
+        else _recorder(session, args.log_out, wait_for_room=lossless, metadata=metadata)
+    )
     with progress_bar(cfg.n_ticks, enabled=not (args.json or args.realtime)) as progress:
         summary = session.run(
             realtime=args.realtime, overrun=args.overrun, progress=progress, recorder=recorder,
@@ -233,11 +285,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return exit_code(summary, recorder)
 
 
-def _recorder(session, log: str | None, suffix: str = "", wait_for_room: bool = False):
+def _recorder(
+    session, log: str | Path | None, suffix: str = "", wait_for_room: bool = False, metadata=None
+):
     from teleop_rt.recording.recorder import Recorder, default_log_path
 
     path = Path(log) if log else default_log_path(session.cfg.name + suffix)
-    return Recorder(session, path, wait_for_room=wait_for_room)
+    return Recorder(session, path, wait_for_room=wait_for_room, metadata=metadata)
 
 
 def _print_summary(summary, as_json: bool, recorder) -> None:
@@ -286,60 +340,101 @@ def _cmd_metrics(args: argparse.Namespace) -> int:
     return metrics_main(args.log, args.json, args.t_from, args.t_to)
 
 
+def _cmd_info(args: argparse.Namespace) -> int:
+    from teleop_rt.recording.info import info_main
+
+    return info_main(args.log, args.json)
+
+
 def _cmd_plot(args: argparse.Namespace) -> int:
     from teleop_rt.recording.plot import plot_main
 
-    return plot_main(args.log, args.output)
+    return plot_main(args.log, args.output, args.force, args.t_from, args.t_to)
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
+    import tempfile
+
+    from teleop_rt.output import check_output
     from teleop_rt.recording.metrics import log_metrics
     from teleop_rt.recording.reader import read_log
     from teleop_rt.recording.replay import before_first_gap, build_replay
     from teleop_rt.report import print_comparison, progress_bar
 
+    if args.plot:  # before the replay, which can take minutes
+        check_output(args.plot, "--plot", force=args.force, image=True, inputs=(args.log,))
     data, gap_note = before_first_gap(read_log(args.log))
     if gap_note:
         print(f"teleop-rt: warning: {gap_note}", file=sys.stderr)
     original = log_metrics(data)
     session, ticks = build_replay(data, args.overrides)
-    recorder = None
+    recorded_on = data.meta.get("backend", "sim")
+    metadata = {
+        "replay_of": str(args.log),
+        "replay_of_backend": recorded_on,
+        "overrides": json.dumps(args.overrides),
+        **({"config": data.meta["config"]} if "config" in data.meta else {}),
+    }
+    scratch = None
     if not args.no_log:  # its own log, never the input (Recorder refuses existing files)
-        recorder = _recorder(session, args.log_out, suffix="-replay", wait_for_room=True)
-    with progress_bar(ticks, enabled=not args.json) as progress:
-        summary = session.run(ticks=ticks, progress=progress, recorder=recorder)
-    if args.json:
-        json.dump(
-            {
-                "original": original,
-                "replay": summary.to_dict(),
-                "overrides": args.overrides,
-                "log": str(recorder.path) if recorder else None,
-                "truncated_input": data.truncated,
-            },
-            sys.stdout,
-            indent=2,
+        recorder = _recorder(
+            session, args.log_out, suffix="-replay", wait_for_room=True, metadata=metadata
         )
+    elif args.plot:  # a plot is drawn from a log: a temporary one, removed afterwards
+        scratch = tempfile.TemporaryDirectory(prefix="teleop-rt-replay-")
+        recorder = _recorder(
+            session, Path(scratch.name) / "replay.mcap", wait_for_room=True, metadata=metadata
+        )
+    else:
+        recorder = None
+    kept = None if args.no_log else recorder
+    notes = []
+    if data.truncated:
+        notes.append(f"{args.log} was cut short ({data.cut_reason}); replayed what it holds")
+    if recorded_on != "sim":
+        notes.append(
+            f"{args.log} was recorded on the {recorded_on} backend; "
+            "the replay runs on the simulated backend (sim)"
+        )
+    try:
+        with progress_bar(ticks, enabled=not args.json) as progress:
+            summary = session.run(ticks=ticks, progress=progress, recorder=recorder)
+        if args.plot:
+            from teleop_rt.recording.plot import plot_log
+
+            plot_log(read_log(recorder.path), args.plot, force=args.force, option="--plot")
+    finally:
+        if scratch is not None:
+            scratch.cleanup()
+    if args.json:
+        out = {
+            "original": original,
+            "replay": summary.to_dict(),
+            "overrides": args.overrides,
+            "backend": "sim",
+            "recorded_backend": recorded_on,
+            "log": str(kept.path) if kept else None,
+            "plot": args.plot,
+            "truncated_input": data.truncated,
+            "notes": notes,
+        }
+        json.dump(out, sys.stdout, indent=2)
         print()
     else:
-        if data.truncated:
-            print(f"note: {args.log} was cut short ({data.cut_reason}); replayed what it holds")
+        for note in notes:
+            print(f"note: {note}")
         print_comparison(original, summary, args.overrides)
-        if recorder is not None:
-            print(f"replay log: {recorder.path}")
+        if kept is not None:
+            print(f"replay log: {kept.path}")
+        if args.plot:
+            print(f"plot: {args.plot}")
     _say_if_incomplete(recorder)
-    if args.plot and recorder is not None:
-        from teleop_rt.recording.plot import plot_log
-
-        plot_log(read_log(recorder.path), args.plot)
-        print(f"plot: {args.plot}")
     return exit_code(summary, recorder)
 
 
 def _cmd_bode(args: argparse.Namespace) -> int:
     import math
 
-    from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from teleop_rt.analysis.bode import (
@@ -349,6 +444,7 @@ def _cmd_bode(args: argparse.Namespace) -> int:
         setup_from_config,
     )
     from teleop_rt.errors import ConfigError
+    from teleop_rt.output import check_output, distinct, write_text
 
     if args.omegas is not None:
         try:
@@ -363,16 +459,26 @@ def _cmd_bode(args: argparse.Namespace) -> int:
         raise ConfigError("frequencies must be positive finite numbers (rad/s)")
     if not (args.max_seconds > 0 and math.isfinite(args.max_seconds)):
         raise ConfigError(f"--max-seconds must be > 0, got {args.max_seconds}")
-    cfg = _load_config(args)
-    setup = setup_from_config(cfg, args.joint, args.env_mass, args.env_damping, args.env_stiffness)
     to_stdout = args.json_out == "-"
+    json_file = None if to_stdout else args.json_out
+    # every output path is checked before the sweep, which can take minutes
+    distinct(("--json", json_file), ("--plot", args.plot))
+    if json_file:
+        check_output(json_file, "--json", force=args.force, inputs=(args.config,))
+    if args.plot:
+        check_output(args.plot, "--plot", force=args.force, image=True, inputs=(args.config,))
+    cfg = _load_config(args)
+    env, env_source, env_elements = _bode_environment(cfg, args)
+    setup = setup_from_config(cfg, args.joint, *env)
+    setup.info["environment_source"] = env_source
+    setup.info["environment_elements"] = env_elements
     columns = (
         TextColumn("[bold]frequencies"),
         BarColumn(),
         TextColumn("{task.completed}/{task.total}"),
         TimeElapsedColumn(),
     )
-    console = Console(stderr=True)
+    console = _console(stderr=True)
     with Progress(
         *columns, console=console, transient=True, disable=not console.is_terminal
     ) as bar:
@@ -391,38 +497,65 @@ def _cmd_bode(args: argparse.Namespace) -> int:
     params.update(result.params_dict())
     params.update(setup.info)
     doc = result.to_dict(params)
-    if args.json_out:
-        text = json.dumps(doc, indent=2)
-        if to_stdout:
-            print(text)
-        else:
-            Path(args.json_out).write_text(text + "\n")
+    # why a point is not a number: "settled", or changing / growing / diverged / slow / marginal
+    doc["measured"]["reason"] = [pt.reason for pt in result.points]
+    if to_stdout:
+        print(json.dumps(doc, indent=2))
+    elif json_file:
+        write_text(json_file, json.dumps(doc, indent=2) + "\n", "--json", args.force)
     if not to_stdout:
-        _print_bode(result)
-        if args.json_out:
-            print(f"json: {args.json_out}")
+        _print_bode(result, setup.info)
+        if json_file:
+            print(f"json: {json_file}")
     if args.plot:
-        plot_bode(result, args.plot)
+        plot_bode(result, args.plot, force=args.force)
         if not to_stdout:
             print(f"plot: {args.plot}")
     return 0
 
 
-def _print_bode(result) -> None:
-    import numpy as np
+def _bode_environment(cfg, args) -> tuple[tuple[float, float, float], str, list[str]]:
+    """(mass, damping, stiffness) of the excited joint, where they came from, and per config
+    element how it was used: the command line's --env-* if any is given, else the config's
+    environment linearised at the TO's start pose (``teleop_rt.analysis.joint_env``)."""
+    from teleop_rt.analysis.joint_env import joint_environment
+
+    given = (args.env_mass, args.env_damping, args.env_stiffness)
+    if any(v is not None for v in given):
+        env = tuple(0.0 if v is None else v for v in given)
+        ignored = "; the config's environment not used"
+        return env, "command line (joint space)" + (ignored if cfg.environment else ""), []
+    if args.joint < 0:
+        return (0.0, 0.0, 0.0), "free space", []  # setup_from_config says what is wrong
+    found = joint_environment(cfg, args.joint)
+    return (found.mass, found.damping, found.stiffness), found.source, found.elements
+
+
+def _console(stderr: bool = False):
+    """A rich Console that, writing to a file or a pipe, does not cut lines at 80 columns."""
     from rich.console import Console
+
+    console = Console(stderr=stderr)
+    return console if console.is_terminal else Console(stderr=stderr, width=240)
+
+
+def _print_bode(result, info: dict) -> None:
+    import numpy as np
     from rich.table import Table
 
     p = result.params
     table = Table(
         title=f"displayed impedance Z_h, joint {result.joint}, T_d = {p.delay_s * 1000:g} ms, "
         f"b = {p.b:g} N m s/rad, wave filter "
-        f"{f'{p.wave_filter_hz:g} Hz' if p.wave_filter_hz and p.delay_s > 0 else 'off'}",
+        f"{f'{p.wave_filter_hz:g} Hz' if p.wave_filter_hz and p.delay_s > 0 else 'off'}\n"
+        f"Z_o = {p.z_o:g} N m s/rad: {info.get('z_o_source', '?')}\n"
+        f"Z_e = {p.env_mass:g} s + {p.env_damping:g} + {p.env_stiffness:g}/s "
+        f"(kg m^2, N m s/rad, N m/rad): {info.get('environment_source', '?')}",
         title_justify="left",
     )
     columns = ("omega rad/s", "|Z| meas.", "|Z| discr.", "|Z| cont.")
     for col in (*columns, "deg meas.", "deg discr.", "deg cont.", "settled"):
-        table.add_column(col, justify="right")
+        table.add_column(col, justify="right", no_wrap=True)
     for pt, zd, za in zip(result.points, result.discrete, result.analytic, strict=True):
         settled = pt.settled
         meas = (f"{abs(pt.z):.4g}", f"{np.degrees(np.angle(pt.z)):.2f}") if settled else ("-", "-")
@@ -436,7 +569,7 @@ def _print_bode(result) -> None:
             f"{np.degrees(np.angle(za)):.2f}",
             "yes" if settled else f"[red]no ({pt.reason})",
         )
-    Console().print(table)
+    _console().print(table)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -457,6 +590,7 @@ def _main(argv: Sequence[str] | None) -> int:
     handler = {
         "run": _cmd_run,
         "check": _cmd_check,
+        "info": _cmd_info,
         "metrics": _cmd_metrics,
         "replay": _cmd_replay,
         "plot": _cmd_plot,

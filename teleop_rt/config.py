@@ -16,6 +16,7 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import (
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     ValidationError,
@@ -26,9 +27,18 @@ from pydantic import (
 from teleop_rt.errors import ConfigError, quote
 from teleop_rt.hal.can.config import CanSpec
 
-PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
-NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
-FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+
+def _not_bool(value: Any) -> Any:
+    # pydantic's lax mode reads true as 1 and false as 0; in a config that is always a slip
+    if isinstance(value, bool):
+        raise ValueError(f"expected a number, got {str(value).lower()}")
+    return value
+
+
+NoBool = BeforeValidator(_not_bool)
+PositiveFloat = Annotated[float, NoBool, Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, NoBool, Field(ge=0, allow_inf_nan=False)]
+FiniteFloat = Annotated[float, NoBool, Field(allow_inf_nan=False)]
 PerJointPositive = PositiveFloat | list[PositiveFloat]
 PerJointNonNeg = NonNegFloat | list[NonNegFloat]
 
@@ -114,7 +124,7 @@ class ChannelSpec(Strict):
     comparison, a plain delayed force-feedback channel (mode: direct, not passive)."""
 
     mode: Literal["wave", "direct"] = "wave"
-    delay_ms: Annotated[float, Field(ge=0, le=MAX_DELAY_MS, allow_inf_nan=False)] = 0.0
+    delay_ms: Annotated[float, NoBool, Field(ge=0, le=MAX_DELAY_MS, allow_inf_nan=False)] = 0.0
     wave_impedance: PerJointPositive = 2.0  # b, N m s/rad per joint
     # First-order low-pass on each received wave (keeps the channel passive; damps the
     # ringing of the discrete terminations against stiff contact). None switches it off.
@@ -132,7 +142,7 @@ class FaultSpec(Strict):
 
     kind: Literal["nan", "dropout", "noise_burst", "bias", "saturation", "stuck"]
     robot: Literal["hsi", "to"]
-    joint: Annotated[int, Field(ge=0)] = 0
+    joint: Annotated[int, NoBool, Field(ge=0)] = 0
     start_s: NonNegFloat = 0.0
     duration_s: PositiveFloat = 1e9
     magnitude: NonNegFloat = 1.0
@@ -142,11 +152,11 @@ class PlantSpec(Strict):
     """The simulated plant: integrator, sub-steps, sensor models and injected faults."""
 
     integrator: Literal["semi_implicit_euler", "rk4"] = "semi_implicit_euler"
-    substeps: Annotated[int, Field(ge=1, le=100)] = 1
+    substeps: Annotated[int, NoBool, Field(ge=1, le=100)] = 1
     torque_noise_std_nm: NonNegFloat = 0.0
     velocity_noise_std_rad_s: NonNegFloat = 0.0
     # Coulomb friction is smoothed as f_c * tanh(v / v_s) so the stiff sign() never enters.
-    coulomb_smoothing_rad_s: Annotated[float, Field(ge=1e-6, le=10.0)] = 0.01
+    coulomb_smoothing_rad_s: Annotated[float, NoBool, Field(ge=1e-6, le=10.0)] = 0.01
     faults: list[FaultSpec] = Field(default_factory=list)
 
 
@@ -184,14 +194,14 @@ class SafetySpec(Strict):
     torque_limits: Literal["saturate", "stop", "off"] = "saturate"  # URDF effort limits
     # a torque pinned at its limit this many ticks in a row is a fault (a loop gone unstable,
     # a stuck joint), not a transient: stop. 0 never stops for saturation.
-    saturation_stop_ticks: TickCount = 200
+    saturation_stop_ticks: Annotated[int, NoBool, Field(ge=0, le=MAX_TICKS)] = 200
     # feedback that has not been refreshed for this many ticks is stale: stop
-    stale_ticks: Annotated[int, Field(ge=1, le=MAX_TICKS)] = 3
+    stale_ticks: Annotated[int, NoBool, Field(ge=1, le=MAX_TICKS)] = 3
     # a joint whose measured acceleration misses the commanded virtual dynamics (eq 3 / 13) by
     # more than this, this many ticks in a row, does not follow its torque (saturated or
     # blocked actuator, broken model): stop. 0 ticks switches the check off.
     tracking_error_rad_s2: PositiveFloat = 20.0
-    tracking_error_ticks: TickCount = 20
+    tracking_error_ticks: Annotated[int, NoBool, Field(ge=0, le=MAX_TICKS)] = 20
     # the tool frame outside its box is a stop (one forward-kinematics call per boxed robot)
     workspace: WorkspaceLimits = WorkspaceLimits()
     # plausibility of the measurements (sensor faults), checked whatever ``enabled`` says:
@@ -201,7 +211,7 @@ class SafetySpec(Strict):
     measured_velocity_limit_rad_s: PerJointPositive | None = None
     # the stop itself: the HSI is damped, the TO is brought to rest, then both get zero torque
     stop_damping_nm_s_per_rad: NonNegFloat = 0.5
-    stop_max_ticks: Annotated[int, Field(ge=0, le=MAX_STOP_TICKS)] = 500
+    stop_max_ticks: Annotated[int, NoBool, Field(ge=0, le=MAX_STOP_TICKS)] = 500
 
 
 class RecordingSpec(Strict):
@@ -306,9 +316,9 @@ class SessionConfig(Strict):
     """A whole session: rate, duration, both robots, the channel, plant, operator, environment."""
 
     name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")] = "session"
-    rate_hz: Annotated[int, Field(ge=MIN_RATE_HZ, le=MAX_RATE_HZ)] = 1000
+    rate_hz: Annotated[int, NoBool, Field(ge=MIN_RATE_HZ, le=MAX_RATE_HZ)] = 1000
     duration_s: PositiveFloat = 10.0
-    seed: Annotated[int, Field(ge=0, le=MAX_SEED)] = 0
+    seed: Annotated[int, NoBool, Field(ge=0, le=MAX_SEED)] = 0
     backend: str = "sim"  # a name from the backend registry (teleop_rt.hal)
     hsi: SideSpec
     to: SideSpec
@@ -351,6 +361,16 @@ class SessionConfig(Strict):
             )
         return self
 
+    @model_validator(mode="after")
+    def _filter_below_nyquist(self) -> SessionConfig:
+        cutoff, nyquist = self.channel.wave_filter_hz, self.rate_hz / 2.0
+        if cutoff is not None and cutoff >= nyquist:
+            raise ValueError(
+                f"channel.wave_filter_hz = {cutoff:g} Hz is not below the Nyquist frequency "
+                f"({nyquist:g} Hz at rate_hz = {self.rate_hz}); null turns the filter off"
+            )
+        return self
+
     @property
     def dt(self) -> float:
         return 1.0 / self.rate_hz
@@ -385,11 +405,41 @@ def _format_error(err: ValidationError) -> str:
     )
     msg = first["msg"].removeprefix("Value error, ")
     if first["type"] == "extra_forbidden":
-        msg = "unknown key"
+        msg = _unknown_key(loc_parts) or "unknown key"
     return f"{loc or 'config'}: {msg}"
 
 
+def _unknown_key(loc: tuple) -> str | None:
+    """A key the chosen kind of a tagged section does not have. When it is another kind's key
+    (``--set operator.kind=damper`` on a hand operator leaves the hand's keys behind), what to
+    do instead."""
+    if len(loc) < 3 or not _is_union_tag(loc[-2], loc[-3]):
+        return None
+    section, kind, key = loc[-3], loc[-2], loc[-1]
+    kinds = _KINDS["operator" if section == "operator" else "environment"]
+    keys = [k for k in kinds[kind].model_fields if k != "kind"]
+    where = "operator" if section == "operator" else f"environment.{section}"
+    msg = f"unknown key for {where} kind {kind!r} (its keys: {', '.join(keys)})"
+    if any(key in cls.model_fields for other, cls in kinds.items() if other != kind):
+        example = ", ".join([f"kind: {kind}", *(f"{k}: ..." for k in keys)])
+        msg += (
+            f"; changing the kind with --set leaves the other kind's keys behind: give the "
+            f"whole section instead, --set '{where}={{{example}}}'"
+        )
+    return msg
+
+
 _UNION_TAGS = {"damper", "hand", "wall", "foam", "spring", "mass"}
+_KINDS: dict[str, dict[str, type[BaseModel]]] = {
+    "operator": {"damper": DamperOperatorSpec, "hand": HandOperatorSpec},
+    "environment": {
+        "wall": WallSpec,
+        "foam": WallSpec,
+        "spring": SpringSpec,
+        "damper": SpringSpec,
+        "mass": MassSpec,
+    },  # fmt: skip
+}
 
 
 _SHAPE_ERRORS = {"float_type", "list_type"}

@@ -35,6 +35,13 @@ def progress_bar(total: int, enabled: bool = True) -> Iterator[Callable[[int, in
         yield update
 
 
+def speed(ratio: float) -> str:
+    """Simulated over wall time as '55x', '2.4x', '0.31x' (a slow run is not '0x')."""
+    if ratio >= 10:
+        return f"{ratio:.0f}x"
+    return f"{ratio:.2g}x" if ratio < 1 else f"{ratio:.1f}x"
+
+
 def _fmt(values: list[float]) -> str:
     return "  ".join(f"{v:.4g}" for v in values)
 
@@ -66,8 +73,8 @@ def print_summary(summary: Summary, console: Console | None = None) -> None:
             f"{timing.get('late_over_period', 0)})",
         )
     else:
-        rtf = 1e6 * summary.simulated_time_s / max(timing.get("wall_s", 0.0) * 1e6, 1e-9)
-        table.add_row("mode", f"fast ({rtf:.0f}x real time)")
+        rtf = summary.simulated_time_s / max(timing.get("wall_s", 0.0), 1e-9)
+        table.add_row("mode", f"fast mode, {speed(rtf)} real time")
     for note in summary.notes:
         table.add_row("note", note)
     if summary.saturated_ticks:

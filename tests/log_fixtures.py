@@ -21,6 +21,7 @@ from teleop_rt.loop import TimingStats
 from teleop_rt.recording.schema import CDR_HEADER, SCHEMA_VERSION, LogLayout, Topic
 
 URDF = b'<robot name="synthetic"><link name="base"/></robot>\n'
+START_NS = 1_767_225_600_123_456_789  # 2026-01-01T00:00:00.123456789Z: log times are wall-clock
 
 
 @dataclass
@@ -165,6 +166,7 @@ def write_synthetic_log(
     schema_names: dict[str, str] | None = None,
     skip: tuple[str, ...] = (),
     pad: dict[str, int] | None = None,
+    start_ns: int = START_NS,
     **signals: np.ndarray,
 ) -> SyntheticLog:
     """Write a log of ``ticks`` ticks; return what was written.
@@ -174,6 +176,7 @@ def write_synthetic_log(
     error tests: ``meta`` overrides metadata keys (None drops one), ``schema_names`` renames a
     topic's schema, ``skip`` leaves topics out, ``pad`` adds zero bytes to a topic's payloads.
     ``rows`` replaces the generated rows; ``signals`` override fields (see synthetic_rows).
+    Log times are ``start_ns + k * period`` (``start_ns=0``: as logs before wall-clock times).
     """
     path = Path(path)
     layout = LogLayout(n, n_env)
@@ -193,6 +196,8 @@ def write_synthetic_log(
         "backend": "sim",
         "operator": "hand",
     }
+    if start_ns:
+        info["start_time_ns"] = str(start_ns)
     for key, value in (meta or {}).items():
         if value is None:
             info.pop(key, None)
@@ -222,7 +227,7 @@ def write_synthetic_log(
             ]
             for i in range(len(block)):
                 k = start + i
-                stamp = k * period_ns
+                stamp = start_ns + k * period_ns
                 for cid, data in zip(channels, payloads, strict=True):
                     w.add_message(cid, stamp, data[i], stamp, sequence=k)
         if finish:  # a killed process writes neither the summary nor the summary section

@@ -215,7 +215,8 @@ def test_bode_json_schema_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture
     assert main(argv) == 0, capsys.readouterr().err
     doc = json.loads(out.read_text())
     assert set(doc) == {"params", "omega_rad_s", "analytic", "measured", "discrete"}
-    assert set(doc["measured"]) == {"re", "im", "settled"}
+    assert set(doc["measured"]) == {"re", "im", "settled", "reason"}
+    assert doc["measured"]["reason"] == ["settled", "settled"]
     assert set(doc["analytic"]) == set(doc["discrete"]) == {"re", "im"}
     n = len(doc["omega_rad_s"])
     assert n == 2
@@ -249,7 +250,9 @@ def test_bode_json_has_null_for_unsettled(capsys: pytest.CaptureFixture[str]) ->
     argv += ["--set", "channel.wave_filter_hz=null", "--env-stiffness", "1000"]
     assert main([*argv, "--omegas", "5", "--json", "-"]) == 0
     doc = json.loads(capsys.readouterr().out)
+    reason = doc["measured"].pop("reason")
     assert doc["measured"] == {"re": [None], "im": [None], "settled": [False]}
+    assert reason in (["growing"], ["diverged"], ["changing"], ["slow"], ["marginal"])
     assert doc["params"]["z_o_source"].startswith("default")  # a hand operator: Z_o = 10
     assert doc["params"]["z_o_nm_s_per_rad"] == 10.0
 

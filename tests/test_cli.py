@@ -3,7 +3,9 @@ entry point: bad input is one ``teleop-rt: error:`` line on stderr and exit code
 
 from __future__ import annotations
 
+import argparse
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -190,3 +192,158 @@ def test_console_script_check(tmp_path: Path) -> None:
     )
     assert proc.returncode == 2  # main()'s return value becomes the exit status
     assert_one_error_line(proc.stderr, str(missing))
+
+
+# --- issue 19: config rough edges -------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("override", "named"),
+    [
+        ("channel.delay_ms=true", "channel.delay_ms: expected a number, got true"),
+        ("seed=false", "seed: expected a number, got false"),
+        ("hsi.virtual_mass=[0.1, true]", "hsi.virtual_mass.1: expected a number, got true"),
+        ("channel.wave_filter_hz=600", "not below the Nyquist frequency (500 Hz"),
+        ("channel.wave_filter_hz=500", "channel.wave_filter_hz = 500 Hz"),
+    ],
+)
+def test_numbers_are_numbers_and_the_filter_below_nyquist(
+    override: str, named: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["check", str(CONFIGS / "paper_experiment.yaml"), "--set", override]) == 2
+    assert_one_error_line(capsys.readouterr().err, named)
+
+
+def test_changing_the_operator_kind_says_what_to_do(capsys: pytest.CaptureFixture[str]) -> None:
+    path = str(CONFIGS / "paper_experiment.yaml")
+    assert main(["check", path, "--set", "operator.kind=damper"]) == 2
+    err = capsys.readouterr().err
+    assert_one_error_line(err, "operator.stiffness_n_per_m", "operator kind 'damper'")
+    assert "--set 'operator={kind: damper, damping_nm_s_per_rad: ...}'" in err
+    # ... and what it says works
+    assert main(["check", path, "--set", "operator={kind: damper, damping_nm_s_per_rad: 10}"]) == 0
+
+
+def test_a_can_section_on_the_sim_backend_warns(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["check", str(CONFIGS / "free_space.yaml"), "--set", "can.emulate=true"]) == 0
+    err = capsys.readouterr().err
+    assert err.startswith("teleop-rt: warning: the config's can section is not used")
+    assert "'sim'" in err and err.count("\n") == 1
+
+
+def test_check_print_shows_the_resolved_config(capsys: pytest.CaptureFixture[str]) -> None:
+    import yaml
+
+    from teleop_rt import config
+
+    path = CONFIGS / "stiff_wall.yaml"
+    assert main(["check", str(path), "--print", "--set", "channel.delay_ms=20"]) == 0
+    out = capsys.readouterr().out
+    printed = yaml.safe_load(out)
+    assert printed["channel"]["delay_ms"] == 20.0
+    assert printed["safety"]["stale_ticks"] == 3  # a default the file does not write
+    assert config.from_dict(printed) == config.load(path, ["channel.delay_ms=20"])
+
+
+# --- issue 19: texts --------------------------------------------------------------------------
+def test_a_slow_run_is_not_zero_times_real_time() -> None:
+    from teleop_rt.report import speed
+
+    assert [speed(x) for x in (77.4, 2.44, 0.31, 0.004)] == ["77x", "2.4x", "0.31x", "0.004x"]
+
+
+def test_cut_inside_an_attachment_reads_well(tmp_path: Path) -> None:
+    from log_fixtures import URDF, write_synthetic_log
+
+    from teleop_rt.recording.reader import read_log
+
+    log = write_synthetic_log(tmp_path / "a.mcap", 10)
+    raw = log.path.read_bytes()
+    log.path.write_bytes(raw[: raw.index(URDF) + 10])  # inside the first URDF attachment
+    data = read_log(log.path)
+    assert data.truncated and "inside an attachment record" in data.cut_reason
+
+
+def test_bode_piped_is_not_cut_at_80_columns(tmp_path: Path) -> None:
+    argv = [*entry_point(), "bode", str(CONFIGS / "stiff_wall.yaml"), "--omegas", "5"]
+    proc = subprocess.run(
+        [*argv, "--max-seconds", "5", "--set", "channel.wave_filter_hz=null", "--env-mass", "0.1"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "COLUMNS": "80"},
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "settled" in proc.stdout and "…" not in proc.stdout
+    assert max(len(line) for line in proc.stdout.splitlines()) > 80
+    assert "Z_o = 10 N m s/rad: default (operator kind 'hand' is not a damper)" in proc.stdout
+
+
+def test_bode_uses_the_configs_environment_and_says_how(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    # the wall moved onto the tool's start position: in contact, a joint-space stiffness
+    argv = ["bode", str(CONFIGS / "stiff_wall.yaml"), "--omegas", "5", "--json", "-"]
+    assert main([*argv, "--set", "environment.0.point_m=[0, 0]", "--max-seconds", "5"]) == 0
+    p = json.loads(capsys.readouterr().out)["params"]
+    assert p["env_stiffness_nm_per_rad"] > 10 and p["env_mass_kg_m2"] == 0.0
+    assert p["environment_source"].startswith("the config's environment at the TO's start pose")
+    assert p["environment_elements"][0].startswith("environment.0 (wall): ")
+    # as shipped the wall is out of reach at q0: free space, and the distance is said
+    assert main([*argv, "--max-seconds", "5"]) == 0
+    p = json.loads(capsys.readouterr().out)["params"]
+    assert p["env_stiffness_nm_per_rad"] == 0.0
+    assert "not in contact at q0 (55.2 mm away)" in p["environment_source"]
+    # --env-* replaces it, and says so
+    assert main([*argv, "--env-stiffness", "3", "--max-seconds", "5"]) == 0
+    p = json.loads(capsys.readouterr().out)["params"]
+    assert p["env_stiffness_nm_per_rad"] == 3.0
+    assert p["environment_source"] == (
+        "command line (joint space); the config's environment not used"
+    )
+
+
+# --- issue 19: help and entry points ----------------------------------------------------------
+def test_python_dash_m_teleop_rt(tmp_path: Path) -> None:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    cmd = [sys.executable, "-m", "teleop_rt", "check", "configs/foam.yaml"]
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 0 and proc.stdout.startswith("configs/foam.yaml: ok"), proc.stderr
+    proc = subprocess.run(
+        [sys.executable, "-m", "teleop_rt", "check", str(tmp_path / "x.yaml")],
+        capture_output=True, text=True, timeout=120, env=env,
+    )  # fmt: skip
+    assert proc.returncode == 2
+    assert_one_error_line(proc.stderr, "no such config file")
+
+
+def _parser():
+    from teleop_rt.cli import _build_parser
+
+    parser = _build_parser()
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices
+
+
+def test_replay_help_gives_its_default_log_name(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        main(["replay", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "default: logs/<name>-replay-<UTC time>.mcap" in out
+
+
+def test_every_option_has_help_and_the_readme_synopsis_lists_it() -> None:
+    readme = (ROOT / "README.md").read_text()
+    synopsis = readme[
+        readme.index("teleop-rt run CONFIG") : readme.index(
+            "```", readme.index("teleop-rt run CONFIG")
+        )
+    ]
+    for name, parser in _parser().items():
+        start = synopsis.index(f"teleop-rt {name} ")
+        end = synopsis.find("\nteleop-rt ", start + 1)
+        line = synopsis[start : end if end > 0 else None]
+        for action in parser._actions:
+            if action.help == argparse.SUPPRESS or "-h" in action.option_strings:
+                continue
+            assert action.help, (name, action.dest)
+            if action.option_strings:
+                assert any(o in line for o in action.option_strings), (name, action.option_strings)

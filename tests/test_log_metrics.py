@@ -197,7 +197,8 @@ def test_text_output(tmp_path, capsys):
     log = write_synthetic_log(tmp_path / "a.mcap", 1000)
     assert metrics_main(log.path) == 0
     out = capsys.readouterr().out
-    assert "live summary                  agrees exactly" in out
+    assert "live summary                      agrees exactly" in out
+    assert "ticks started over a period late  " in out  # a gap after the longest label
     assert f"{log.summary['t_p_total']:.6g}" in out and "1000 (1.000 s)" in out
     m = log_metrics(read_log(log.path))
     m["live_summary_agrees"] = False

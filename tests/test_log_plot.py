@@ -41,7 +41,8 @@ def test_png_written(tmp_path):
     assert out == tmp_path / "out.png" and out.stat().st_size > 20_000
     image = imread(out)
     height, width = image.shape[:2]
-    assert (width, height) == (1100, 660)  # figsize (11, 2 (n + 1) + 0.6) at 100 dpi
+    # figsize (11, 2 n + 1.5 + 1.2) at 100 dpi: no tool path (the fixture's URDF has no joints)
+    assert (width, height) == (1100, 670)
     assert image.std() > 0.05  # not a blank canvas
 
 
@@ -67,3 +68,44 @@ def test_plot_main_default_path(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "wrote" in captured.out and "warning" in captured.err
     assert plot_main(log.path, tmp_path / "x.png") == 0 and (tmp_path / "x.png").exists()
+
+
+def test_title_legend_and_zero_energy(tmp_path):
+    """The delay in ms; one figure legend outside the axes (none inside covering data); a
+    channel energy that is zero throughout (no delay) is not drawn, the title says so."""
+    log = write_synthetic_log(
+        tmp_path / "a.mcap", 400, delay=50, channel_total_energy=0 * np.ones(400)
+    )
+    fig = make_figure(read_log(log.path))
+    assert len(fig.axes) == 4  # two joints' angles and torques, no energy panel
+    assert all(ax.get_legend() is None for ax in fig.axes) and len(fig.legends) == 1
+    title = fig.get_suptitle()
+    assert "delay 50 ms" in title and "ticks" not in title.split("delay")[1]
+    assert "channel energy 0 throughout" in title
+
+
+def test_tool_paths_in_the_plane_with_the_environment(tmp_path):
+    from teleop_rt.cli import main
+    from teleop_rt.model import RobotModel
+    from tests.conftest import CONFIGS
+
+    path = tmp_path / "paper.mcap"
+    argv = ["run", str(CONFIGS / "paper_experiment.yaml"), "--duration", "0.5", "--log", str(path)]
+    assert main([*argv, "--set", "channel.delay_ms=10"]) == 0
+    data = read_log(path)
+    fig = make_figure(data)
+    (ax,) = [a for a in fig.axes if a.get_title().startswith("tool paths")]
+    assert (ax.get_xlabel(), ax.get_ylabel()) == ("x (m)", "y (m)")  # the SCARA's plane
+    to_line = ax.get_lines()[0]
+    model = RobotModel.from_spec(data.config().to.robot, "to")
+    end = model.ee_position(data.topics["/to"]["q"][-1])
+    assert (to_line.get_xdata()[-1], to_line.get_ydata()[-1]) == pytest.approx(tuple(end[:2]))
+    # the foam's surface x = 0.40 and the wall's y = -0.06, both drawn and filled
+    lines = [(line.get_xdata(), line.get_ydata()) for line in ax.get_lines()[3:]]
+    assert any(np.allclose(x, 0.40) for x, _ in lines) and any(
+        np.allclose(y, -0.06) for _, y in lines
+    )
+    assert len(ax.patches) == 2
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert "foam 300 N/m" in labels and "wall 5000 N/m" in labels
+    assert ax.get_ylim()[0] < -0.06 < ax.get_ylim()[1]  # the wall is inside the view

@@ -374,12 +374,33 @@ def scaling(joints: list[int], ticks: int, repeat: int, tmp: Path) -> list[dict]
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("config", nargs="?", default=str(PAPER))
-    parser.add_argument("--ticks", type=int, default=10_000, help="ticks per repeat")
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--rt-seconds", type=float, default=60.0, help="0 skips real time")
-    parser.add_argument("--joints", default="2,3,4,6,8,12", help='scaling: joint counts ("" skips)')
-    parser.add_argument("--json", type=Path, help="also write the figures as JSON")
+    parser.add_argument(
+        "config", nargs="?", default=str(PAPER), help="session config (default: the paper's)"
+    )
+    parser.add_argument(
+        "--ticks", type=int, default=10_000, metavar="N", help="ticks per repeat (default 10000)"
+    )
+    parser.add_argument(
+        "--repeat",
+        type=int,
+        default=3,
+        metavar="R",
+        help="repeats of each measurement; the one with the lowest median counts (default 3)",
+    )
+    parser.add_argument(
+        "--rt-seconds",
+        type=float,
+        default=60.0,
+        metavar="S",
+        help="seconds of the real-time run and of cyclictest (default 60; 0 skips both)",
+    )
+    parser.add_argument(
+        "--joints",
+        default="2,3,4,6,8,12",
+        metavar="N1,N2,...",
+        help='joint counts of the scaling table (default 2,3,4,6,8,12; "" skips it)',
+    )
+    parser.add_argument("--json", type=Path, metavar="OUT", help="also write the figures as JSON")
     args = parser.parse_args()
     try:
         joints = [int(x) for x in args.joints.split(",") if x.strip()]

@@ -49,16 +49,31 @@ def pct(a: np.ndarray, p: float) -> float:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("config", nargs="?", default=str(ROOT / "configs" / "can_emulated.yaml"))
-    p.add_argument("--seconds", type=float, default=60.0)
-    p.add_argument("--side", choices=("hsi", "to"), default="hsi")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument(
+        "config",
+        nargs="?",
+        default=str(ROOT / "configs" / "can_emulated.yaml"),
+        help="session config with a can: section (default: configs/can_emulated.yaml)",
+    )
+    p.add_argument(
+        "--seconds", type=float, default=60.0, metavar="S", help="real-time run (default 60)"
+    )
+    p.add_argument(
+        "--side", choices=("hsi", "to"), default="hsi", help="the robot to run (default hsi)"
+    )
+    p.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a config value, for the master and the emulator (repeatable)",
+    )  # fmt: skip
     p.add_argument("--emulator-realtime", action="store_true", help="SCHED_FIFO for the emulator")
     p.add_argument(
         "--emulator-poll-us", type=float, default=None, metavar="US",
         help="the emulator's --poll-us (its default if not given; 0: it blocks on the bus)",
     )  # fmt: skip
-    p.add_argument("--transport-free-cycles", type=int, default=20000, metavar="N")
+    p.add_argument(
+        "--transport-free-cycles", type=int, default=20000, metavar="N",
+        help="cycles of the backend's own CPU measured without a transport (default 20000)",
+    )  # fmt: skip
     args = p.parse_args(argv)
     overrides = [*args.overrides, "can.emulate=false"]
     try:

@@ -12,7 +12,8 @@ split by where the instructions ran: the Python interpreter, Pinocchio with its 
 change to the tick path: a few hundred instructions are visible, where wall-clock timing on
 this machine hides 10 %. With recording on, only the control process is counted (the hot-path
 ``Recorder.record``), not the writer process beside it. Needs valgrind on PATH (Debian package
-``valgrind``); about a minute per mode.
+``valgrind``); about a minute per mode, or several on a busy machine: progress goes to stderr
+(a line per run started and finished, with the time taken; on a terminal a live timer too).
 """
 
 from __future__ import annotations
@@ -25,8 +26,12 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
+import time
 from collections import Counter
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -146,6 +151,32 @@ def count(config: Path, mode: str, ticks: int, samples: int, tmp: Path) -> Count
     return categorise(instructions_by_object(tmp / f"{mode}-{ticks}.{proc.pid}.out"))
 
 
+@contextmanager
+def working(what: str) -> Iterator[None]:
+    """Say on stderr what runs and, when it ends, how long it took; on a terminal the line
+    also counts the seconds while it runs."""
+    start = time.monotonic()
+    done = threading.Event()
+    live = sys.stderr.isatty()
+
+    def tick() -> None:
+        while not done.wait(1.0):
+            print(f"\r{what} ... {time.monotonic() - start:.0f} s", end="", file=sys.stderr)
+
+    print(f"{what} ...", end="" if live else "\n", file=sys.stderr, flush=True)
+    timer = threading.Thread(target=tick, daemon=True) if live else None
+    if timer:
+        timer.start()
+    try:
+        yield
+    finally:
+        done.set()
+        if timer:
+            timer.join()
+        took = f"{what}: done in {time.monotonic() - start:.0f} s"
+        print(f"\r{took}" if live else took, file=sys.stderr, flush=True)
+
+
 def per_tick(config: Path, mode: str, ticks: int, tmp: Path) -> dict[str, float]:
     with ThreadPoolExecutor(2) as pool:  # the two runs in parallel (2 cores)
         samples = WARMUP_TICKS + ticks
@@ -156,9 +187,17 @@ def per_tick(config: Path, mode: str, ticks: int, tmp: Path) -> dict[str, float]
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("config", nargs="?", type=Path, default=PAPER)
-    parser.add_argument("--ticks", type=int, default=2000)
-    parser.add_argument("--json", type=Path, help="also write the figures as JSON")
+    parser.add_argument(
+        "config", nargs="?", type=Path, default=PAPER, help="session config (default: the paper's)"
+    )
+    parser.add_argument(
+        "--ticks",
+        type=int,
+        default=2000,
+        metavar="N",
+        help="ticks counted per mode, after the warm-up (default 2000, at least 100)",
+    )
+    parser.add_argument("--json", type=Path, metavar="OUT", help="also write the figures as JSON")
     parser.add_argument("--child", choices=sorted(MODES), help=argparse.SUPPRESS)
     parser.add_argument("--samples", type=int, default=0, help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -179,9 +218,11 @@ def main() -> int:
           "under callgrind (instructions per tick)")  # fmt: skip
     results = {}
     with tempfile.TemporaryDirectory() as tmp_name:
-        for mode, label in MODES.items():
+        for i, (mode, label) in enumerate(MODES.items(), 1):
+            what = f"[{i}/{len(MODES)}] {label}: {args.ticks} ticks and 0 under callgrind"
             try:
-                results[mode] = per_tick(args.config, mode, args.ticks, Path(tmp_name))
+                with working(what):
+                    results[mode] = per_tick(args.config, mode, args.ticks, Path(tmp_name))
             except RuntimeError as err:
                 print(f"bench_instructions: error: {err}", file=sys.stderr)
                 return 1

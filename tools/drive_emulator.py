@@ -70,15 +70,27 @@ def parse_fault(text: str):
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("config", help="session config (YAML)")
-    p.add_argument("--side", choices=("hsi", "to", "both"), default="both")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument(
+        "--side", choices=("hsi", "to", "both"), default="both",
+        help="the robot whose drives to play (default both, each in a process of its own)",
+    )  # fmt: skip
+    p.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a config value, as for teleop-rt run (repeatable)",
+    )  # fmt: skip
     p.add_argument(
         "--sensor-offset", type=float, default=0.0, metavar="NM",
         help="constant bias of the emulated torque sensors (the master zeroes it at start-up)",
     )  # fmt: skip
-    p.add_argument("--fault", type=parse_fault, action="append", default=[])
+    p.add_argument(
+        "--fault", type=parse_fault, action="append", default=[],
+        metavar="[SIDE:]KIND:NODE@TICK[+TICKS]",
+        help="inject a fault (repeatable): KIND drop_tpdo, emcy, stop_heartbeat, status_fault, "
+        "error_frame or drop_sensor; NODE a node id or '*'; TICK counted from the drives' "
+        "enabling; +TICKS how long; SIDE hsi or to (default every robot), e.g. to:emcy:2@3000",
+    )  # fmt: skip
     p.add_argument("--duration", type=float, default=None, metavar="S", help="then exit")
-    p.add_argument("--quiet", action="store_true")
+    p.add_argument("--quiet", action="store_true", help="print nothing but errors")
     p.add_argument(
         "--realtime", action="store_true",
         help="ask for SCHED_FIFO and freeze the garbage collector (a drive answers in time)",

@@ -5,7 +5,9 @@
 
 Writes DIR/figures/fig3_mass.png, fig4_spring.png, fig6_experiment.png, fig7_masses.png and the
 report DIR/paper_reproduction.md (DIR defaults to docs/), and prints progress and the numbers.
-``--quick`` runs few points and short runs (for the tests; its figures are coarse).
+``--quick`` runs few points and short runs (for the tests; its figures are coarse); without
+``--out`` it writes into a new temporary folder, never over the committed docs/. DIR is
+checked (and created) before any work.
 
 * Figs 3 and 4: |Z_h(j omega)| against |Z_e(j omega)| for a mass Z_e = 10 s and a spring
   Z_e = 10/s with a damper operator Z_o = 10 (joint space, SI): several delays T_d with
@@ -26,7 +28,9 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
+import tempfile
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -1257,7 +1261,7 @@ def _differences() -> list[str]:
 def reproduce(quick: bool = False, out: Path | str | None = None) -> dict:
     """Compute everything, write the figures and the report; return the results."""
     st = QUICK if quick else FULL
-    out_dir = Path(out) if out is not None else ROOT / "docs"
+    out_dir = Path(out) if out is not None else default_out(quick)
     fig_dir = out_dir / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -1291,18 +1295,52 @@ def reproduce(quick: bool = False, out: Path | str | None = None) -> dict:
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="few points, short runs (tests)")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="few points, short runs, coarse figures (tests); without --out into a new "
+        "temporary folder, never over docs/",
+    )
     parser.add_argument(
         "--out",
         type=Path,
-        default=ROOT / "docs",
-        help="output folder: figures/*.png and paper_reproduction.md (default: docs/)",
+        default=None,
+        metavar="DIR",
+        help="output folder: figures/*.png and paper_reproduction.md (default: docs/; with "
+        "--quick a new temporary folder)",
     )
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    if args.out is None:
+        args.out = default_out(args.quick)
+    return args
+
+
+def default_out(quick: bool) -> Path:
+    """docs/ for the full run; a new temporary folder for a quick one (its coarse figures
+    must not replace the committed ones)."""
+    return Path(tempfile.mkdtemp(prefix="teleop-rt-paper-quick-")) if quick else ROOT / "docs"
+
+
+def prepare_out(out: Path) -> str | None:
+    """Create DIR and DIR/figures before the work; the reason it cannot be used, else None."""
+    if out.exists() and not out.is_dir():
+        return f"--out {out}: is a file, not a folder"
+    try:
+        (out / "figures").mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        return f"--out {out}: cannot create {out / 'figures'} ({err.strerror})"
+    if not os.access(out, os.W_OK) or not os.access(out / "figures", os.W_OK):
+        return f"--out {out}: cannot write into it (permission denied)"
+    return None
 
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    problem = prepare_out(args.out)
+    if problem is not None:
+        print(f"reproduce_paper: error: {problem}", file=sys.stderr)
+        return 2
+    log(f"writing into {args.out}")
     reproduce(args.quick, args.out)
     return 0
 

@@ -548,11 +548,15 @@ def measure_displayed_impedance(
 
 
 # --- plot -------------------------------------------------------------------------------------
-def plot_bode(result: BodeResult, path: str | Path, title: str | None = None) -> None:
+def plot_bode(
+    result: BodeResult, path: str | Path, title: str | None = None, force: bool = True
+) -> None:
     """Magnitude and phase: continuous (line) and discrete (dashed) models, measured points,
-    unsettled frequencies marked (red dotted lines). matplotlib Agg, no display."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    unsettled frequencies marked (red dotted lines). matplotlib, no display; the format from
+    the extension, an existing file overwritten only with ``force`` (teleop_rt.output)."""
     from matplotlib.figure import Figure
+
+    from teleop_rt.output import save_figure
 
     w = result.omega
     dense = np.geomspace(w.min() / 1.5, w.max() * 1.5, 300)
@@ -583,7 +587,7 @@ def plot_bode(result: BodeResult, path: str | Path, title: str | None = None) ->
         f"b = {p.b:g}, filter {_filter_text(p, result.dt)}, Z_e = {p.env_mass:g} s + "
         f"{p.env_damping:g} + {p.env_stiffness:g}/s"
     )
-    FigureCanvasAgg(fig).print_png(str(path))
+    save_figure(fig, path, "--plot", force)
 
 
 def _filter_text(p: ImpedanceParams, dt: float) -> str:

@@ -13,14 +13,13 @@ window's channel energy is its last value and its minimum is taken with 0.0 as t
 from __future__ import annotations
 
 import json
-import math
 import sys
 from pathlib import Path
 
 import numpy as np
 
 from teleop_rt.loop import TimingStats, format_percentiles
-from teleop_rt.recording.reader import LogData, LogError, read_log, require_ticks
+from teleop_rt.recording.reader import LogData, LogError, check_window, read_log, require_ticks
 
 TOPICS = ("/hsi", "/to", "/channel", "/timing")
 _COMPARED = ("ticks", "t_p", "t_tau", "channel_energy_j", "min_channel_energy_j")
@@ -100,8 +99,8 @@ def session_offset(path: str | Path, dt: float) -> np.ndarray | None:
 def format_metrics(m: dict) -> str:
     """Plain-text table of ``log_metrics`` (plus ``window_s`` / ``live_summary_agrees``)."""
 
-    def row(what: str, value: str) -> str:
-        return f"{what:<30}{value}"
+    def row(what: str, value: str) -> tuple[str, str]:
+        return what, value
 
     def vec(values: list[float]) -> str:
         return "  ".join(f"{v:.6g}" for v in values)
@@ -137,21 +136,14 @@ def format_metrics(m: dict) -> str:
         lines.append(row("log gaps", gap_text(m["gaps"], m["missing_ticks"])))
     if m["truncated"]:
         lines.append(row("log cut short", m["cut_reason"] or ""))
-    return "\n".join(lines)
+    width = max(len(what) for what, _ in lines) + 2  # the longest label still gets a gap
+    return "\n".join(f"{what:<{width}}{value}" for what, value in lines)
 
 
 def gap_text(gaps: list, missing: int) -> str:
     """'N ticks missing in M ranges (a-b, ...)': the figures cover the recorded ticks only."""
     shown = ", ".join(f"{a}-{b}" for a, b in gaps[:3]) + (", ..." if len(gaps) > 3 else "")
     return f"{missing} ticks missing in {len(gaps)} range(s) ({shown}); figures of the rest"
-
-
-def _check_window(t_from: float | None, t_to: float | None) -> None:
-    for name, value in (("--from", t_from), ("--to", t_to)):
-        if value is not None and not math.isfinite(value):
-            raise LogError(f"{name} {value}: expected a finite time in seconds")
-    if t_from is not None and t_to is not None and t_to <= t_from:
-        raise LogError(f"--from {t_from:g} --to {t_to:g}: the window is empty")
 
 
 def _empty_window(data: LogData, t_from: float | None, t_to: float | None) -> LogError:
@@ -169,7 +161,7 @@ def metrics_main(
     path: str | Path, as_json: bool = False, t_from: float | None = None, t_to: float | None = None
 ) -> int:
     """``teleop-rt metrics LOG [--json] [--from S] [--to S]``: print the figures; exit code."""
-    _check_window(t_from, t_to)
+    check_window(t_from, t_to)
     data = read_log(path, TOPICS, t_from, t_to)
     if not data.ticks and (t_from is not None or t_to is not None):
         raise _empty_window(data, t_from, t_to)

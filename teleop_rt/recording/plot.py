@@ -1,54 +1,217 @@
 """A log as a figure: joint angles and torques of HSI (dashed) and TO (solid), as the paper's
-Fig 6, and the channel energy. Uses matplotlib's Agg canvas directly (no pyplot, no display).
+Fig 6, both tools' paths in the plane with the environment drawn (walls, foam, springs, the
+mass at rest), and the channel energy. matplotlib without pyplot (no display); the format
+comes from the output's extension (``teleop_rt.output``).
 """
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
 
-from teleop_rt.recording.reader import LogData, LogError, read_log, require_ticks
+from teleop_rt.errors import TeleopError
+from teleop_rt.output import check_output, save_figure
+from teleop_rt.recording.reader import LogData, check_window, read_log, require_ticks
 
 TOPICS = ("/hsi", "/to", "/channel")
 MAX_POINTS = 20_000  # per line; longer signals are drawn as their min / max envelope
+PATH_POINTS = 4_000  # tool path samples (forward kinematics per sample)
+HSI_STYLE = {"ls": "--", "color": "C0"}
+TO_STYLE = {"ls": "-", "color": "C1"}
+ENV_COLORS = {"wall": "0.35", "foam": "C8", "spring": "C2", "damper": "C2", "mass": "C5"}
 
 
 def make_figure(data: LogData, title: str | None = None) -> Figure:
-    """Rows: one per joint (angles left, torques right), then the channel energy."""
+    """Rows: one per joint (angles left, torques middle), the tool paths to the right of them,
+    the channel energy below (left out when it is zero throughout, as without delay)."""
     hsi, to, channel = (data.topics[name] for name in TOPICS)
     n = data.layout.n
-    fig = Figure(figsize=(11, 2.0 * (n + 1) + 0.6), layout="constrained")
-    grid = fig.add_gridspec(n + 1, 2)
+    energy = channel["total_energy"]
+    show_energy = bool(np.any(energy[~np.isnan(energy)] != 0))
+    paths, why_no_path = tool_paths(data)
+    cols = 3 if paths is not None else 2
+    height = 2.0 * n + (1.5 if show_energy else 0.0) + 1.2
+    fig = Figure(figsize=(16 if cols == 3 else 11, max(height, 5.0)), layout="constrained")
+    ratios = [1.0] * n + ([0.75] if show_energy else [])
+    grid = fig.add_gridspec(len(ratios), cols, height_ratios=ratios)
     t = hsi["t"]
     for j in range(n):
         ax = fig.add_subplot(grid[j, 0])
         # TO first: the dashed HSI line stays visible where the two coincide
-        ax.plot(*_envelope(t, to["q"][:, j]), "-", color="C1", label="TO")
-        ax.plot(*_envelope(t, hsi["q"][:, j]), "--", color="C0", label="HSI")
+        ax.plot(*_envelope(t, to["q"][:, j]), **TO_STYLE, label="TO q_t")
+        ax.plot(*_envelope(t, hsi["q"][:, j]), **HSI_STYLE, label="HSI q_h")
         ax.set_ylabel(f"q{j + 1} (rad)")
         ax = fig.add_subplot(grid[j, 1])
-        ax.plot(*_envelope(t, -to["tau_ext"][:, j]), "-", color="C1", label="TO tau_e")
-        ax.plot(*_envelope(t, hsi["tau_ext"][:, j]), "--", color="C0", label="HSI tau_h")
+        ax.plot(*_envelope(t, -to["tau_ext"][:, j]), **TO_STYLE, label="TO tau_e")
+        ax.plot(*_envelope(t, hsi["tau_ext"][:, j]), **HSI_STYLE, label="HSI tau_h")
         ax.set_ylabel(f"tau{j + 1} (N m)")
-    ax = fig.add_subplot(grid[n, :])
-    ax.plot(*_envelope(channel["t"], channel["total_energy"]), "-", color="C2")
-    ax.set_ylabel("channel energy (J)")
-    ax.set_xlabel("t (s)")
-    for ax in fig.axes[:2]:
-        ax.legend(loc="upper right", fontsize="small")
+    for ax in fig.axes[-2:]:
+        ax.set_xlabel("t (s)")
+    handles = [
+        Line2D([], [], **HSI_STYLE, label="HSI (q_h, tau_h)"),
+        Line2D([], [], **TO_STYLE, label="TO (q_t, tau_e)"),
+    ]
+    if paths is not None:
+        handles += _draw_paths(fig.add_subplot(grid[:, 2]), paths)
+    if show_energy:
+        ax = fig.add_subplot(grid[n, :2])
+        ax.plot(*_envelope(channel["t"], energy), "-", color="C2")
+        ax.set_ylabel("channel energy (J)")
+        ax.set_xlabel("t (s)")
     for ax in fig.axes:
         ax.grid(True, alpha=0.3)
+    # one legend outside the axes: it covers no data
+    fig.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 6))
     if title is None:
-        title = f"{data.meta.get('name', data.path.stem)}: {data.ticks} ticks, delay "
-        title += f"{data.meta.get('delay_ticks', '?')} ticks"
-        if data.truncated:
-            title += " (log cut short)"
+        title = default_title(data, show_energy, why_no_path)
     fig.suptitle(title)
     return fig
+
+
+def default_title(data: LogData, show_energy: bool = True, why_no_path: str | None = None) -> str:
+    """What the log is: name, ticks, delay in ms, the window, replay and overrides, notes."""
+    meta = data.meta
+    lines = [f"{meta.get('name', data.path.stem)}: {data.ticks} ticks"]
+    delay = meta.get("delay_ticks")
+    if delay is not None:
+        lines[0] += f", delay {int(delay) * 1000 / data.rate_hz:g} ms"
+    if data.ticks:
+        t = data.topics["/hsi"]["t"]
+        lines[0] += f", t = {t[0]:.3f} to {t[-1] + data.dt:.3f} s"
+    if data.truncated:
+        lines[0] += " (log cut short)"
+    overrides = _overrides(meta)
+    if "replay_of" in meta:
+        backend = meta.get("replay_of_backend", "sim")
+        via = "" if backend == "sim" else f" (recorded on {backend}, replayed on sim)"
+        lines.append(f"replay of {meta['replay_of']}{via}; " + (overrides or "no overrides"))
+    elif overrides:
+        lines.append(overrides)
+    notes = [] if show_energy else ["channel energy 0 throughout (not drawn)"]
+    if why_no_path:
+        notes.append(f"no tool path: {why_no_path}")
+    if notes:
+        lines.append("; ".join(notes))
+    return "\n".join(lines)
+
+
+def _overrides(meta: dict[str, str]) -> str:
+    try:
+        items = json.loads(meta.get("overrides", "[]"))
+    except ValueError:
+        return ""
+    return ("--set " + ", ".join(map(str, items))) if items else ""
+
+
+# --- tool paths in the plane -----------------------------------------------------------------
+def tool_paths(data: LogData) -> tuple[dict | None, str | None]:
+    """Tool positions of both robots (forward kinematics of the logged angles, with the URDFs
+    attached to the log) and the environment; (None, why) when the log does not allow it."""
+    if not data.ticks:
+        return None, "no ticks"
+    from teleop_rt.model import RobotModel
+    from teleop_rt.recording.replay import replay_config
+
+    try:
+        cfg = replay_config(data, [])
+        models = {t: RobotModel.from_spec(getattr(cfg, t[1:]).robot, t[1:]) for t in TOPICS[:2]}
+    except TeleopError as err:
+        return None, str(err)
+    for topic, model in models.items():
+        if model.model.nq != data.layout.n:
+            nq, n = model.model.nq, data.layout.n
+            return None, f"the attached {topic[1:]} robot has {nq} joints, not {n}"
+    stride = max(1, -(-data.ticks // PATH_POINTS))
+    xyz = {}
+    for topic, model in models.items():
+        q = data.topics[topic]["q"][::stride]
+        xyz[topic] = np.array([model.ee_position(qk) for qk in q])
+    return {"xyz": xyz, "environment": cfg.environment}, None
+
+
+def _plane(points: np.ndarray) -> tuple[int, int]:
+    """The two world axes the tools move along most (x, y for a planar SCARA)."""
+    spread = np.ptp(points, axis=0)
+    if not np.any(spread > 1e-9):
+        return 0, 1
+    a, b = sorted(np.argsort(spread)[-2:])
+    return int(a), int(b)
+
+
+def _draw_paths(ax, paths: dict) -> list:
+    xyz = paths["xyz"]
+    points = np.vstack(list(xyz.values()))
+    a, b = _plane(points)
+    names = "xyz"
+    ax.plot(xyz["/to"][:, a], xyz["/to"][:, b], **TO_STYLE)
+    ax.plot(xyz["/hsi"][:, a], xyz["/hsi"][:, b], **HSI_STYLE)
+    ax.plot(*xyz["/hsi"][0, [a, b]], "o", color="k", ms=4)
+    ax.set_xlabel(f"{names[a]} (m)")
+    ax.set_ylabel(f"{names[b]} (m)")
+    ax.set_title("tool paths (o: start)", fontsize="medium")
+    handles = []
+    elements = [e for e in paths["environment"] if _in_plane(e, a, b)]
+    flat = points[:, [a, b]]
+    center = 0.5 * (flat.min(axis=0) + flat.max(axis=0))
+    # each surface where it passes closest to the paths (its point_m may be anywhere on it)
+    feet = [_foot(center, e, a, b) for e in elements]
+    span = np.vstack([flat, *feet]) if feet else flat
+    lo, hi = span.min(axis=0), span.max(axis=0)
+    margin = 0.15 * max(float(np.max(hi - lo)), 0.02)
+    lo, hi = lo - margin, hi + margin
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_autoscale_on(False)  # the environment's large patches must not move the limits
+    ax.set_aspect("equal", adjustable="box")
+    size = 10.0 * float(np.max(hi - lo))
+    seen = set()
+    for e in elements:
+        label = _env_label(e)
+        color = ENV_COLORS.get(e.kind, "0.5")
+        p = np.array([e.point_m[a], e.point_m[b]])
+        normal = np.array([_axis(e.normal, a), _axis(e.normal, b)])
+        normal /= np.linalg.norm(normal)
+        along = np.array([-normal[1], normal[0]]) * size
+        ax.plot(*np.column_stack([p - along, p + along]), color=color, lw=2)
+        if e.kind in ("wall", "foam"):  # the material side: opposite the normal
+            inside = -normal * size
+            corners = np.array([p - along, p + along, p + along + inside, p - along + inside])
+            ax.fill(corners[:, 0], corners[:, 1], color=color, alpha=0.25, lw=0)
+        if label not in seen:
+            seen.add(label)
+            handles.append(Patch(color=color, alpha=0.6, label=label))
+    return handles
+
+
+def _foot(center: np.ndarray, element, a: int, b: int) -> np.ndarray:
+    """The point of the element's surface line nearest to ``center`` (drawing plane)."""
+    p = np.array([element.point_m[a], element.point_m[b]])
+    normal = np.array([_axis(element.normal, a), _axis(element.normal, b)])
+    normal /= np.linalg.norm(normal)
+    return center - np.dot(center - p, normal) * normal
+
+
+def _axis(v: list[float], i: int) -> float:
+    return float(v[i]) if i < len(v) else 0.0
+
+
+def _in_plane(element, a: int, b: int) -> bool:
+    """Whether the element's surface crosses the drawing plane as a line."""
+    return float(np.hypot(_axis(element.normal, a), _axis(element.normal, b))) > 1e-9
+
+
+def _env_label(e) -> str:
+    if e.kind in ("wall", "foam"):
+        return f"{e.kind} {e.stiffness_n_per_m:g} N/m"
+    if e.kind == "mass":
+        return f"mass {e.mass_kg:g} kg (at rest)"
+    return f"{e.kind} {e.stiffness_n_per_m:g} N/m, {e.damping_n_s_per_m:g} N s/m"
 
 
 def _envelope(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -60,26 +223,34 @@ def _envelope(t: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.repeat(t[starts], 2), np.column_stack((low, high)).reshape(-1)
 
 
-def plot_log(data: LogData, out_png: str | Path, title: str | None = None) -> Path:
-    """Draw the log to a new PNG (an existing file, the log itself above all, is never
-    overwritten); return its path."""
-    out = Path(out_png)
-    fig = make_figure(data, title)
-    try:
-        with open(out, "xb") as stream:
-            FigureCanvasAgg(fig).print_png(stream)
-    except FileExistsError:
-        raise LogError(f"{out}: the file exists; choose another output path") from None
-    except OSError as err:
-        raise LogError(f"{out}: cannot write the plot ({err.strerror})") from None
-    return out
+def plot_log(
+    data: LogData,
+    out: str | Path,
+    title: str | None = None,
+    force: bool = False,
+    option: str = "-o",
+) -> Path:
+    """Draw the log to ``out`` (format by its extension); an existing file only with
+    ``force``, and never the log itself. Return the path."""
+    check_output(out, option, force=force, image=True, inputs=(data.path,))
+    return save_figure(make_figure(data, title), out, option, force)
 
 
-def plot_main(path: str | Path, out: str | Path | None = None) -> int:
-    """``teleop-rt plot LOG [-o OUT.png]`` (default: the log's path with .png); exit code."""
-    data = read_log(path, TOPICS)
+def plot_main(
+    path: str | Path,
+    out: str | Path | None = None,
+    force: bool = False,
+    t_from: float | None = None,
+    t_to: float | None = None,
+) -> int:
+    """``teleop-rt plot LOG [-o OUT] [--force] [--from S] [--to S]`` (default output: the
+    log's path with .png); exit code."""
+    check_window(t_from, t_to)
+    target = Path(path).with_suffix(".png") if out is None else Path(out)
+    check_output(target, "-o", force=force, image=True, inputs=(path,))  # before reading
+    data = read_log(path, TOPICS, t_from, t_to)
     require_ticks(data)  # an empty figure is no plot
-    target = plot_log(data, Path(path).with_suffix(".png") if out is None else out)
+    plot_log(data, target, force=force)
     if data.truncated:
         print(f"teleop-rt: warning: {data.path}: {data.cut_reason}", file=sys.stderr)
     print(f"wrote {target}")

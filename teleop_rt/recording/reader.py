@@ -61,6 +61,18 @@ class LogData:
     # tick ranges [first, last] missing inside the ticks read (rows the session dropped when
     # its writer fell behind, at the end too if the summary counts more ticks): not a cut
     gaps: list[tuple[int, int]] = field(default_factory=list)
+    # messages read per topic, before topics cut at different ticks are trimmed to their common
+    # ticks (in the window, if one was asked for)
+    message_counts: dict[str, int] = field(default_factory=dict)
+    profile: str = ""  # the MCAP header's profile and library
+    library: str = ""
+    footer: bool = False  # the file ends with its footer and closing magic
+
+    @property
+    def start_ns(self) -> int:
+        """UTC of tick 0 in ns since the epoch (0 for logs written before log times were
+        wall-clock): the log time of tick k is start_ns + k * period."""
+        return int(self.meta.get("start_time_ns", 0))
 
     @property
     def rate_hz(self) -> float:
@@ -177,6 +189,7 @@ class _Reader:
         self.chunks: list[_Chunk] = []
         self.loose: dict[int, list[int]] = {}  # messages outside chunks: file offsets
         self.library = ""
+        self.profile = ""
         self.footer = False
         self.cut: str | None = None
 
@@ -197,7 +210,8 @@ class _Reader:
             length = int.from_bytes(buf[at + 1 : at + 9], "little")
             if at + 9 + length > end:
                 self.cut = (
-                    f"file ends at byte {end}, inside a {_op_name(op)} record starting at byte {at}"
+                    f"file ends at byte {end}, inside {_article(_op_name(op))} record "
+                    f"starting at byte {at}"
                 )
                 return
             body = buf[at + 9 : at + 9 + length]
@@ -205,7 +219,8 @@ class _Reader:
                 if op == 0:
                     raise _Damaged("opcode 0: file cut short or overwritten")
                 if op == Opcode.HEADER:
-                    self.library = _read(Header, body).library
+                    header = _read(Header, body)
+                    self.library, self.profile = header.library, header.profile
                 elif op == Opcode.CHUNK:
                     chunk = self._chunk(at, body)
                     self.chunks.append(chunk)
@@ -268,6 +283,9 @@ class _Reader:
         if unknown:
             raise ValueError(f"unknown topic(s) {unknown}; a log has {list(wanted)}")
         first, stop, lo, hi = _window(float(meta["rate_hz"]), t_from, t_to)
+        start = int(meta.get("start_time_ns", 0))  # log times are start + tick time
+        lo += 0 if t_from is None else start
+        hi = hi if t_to is None else min(hi + start, 2**64)
         parts: dict[str, list[np.ndarray]] = {n: [] for n in names}
         for chunk in self.chunks:
             known = all(any(c.topic == n for c in self.channels.values()) for n in names)
@@ -287,6 +305,7 @@ class _Reader:
         arrays = {n: self._decode(wanted[n], parts[n]) for n in names}
         if t_from is not None or t_to is not None:
             arrays = {n: a[(a["tick"] >= first) & (a["tick"] < stop)] for n, a in arrays.items()}
+        counts = {n: len(a) for n, a in arrays.items()}
         arrays = self._common_ticks(arrays)
         summary = self._summary()
         truncated = self.cut is not None or summary is None
@@ -315,6 +334,10 @@ class _Reader:
             topics=arrays,
             damaged=self.damaged,
             gaps=_gaps(arrays, first, stop, summary),
+            message_counts=counts,
+            profile=self.profile,
+            library=self.library,
+            footer=self.footer,
         )
 
     def _messages(self, chunk: _Chunk, names: set[str], lo: int, hi: int, parts) -> None:
@@ -391,6 +414,12 @@ class _Reader:
                 f"'{META}' metadata: rate_hz = {quote(meta['rate_hz'])} is not a session's tick "
                 f"rate ({MIN_RATE_HZ} to {MAX_RATE_HZ} Hz)"
             )
+        try:
+            start = int(meta.get("start_time_ns", 0))
+        except ValueError:
+            start = -1
+        if not 0 <= start < 2**63:
+            raise self.fail(f"'{META}' metadata: start_time_ns = {meta['start_time_ns']!r}")
         if ints["schema_version"] > SCHEMA_VERSION:
             raise self.fail(
                 f"log schema version {ints['schema_version']} (teleop_rt "
@@ -485,6 +514,19 @@ def _gaps(
     bounds = np.concatenate(([first - 1], tick, [end]))
     jumps = np.flatnonzero(np.diff(bounds) > 1)
     return [(int(bounds[j]) + 1, int(bounds[j + 1]) - 1) for j in jumps]
+
+
+def check_window(t_from: float | None, t_to: float | None) -> None:
+    """``--from`` / ``--to`` (seconds from the session start): finite, and a non-empty window."""
+    for name, value in (("--from", t_from), ("--to", t_to)):
+        if value is not None and not math.isfinite(value):
+            raise LogError(f"{name} {value}: expected a finite time in seconds")
+    if t_from is not None and t_to is not None and t_to <= t_from:
+        raise LogError(f"--from {t_from:g} --to {t_to:g}: the window is empty")
+
+
+def _article(word: str) -> str:
+    return f"{'an' if word[:1] in 'aeiou' else 'a'} {word}"
 
 
 def _op_name(op: int) -> str:

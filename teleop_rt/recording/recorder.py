@@ -37,7 +37,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 import yaml
 
-from teleop_rt import __version__
 from teleop_rt.errors import RecordingFailure, TeleopError
 from teleop_rt.flat import jit
 from teleop_rt.loop import StopSignals
@@ -49,10 +48,12 @@ from teleop_rt.recording.writer import (
     ERRNO,
     HEARTBEAT,
     PUBLISHED,
+    START_NS,
     STATUS,
     WRITE_FAILED,
     writer_main,
 )
+from teleop_rt.version import software_version
 
 if TYPE_CHECKING:
     from teleop_rt.session import Session
@@ -100,7 +101,8 @@ class Recorder:
     """Owns the ring and the writer process of one log file, and the policy on losing rows.
 
     ``wait_for_room``: a full ring waits for the writer (fast mode with simulated robots only:
-    nothing real is held) instead of dropping the row."""
+    nothing real is held) instead of dropping the row. ``metadata``: further ``teleop_rt``
+    metadata keys (the CLI's config path and overrides)."""
 
     def __init__(
         self,
@@ -108,6 +110,7 @@ class Recorder:
         path: Path,
         capacity: int | None = None,
         wait_for_room: bool = False,
+        metadata: dict[str, str] | None = None,
     ) -> None:
         cfg = session.cfg
         self.path = create_log_file(Path(path))
@@ -149,6 +152,9 @@ class Recorder:
         self.failure: str | None = None
         self.writer_gone = False
         self._full = False  # the ring was full at the last look
+        self._period_ns = round(cfg.dt * 1e9)
+        # the session's start on the wall clock: now, until the first tick says when it ran
+        self._count.pack_into(self.buf, START_NS * 8, time.time_ns())
         # fork: the writer starts in milliseconds (spawn would re-import numpy and mcap, and
         # needs an importable __main__); it touches nothing of the parent but the ring
         method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
@@ -161,8 +167,8 @@ class Recorder:
                 capacity,
                 (self.layout.n, self.layout.n_env),
                 str(self.path),
-                round(cfg.dt * 1e9),
-                _metadata(session),
+                self._period_ns,
+                {**_metadata(session), **(metadata or {})},
                 _attachments(session),
                 self._summary_rx,
             ),
@@ -179,6 +185,9 @@ class Recorder:
         s = self.session
         k = s.tick - 1
         i = self.published
+        if i == 0:  # once: UTC of tick 0, which log times count from (read before PUBLISHED)
+            start = time.time_ns() - compute_ns - k * self._period_ns
+            self._count.pack_into(self.buf, START_NS * 8, start)
         if (
             k % CHECK_TICKS == 0 or i - self._consumed_known >= self.capacity or self.writer_gone
         ) and not self._room(i, k):
@@ -398,12 +407,13 @@ def _metadata(session: Session) -> dict[str, str]:
     cfg = session.cfg
     operator = cfg.operator.kind if cfg.backend_for("hsi") == "sim" else "none"
     return {
-        "software_version": __version__,
+        "software_version": software_version(),
         "schema_version": str(SCHEMA_VERSION),
         "joints": str(session.n),
         "env_elements": str(len(cfg.environment)),
         "rate_hz": str(cfg.rate_hz),
-        "period_ns": str(round(cfg.dt * 1e9)),  # log time of tick k is k * period_ns
+        # log time of tick k: start_time_ns + k * period_ns (the writer adds the start time)
+        "period_ns": str(round(cfg.dt * 1e9)),
         "delay_ticks": str(cfg.delay_ticks),
         "name": cfg.name,
         "backend": cfg.backend,

@@ -12,11 +12,15 @@ Topics (n joints, E environment elements; all SI units, joint space):
 * ``/channel``   teleop_rt/msg/ChannelTick: the wave channel's port variables, waves, energy
 * ``/timing``    teleop_rt/msg/TimingTick: compute time and deadline lateness of the tick
 
-A message's log time is the tick's simulated time in ns from the session start.
+A message's log time is wall-clock: UTC at the session start plus the tick's time, in ns since
+the epoch (``start_time_ns + k * period_ns``); the field ``t`` is the tick's time from the start.
 
 Besides the messages a log holds (so that it describes itself):
-* metadata ``teleop_rt`` at the start: software_version, schema_version, joints, env_elements,
-  rate_hz, delay_ticks, name, backend, operator ("damper", "hand" or "none");
+* metadata ``teleop_rt`` at the start: software_version (with the git commit when run from a
+  checkout), schema_version, joints, env_elements, rate_hz, period_ns, delay_ticks, name,
+  backend, operator ("damper", "hand" or "none"), start_time_ns and start_time_utc (ISO 8601),
+  and from the command line config (its path) and overrides (a JSON list of the --set
+  values), for a replay replay_of (the replayed log);
 * attachments ``config.yaml`` (the resolved session config) and ``urdf/hsi.urdf``,
   ``urdf/to.urdf`` when the robots came from URDF files;
 * metadata ``teleop_rt.summary`` at the end: the live summary as JSON under the key ``json``.

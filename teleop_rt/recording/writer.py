@@ -19,12 +19,20 @@ Shared memory: ``CONTROL_BYTES`` of int64 control words, then ``capacity`` rows 
   ctrl[2] rows consumed by this writer (the producer reuses slots below it)
   ctrl[3] heartbeat: + 1 per pass of the writer's loop (shows a live writer that has no work)
   ctrl[4] status: 0 writing, WRITE_FAILED after a write error, whose errno is ctrl[5]
+    ctrl[6] UTC of the session start, ns since the epoch (the recorder's creation until its
+          first row, then the time tick 0 ran)
+
+Log times are wall-clock: the start time plus the tick's time (``start_time_ns + k *
+period_ns``), so a log lines up with the world in Foxglove and beside other recordings. The
+``teleop_rt`` metadata and the attachments are written once the first row (or the end) has
+come, when the start time is known; the header's profile is ``ros2`` (ros2msg schemas, CDR).
 """
 
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import datetime as _dt
 import json
 import multiprocessing
 import os
@@ -40,9 +48,10 @@ from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 from teleop_rt.recording.schema import CDR_HEADER, LogLayout
 
 CONTROL_BYTES = 64
-PUBLISHED, CLOSED, CONSUMED, HEARTBEAT, STATUS, ERRNO = range(6)
+PUBLISHED, CLOSED, CONSUMED, HEARTBEAT, STATUS, ERRNO, START_NS = range(7)
 WRITE_FAILED = 1
 PROCESS_NAME = "teleop-rt-log"  # the writer's name in ps / top / /proc/PID/comm
+PROFILE = "ros2"
 BATCH_ROWS = 4096
 # wait for this many rows before encoding: per-batch numpy overhead is paid rarely (at 1 kHz
 # this is a quarter second of latency on disk, far inside a chunk's worth of data)
@@ -81,7 +90,9 @@ def _write(path, ctrl, ring, layout, period_ns, metadata, attachments, summary_c
     # LZ4, not Zstd: half the writer's CPU per tick (about 10 against 20 us for the four
     # messages), for files about 18 % larger (330 against 280 bytes per tick of the paper
     # experiment); on a 2-core machine the writer's CPU is taken from the control loop
-    options = MCAPWriteOptions(compression=MCAPCompression.Lz4, chunk_size=256 * 1024)
+    options = MCAPWriteOptions(
+        compression=MCAPCompression.Lz4, chunk_size=256 * 1024, profile=PROFILE
+    )
     sink = _Sink(path, ctrl)
     writer = foxglove.open_mcap(sink, context=context, writer_options=options)
     channels = [
@@ -93,10 +104,6 @@ def _write(path, ctrl, ring, layout, period_ns, metadata, attachments, summary_c
         )
         for topic in layout.topics
     ]
-    writer.write_metadata("teleop_rt", metadata)
-    for name, data in attachments.items():
-        media = "application/yaml" if name.endswith(".yaml") else "application/xml"
-        writer.attach(log_time=0, create_time=0, name=name, media_type=media, data=data)
     columns = layout.columns()
     encoders = [
         (ch, topic, columns[topic.name]) for ch, topic in zip(channels, layout.topics, strict=True)
@@ -106,6 +113,7 @@ def _write(path, ctrl, ring, layout, period_ns, metadata, attachments, summary_c
     # a small ring (tests, ring_s) is emptied before it fills
     min_batch, max_batch = min(MIN_BATCH_ROWS, max(1, capacity // 4)), min(BATCH_ROWS, capacity)
     consumed = 0
+    start_ns: int | None = None  # known once the first row (or the end) has come
     while not sink.failed:
         ctrl[HEARTBEAT] += 1
         published = int(ctrl[PUBLISHED])
@@ -118,7 +126,9 @@ def _write(path, ctrl, ring, layout, period_ns, metadata, attachments, summary_c
             else:  # the batch wraps around the ring's end
                 rows = np.concatenate([ring[start_slot:], ring[:end_slot]])
             ctrl[CONSUMED] = end  # the slots are copied: the producer may reuse them
-            _emit(rows, encoders, layout, period_ns)
+            if start_ns is None:
+                start_ns = _describe(writer, int(ctrl[START_NS]), metadata, attachments)
+            _emit(rows, encoders, layout, period_ns, start_ns)
             consumed = end
             continue
         if closed or (parent is not None and not parent.is_alive()):
@@ -127,6 +137,8 @@ def _write(path, ctrl, ring, layout, period_ns, metadata, attachments, summary_c
                 continue
             break
         time.sleep(POLL_S)
+    if start_ns is None:  # no tick ran
+        _describe(writer, int(ctrl[START_NS]), metadata, attachments)
     summary = None if sink.failed else _receive_summary(summary_conn)
     if summary is not None:
         writer.write_metadata("teleop_rt.summary", {"json": json.dumps(summary)})
@@ -184,7 +196,25 @@ def _set_process_name(name: str) -> None:
         pass
 
 
-def _emit(rows: np.ndarray, encoders, layout: LogLayout, period_ns: int) -> None:
+def _describe(writer, start_ns: int, metadata: dict[str, str], attachments) -> int:
+    """The ``teleop_rt`` metadata with the start time, and the attachments; return start_ns."""
+    seconds, ns = divmod(start_ns, 1_000_000_000)
+    utc = _dt.datetime.fromtimestamp(seconds, _dt.timezone.utc)
+    utc += _dt.timedelta(microseconds=ns // 1000)
+    start = {
+        "start_time_ns": str(start_ns),
+        "start_time_utc": utc.isoformat(timespec="microseconds").replace("+00:00", "Z"),
+    }
+    writer.write_metadata("teleop_rt", {**metadata, **start})
+    for name, data in attachments.items():
+        media = "application/yaml" if name.endswith(".yaml") else "application/xml"
+        writer.attach(
+            log_time=start_ns, create_time=start_ns, name=name, media_type=media, data=data
+        )
+    return start_ns
+
+
+def _emit(rows: np.ndarray, encoders, layout: LogLayout, period_ns: int, start_ns: int) -> None:
     """Encode a batch per topic with numpy (header included), then log tick by tick."""
     n = len(rows)
     payloads = []
@@ -196,7 +226,7 @@ def _emit(rows: np.ndarray, encoders, layout: LogLayout, period_ns: int) -> None
         payloads.append((ch.log, block.tobytes(), size))
     ticks = rows[:, 0].astype(np.int64).tolist()
     for i, tick in enumerate(ticks):
-        stamp = tick * period_ns
+        stamp = start_ns + tick * period_ns
         for log, data, size in payloads:
             log(data[i * size : (i + 1) * size], log_time=stamp)
 
