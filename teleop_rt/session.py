@@ -34,6 +34,7 @@ from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Packed
 from teleop_rt.hal.base import Backend, create_backend
 from teleop_rt.hal.sim import SimBackend
+from teleop_rt.hal.stopping import stop_all
 from teleop_rt.loop import StopSignals, TickClock, TimingStats, acquire_realtime
 from teleop_rt.model import RobotModel
 from teleop_rt.safety import Supervisor
@@ -298,8 +299,7 @@ class Session:
             raise
         finally:
             stop.uninstall()
-            self.hsi.backend.stop()
-            self.to.backend.stop()
+            stop_all([self.hsi.backend, self.to.backend], self.dt)
             if grant:
                 grant.release()
             notes += self.hsi.backend.notes() + self.to.backend.notes()

@@ -22,9 +22,11 @@ a row, an EMCY, a drive heartbeat not seen for ``heartbeat_timeout_ms`` (counted
 statusword that leaves OPERATION ENABLED (fault, quick stop, disabled), a drive leaving NMT
 OPERATIONAL, a CAN error frame (seen in the frames the cycle reads anyway), a bus the interface
 reports in ``BusState.ERROR`` (polled every ``missed_feedback_ticks`` ticks: a counter check per
-tick, the interface call only then) or a failing send / receive. ``stop()`` then sends zero
-torque with quick stop until each drive reports SWITCH ON DISABLED, then disable voltage, then
-NMT pre-operational.
+tick, the interface call only then) or a failing send / receive. The stop then sends zero
+torque with quick stop until each drive reports SWITCH ON DISABLED, then NMT pre-operational.
+It is stepped, one SYNC period per ``stop_step`` (``begin_stop`` first), so that
+``teleop_rt.hal.stopping.stop_all`` stops both robots together, each bus cycling every period
+until its drives are disabled; ``stop()`` runs it to the end here.
 
 Between a robot's start and the loop's first ``read`` (while the session starts the other
 robot), a keepalive thread runs the same cycle with zero torque, so the drives keep their SYNC
@@ -55,6 +57,7 @@ if TYPE_CHECKING:
 
 _TPDO1, _TPDO2, _EMCY, _HEARTBEAT, _SENSOR = range(5)
 _SOD = "SWITCH ON DISABLED"
+_QUICK_STOP, _NMT, _DONE = "quick stop", "NMT pre-operational", "done"  # the stop's phases
 _FAULT_STATES = ("FAULT", "FAULT REACTION ACTIVE")
 
 
@@ -135,7 +138,8 @@ class CanBackend(Backend):
         self.master_hb_tick = -(10**9)  # tick of the master's last heartbeat (first: at once)
         self.running = False  # the session's ticks (after start-up)
         self._cyclic = False  # drives are NMT operational and the loop owns the bus
-        self._stopped = False
+        self._stop_phase: str | None = None  # None, then _QUICK_STOP, _NMT, _DONE
+        self._stop_count = 0  # periods spent in the stop phase
         self._faulted = False
         self._keepalive = None
         self._keepalive_fault: str | None = None  # the first fault the keepalive saw
@@ -598,19 +602,89 @@ class CanBackend(Backend):
         self.feedback.age_ticks = max(self.feedback.age_ticks, self.missed_limit)
 
     def stop(self) -> None:
-        if self._stopped:
+        """The stepped stop run to its end here, at the SYNC period (``stop_all`` steps both
+        robots' stops together instead)."""
+        self.begin_stop()
+        while self._stop_phase != _DONE:
+            self._pace()
+            self.stop_step()
+
+    def begin_stop(self) -> None:
+        if self._stop_phase is not None:
             return
-        self._stopped = True
         self.running = False
         self._join_keepalive()
-        bus = self.bus
-        if bus is None:
+        if self.bus is None or not self._cyclic:  # never cycled: nothing to walk through
+            self._stop_phase = _DONE
+            self._close_bus()
             return
+        for st in self._steppers:
+            st.request_stop()
+        self._stop_phase, self._stop_count = _QUICK_STOP, 0
+        self._next_ns = time.perf_counter_ns()  # ``stop`` paces from here
+
+    def stop_step(self) -> bool:
+        """One SYNC period of the stop: quick stop with zero torque until every drive reports
+        SWITCH ON DISABLED (or FAULT, or is silent), for at most ``stop_ticks`` periods; then
+        one last SYNC (the last synchronous RPDO takes effect) and NMT pre-operational, and
+        the bus is closed. Never raises: what went wrong is kept in ``stop_report``."""
+        if self._stop_phase is None:
+            self.begin_stop()
+        if self._stop_phase == _DONE:
+            return True
         try:
-            if self._cyclic:
-                self._stop_drives()
-        finally:
-            self.bus = None
+            if self._stop_phase == _QUICK_STOP:
+                self._stop_quick_step()
+                return False
+            self._stop_nmt_step()
+        except BaseException:  # a bug, or Ctrl-C: the bus is closed all the same
+            self._stop_phase = _DONE
+            self._close_bus()
+            raise
+        return True
+
+    def _stop_nmt_step(self) -> None:
+        try:
+            self._send_raw(self._sync_msg)
+            data = self._nmt_msg.data
+            for node in self.node_ids:
+                data[0], data[1] = 0x80, node  # enter PRE-OPERATIONAL: PDOs off
+                self._send_raw(self._nmt_msg)
+        except self._can_error as exc:
+            self.stop_report.append(f"{self._bus_name}: bus error at stop: {exc}")
+        self._stop_phase = _DONE
+        self._close_bus()
+
+    def _stop_quick_step(self) -> None:
+        self._stop_count += 1
+        try:
+            self._cycle()
+        except SafetyStop as exc:
+            self.stop_report.append(str(exc))
+            self._stop_phase = _NMT
+            return
+        self._faults.clear()
+        done = True
+        for i, st in enumerate(self._steppers):
+            self._cw[i] = st.step(self._sw[i])
+            silent = self._miss[i] >= self.missed_limit
+            if silent:
+                self._cw[i] = 0x00
+            done = done and (silent or st.state in (_SOD, "FAULT"))
+        try:
+            self._send_commands(None)
+        except SafetyStop as exc:
+            self.stop_report.append(str(exc))
+            done = True
+        if done:
+            self._stop_phase = _NMT
+        elif self._stop_count >= self.spec.stop_ticks:
+            self.stop_report.append(f"can: {self.side}: drives not disabled after stop_ticks")
+            self._stop_phase = _NMT
+
+    def _close_bus(self) -> None:
+        bus, self.bus = self.bus, None
+        if bus is not None:
             bus.shutdown()
 
     def notes(self) -> list[str]:
@@ -622,45 +696,6 @@ class CanBackend(Backend):
                 f"faults (the last: {self.last_bus_warning})"
             )
         return out
-
-    def _stop_drives(self) -> None:
-        """Quick stop with zero torque until SWITCH ON DISABLED (or silent), then disable, then
-        NMT pre-operational. Never raises: what went wrong is kept in ``stop_report``."""
-        for st in self._steppers:
-            st.request_stop()
-        for _ in range(self.spec.stop_ticks):
-            try:
-                self._pace()
-                self._cycle()
-            except SafetyStop as exc:
-                self.stop_report.append(str(exc))
-                break
-            self._faults.clear()
-            done = True
-            for i, st in enumerate(self._steppers):
-                self._cw[i] = st.step(self._sw[i])
-                silent = self._miss[i] >= self.missed_limit
-                if silent:
-                    self._cw[i] = 0x00
-                done = done and (silent or st.state in (_SOD, "FAULT"))
-            try:
-                self._send_commands(None)
-            except SafetyStop as exc:
-                self.stop_report.append(str(exc))
-                break
-            if done:
-                break
-        else:
-            self.stop_report.append(f"can: {self.side}: drives not disabled after stop_ticks")
-        try:
-            self._pace()
-            self._send_raw(self._sync_msg)  # the last (synchronous) RPDO takes effect
-            data = self._nmt_msg.data
-            for node in self.node_ids:
-                data[0], data[1] = 0x80, node  # enter PRE-OPERATIONAL: PDOs off
-                self._send_raw(self._nmt_msg)
-        except self._can_error as exc:
-            self.stop_report.append(f"{self._bus_name}: bus error at stop: {exc}")
 
 
 @register_backend("can")

@@ -142,6 +142,8 @@ class EmulatedDrive:
         self.mapping_errors: list[str] = []
         # every RPDO taken at a SYNC: (controlword, target torque, state it was received in)
         self.commands: list[tuple[int, int, str]] = []
+        # SYNCs a quick stop takes (QUICK STOP ACTIVE, decelerating) before SWITCH ON DISABLED
+        self.quick_stop_syncs = 0
         self.power_on()
 
     # --- life cycle ---------------------------------------------------------------------
@@ -161,6 +163,7 @@ class EmulatedDrive:
             0x1001: 0,
         }
         self.state = SOD
+        self._quick_stop_left = 0
         self._cw_prev = 0
         self.active_permille = 0
         self.heartbeat_us = 0
@@ -329,7 +332,10 @@ class EmulatedDrive:
         if self.state == FRA:
             self.state = FAULT
         elif self.state == QSA and 1 <= self.quick_stop_option <= 4:
-            self.state = SOD  # stopped (instantly: torque mode), then voltage off
+            if self._quick_stop_left > 0:  # still decelerating
+                self._quick_stop_left -= 1
+            else:
+                self.state = SOD  # stopped, then voltage off
 
     def _latch(self) -> None:
         pending = self.pending
@@ -364,6 +370,8 @@ class EmulatedDrive:
             self.state = SOD
         elif cw & 0x06 == 0x02:  # quick stop
             self.state = QSA if s == OE else (SOD if s in (RTSO, SO) else s)
+            if s == OE:
+                self._quick_stop_left = self.quick_stop_syncs
         elif cw & 0x07 == 0x06:  # shutdown
             if s in (SOD, SO, OE):
                 self.state = RTSO
