@@ -27,7 +27,7 @@ from teleop_rt.errors import BackendError, ConfigError, SafetyStop
 from teleop_rt.hal.base import create_backend
 from teleop_rt.hal.can.backend import CanBackend
 from teleop_rt.hal.can.config import DEFAULT_EDS
-from teleop_rt.hal.can.emulator import FAULT, OE, SOD, DriveEmulator, Fault, emulated_bus
+from teleop_rt.hal.can.emulator import FAULT, OE, QSA, SOD, DriveEmulator, Fault, emulated_bus
 from teleop_rt.model import RobotModel
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -315,6 +315,43 @@ def test_normal_stop_quick_stops_then_disables(started) -> None:
         assert cws[last_enabled + 1] == 0x02 and cws[-1] == 0x00
         assert drive.state == SOD and drive.nmt_log[-1] == "pre-op"
         assert all(t == 0 for _, t, _ in drive.commands[last_enabled + 1 :])
+
+
+def test_a_quick_stop_that_does_not_finish_ends_disabled(started) -> None:
+    """A drive that stays in QUICK STOP ACTIVE (quick stop option 5..8, or a slow ramp) when
+    stop_ticks runs out gets disable voltage until SWITCH ON DISABLED, then NMT pre-op."""
+    backend = started("can.stop_ticks=10")
+    run_ticks(backend, 5, tau=0.3)
+    held = backend.emulator.drives[0]
+    held.quick_stop_option = 6  # the drive stays halted in QUICK STOP ACTIVE
+    backend.stop()
+    all_cws = [cw for cw, _, _ in held.commands]
+    stop = held.commands[max(k for k, cw in enumerate(all_cws) if cw == 0x0F) + 1 :]
+    cws = [cw for cw, _, _ in stop]
+    assert cws[:10] == [0x02] * 10 and set(cws[10:]) == {0x00}  # quick stop, then disable
+    # ... the first disable voltage reaching it in QUICK STOP ACTIVE, the rest as it reports SOD
+    assert [state for _, _, state in stop] == [OE] + [QSA] * 10 + [SOD] * (len(stop) - 11)
+    assert held.state == SOD and held.nmt_log[-1] == "pre-op"
+    assert all(t == 0 for _, t, _ in stop)
+    assert backend.notes() == [
+        "can: hsi: quick stop not complete after 10 ticks (node 1: QUICK STOP ACTIVE): "
+        "disable voltage sent"
+    ]
+
+
+def test_a_drive_that_is_not_disabled_at_the_end_is_named(started) -> None:
+    backend = started("can.stop_ticks=5", "can.disable_ticks=4")
+    run_ticks(backend, 5)
+    stuck = backend.emulator.drives[1]
+    stuck.quick_stop_option = 6
+    stuck._controlword = lambda cw: None  # then ignores every controlword: stays enabled
+    backend.stop()
+    assert stuck.state == OE and stuck.nmt_log[-1] == "pre-op"  # NMT pre-op all the same
+    assert backend.notes()[-1] == (
+        "can: hsi joint 1 (drive node 2): not SWITCH ON DISABLED at NMT pre-operational "
+        "(OPERATION ENABLED, statusword 0x0237)"
+    )
+    assert backend.emulator.drives[0].state == SOD
 
 
 # --- configuration errors -----------------------------------------------------------------

@@ -23,7 +23,8 @@ statusword that leaves OPERATION ENABLED (fault, quick stop, disabled), a drive 
 OPERATIONAL, a CAN error frame (seen in the frames the cycle reads anyway), a bus the interface
 reports in ``BusState.ERROR`` (polled every ``missed_feedback_ticks`` ticks: a counter check per
 tick, the interface call only then) or a failing send / receive. The stop then sends zero
-torque with quick stop until each drive reports SWITCH ON DISABLED, then NMT pre-operational.
+torque with quick stop until each drive reports SWITCH ON DISABLED (disable voltage for those
+that did not get there within ``stop_ticks``), then NMT pre-operational.
 It is stepped, one SYNC period per ``stop_step`` (``begin_stop`` first), so that
 ``teleop_rt.hal.stopping.stop_all`` stops both robots together, each bus cycling every period
 until its drives are disabled; ``stop()`` runs it to the end here.
@@ -57,7 +58,8 @@ if TYPE_CHECKING:
 
 _TPDO1, _TPDO2, _EMCY, _HEARTBEAT, _SENSOR = range(5)
 _SOD = "SWITCH ON DISABLED"
-_QUICK_STOP, _NMT, _DONE = "quick stop", "NMT pre-operational", "done"  # the stop's phases
+# the stop's phases
+_QUICK_STOP, _DISABLE, _NMT, _DONE = "quick stop", "disable", "NMT pre-operational", "done"
 _FAULT_STATES = ("FAULT", "FAULT REACTION ACTIVE")
 
 
@@ -138,7 +140,7 @@ class CanBackend(Backend):
         self.master_hb_tick = -(10**9)  # tick of the master's last heartbeat (first: at once)
         self.running = False  # the session's ticks (after start-up)
         self._cyclic = False  # drives are NMT operational and the loop owns the bus
-        self._stop_phase: str | None = None  # None, then _QUICK_STOP, _NMT, _DONE
+        self._stop_phase: str | None = None  # None, then _QUICK_STOP, ..., _DONE
         self._stop_count = 0  # periods spent in the stop phase
         self._faulted = False
         self._keepalive = None
@@ -624,17 +626,20 @@ class CanBackend(Backend):
         self._next_ns = time.perf_counter_ns()  # ``stop`` paces from here
 
     def stop_step(self) -> bool:
-        """One SYNC period of the stop: quick stop with zero torque until every drive reports
-        SWITCH ON DISABLED (or FAULT, or is silent), for at most ``stop_ticks`` periods; then
-        one last SYNC (the last synchronous RPDO takes effect) and NMT pre-operational, and
-        the bus is closed. Never raises: what went wrong is kept in ``stop_report``."""
+        """One SYNC period of the stop, zero torque throughout: quick stop until every drive
+        reports SWITCH ON DISABLED (or FAULT, or is silent), for at most ``stop_ticks``
+        periods; if some did not get there, disable voltage (0x00) until they do, for at most
+        ``disable_ticks``; then one last SYNC (the last synchronous RPDO takes effect) and NMT
+        pre-operational, and the bus is closed. A drive that did not end in SWITCH ON
+        DISABLED is named in ``stop_report``, as is anything else that went wrong: this never
+        raises. At most ``stop_ticks + disable_ticks + 1`` calls."""
         if self._stop_phase is None:
             self.begin_stop()
         if self._stop_phase == _DONE:
             return True
         try:
-            if self._stop_phase == _QUICK_STOP:
-                self._stop_quick_step()
+            if self._stop_phase != _NMT:
+                self._stop_cycle_step(self._stop_phase == _DISABLE)
                 return False
             self._stop_nmt_step()
         except BaseException:  # a bug, or Ctrl-C: the bus is closed all the same
@@ -652,10 +657,12 @@ class CanBackend(Backend):
                 self._send_raw(self._nmt_msg)
         except self._can_error as exc:
             self.stop_report.append(f"{self._bus_name}: bus error at stop: {exc}")
+        self._report_drive_states()
         self._stop_phase = _DONE
         self._close_bus()
 
-    def _stop_quick_step(self) -> None:
+    def _stop_cycle_step(self, disable: bool) -> None:
+        """A quick-stop (or, ``disable``, a disable-voltage) period: SYNC, feedback, RPDOs."""
         self._stop_count += 1
         try:
             self._cycle()
@@ -664,23 +671,41 @@ class CanBackend(Backend):
             self._stop_phase = _NMT
             return
         self._faults.clear()
-        done = True
+        pending = []
         for i, st in enumerate(self._steppers):
-            self._cw[i] = st.step(self._sw[i])
+            cw = st.step(self._sw[i])  # quick stop until SWITCH ON DISABLED, then 0x00
             silent = self._miss[i] >= self.missed_limit
-            if silent:
-                self._cw[i] = 0x00
-            done = done and (silent or st.state in (_SOD, "FAULT"))
+            self._cw[i] = 0x00 if disable or silent else cw
+            if not (silent or st.state in (_SOD, "FAULT")):
+                pending.append(f"node {self.node_ids[i]}: {st.state}")
         try:
             self._send_commands(None)
         except SafetyStop as exc:
             self.stop_report.append(str(exc))
-            done = True
-        if done:
+            pending = []
+        if not pending:
             self._stop_phase = _NMT
-        elif self._stop_count >= self.spec.stop_ticks:
-            self.stop_report.append(f"can: {self.side}: drives not disabled after stop_ticks")
+        elif not disable and self._stop_count >= self.spec.stop_ticks:
+            self.stop_report.append(
+                f"can: {self.side}: quick stop not complete after {self._stop_count} ticks "
+                f"({', '.join(pending)}): disable voltage sent"
+            )
+            self._stop_phase, self._stop_count = _DISABLE, 0
+        elif disable and self._stop_count >= self.spec.disable_ticks:
             self._stop_phase = _NMT
+
+    def _report_drive_states(self) -> None:
+        """Name every drive that is not in SWITCH ON DISABLED as NMT pre-operational goes out."""
+        for i, st in enumerate(self._steppers):
+            if self._miss[i] >= self.missed_limit:
+                what = "no feedback, its state unknown"
+            elif st.state != _SOD:
+                what = f"{st.state}, statusword 0x{self._sw[i]:04X}"
+            else:
+                continue
+            self.stop_report.append(
+                f"{self._drive(i)}: not SWITCH ON DISABLED at NMT pre-operational ({what})"
+            )
 
     def _close_bus(self) -> None:
         bus, self.bus = self.bus, None

@@ -183,7 +183,8 @@ class CanSpec(_Strict):
     boot_timeout_s: PositiveFloat = 5.0
     sdo_timeout_s: PositiveFloat = 0.5
     enable_timeout_ticks: Annotated[int, Field(ge=10, le=60_000)] = 2000
-    stop_ticks: Annotated[int, Field(ge=1, le=10_000)] = 100
+    stop_ticks: Annotated[int, Field(ge=1, le=10_000)] = 100  # quick stop, at most
+    disable_ticks: Annotated[int, Field(ge=1, le=10_000)] = 20  # then disable voltage, at most
     emulate: bool = False  # in-process drive emulator on a virtual bus (tests, demos)
 
     @model_validator(mode="after")
