@@ -275,6 +275,31 @@ def test_a_bus_the_interface_reports_in_error_is_a_safe_stop(started, monkeypatc
     assert_stopped_safely(backend)
 
 
+def test_a_pdo_shorter_than_its_mapping_is_a_safe_stop(started) -> None:
+    backend = started()
+    run_ticks(backend, 4)
+    short = can.Message(arbitration_id=0x282, data=b"\x37\x02\x00", is_extended_id=False)
+    backend.emulator.bus.send(short)  # seen in the drain before the next SYNC
+    with pytest.raises(
+        SafetyStop,
+        match=r"hsi joint 1 \(drive node 2\): malformed frame 0x282: TPDO2 .*: expected 4 data "
+        r"bytes, received 3",
+    ):
+        run_ticks(backend, 1)
+    assert_stopped_safely(backend)
+
+
+def test_a_short_sensor_pdo_is_a_safe_stop_not_a_crash(started) -> None:
+    backend = started()
+    run_ticks(backend, 4)
+    backend.emulator.bus.send(can.Message(arbitration_id=0x18A, data=bytes(5)))
+    with pytest.raises(
+        SafetyStop, match=r"torque sensor: malformed frame 0x18A: .*expected 8 data bytes, rec"
+    ):
+        run_ticks(backend, 1)
+    assert_stopped_safely(backend)
+
+
 def test_drives_fault_when_the_master_heartbeat_stops(started) -> None:
     backend = started()
     backend.master_hb_ticks = 10**9  # the master goes silent (but keeps SYNCing)

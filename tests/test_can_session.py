@@ -229,3 +229,27 @@ def test_stop_all_stops_the_others_when_one_robot_fails_to_stop() -> None:
     stuck = Robot(10**9)
     assert stop_all([stuck, Robot(2)], 1e-5, max_steps=20) == [stuck]  # bounded
     assert stuck.calls == 20
+
+
+def test_a_pdo_longer_than_its_mapping_is_read_counted_and_noted() -> None:
+    """A drive that pads its 4-byte TPDO2 to 5 bytes from the first SYNC on (CiA 301: the
+    consumer uses the mapped leading bytes): the session runs, the summary says so."""
+    cfg = config.load(CAN, [*FAST, "duration_s=0.2"])
+    session = Session(cfg)
+    backend = session.hsi.backend
+    original = backend._open_bus
+
+    def open_bus() -> None:
+        original()
+        backend.emulator.inject(Fault("long_tpdo", 1, 0))  # from world tick 0: start-up too
+
+    backend._open_bus = open_bus
+    summary = session.run()
+    assert summary.ticks == 200 and summary.stopped_early is None
+    count = backend.stats["long_pdos"]
+    assert count > 100  # TPDO2 every second SYNC, start-up included
+    assert (
+        f"can: hsi joint 0 (drive node 1): {count} PDO(s) 0x281 of 5 bytes, longer than their "
+        "mapping (4 bytes): the mapped leading bytes were used (CiA 301)"
+    ) in summary.notes
+    assert [d.state for d in backend.emulator.drives] == [SOD, SOD]  # stopped as usual

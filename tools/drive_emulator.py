@@ -19,8 +19,9 @@ from the master (the backend sends one at start) puts the robot back at its init
 several runs can use one emulator.
 
 Fault injection (repeatable), KIND one of drop_tpdo, emcy, stop_heartbeat, status_fault,
-error_frame, drop_sensor; NODE a node id or '*' (every drive); TICK counted from the moment the
-robot's drives are all enabled (the session's tick 0, within a tick or two); +TICKS a duration:
+error_frame, drop_sensor, long_tpdo; NODE a node id or '*' (every drive); TICK counted from
+the moment the robot's drives are all enabled (the session's tick 0, within a tick or two);
++TICKS a duration:
 
     --fault emcy:2@3000  --fault drop_tpdo:1@5000+2  --fault stop_heartbeat:*@4000
 

@@ -57,6 +57,8 @@ if TYPE_CHECKING:
     from teleop_rt.model import RobotModel
 
 _TPDO1, _TPDO2, _EMCY, _HEARTBEAT, _SENSOR = range(5)
+_TPDO1_SIZE, _TPDO2_SIZE = codec.TPDO1_STRUCT.size, codec.TPDO2_STRUCT.size
+_unpack_tpdo1, _unpack_tpdo2 = codec.TPDO1_STRUCT.unpack_from, codec.TPDO2_STRUCT.unpack_from
 _SOD = "SWITCH ON DISABLED"
 # the stop's phases
 _QUICK_STOP, _DISABLE, _NMT, _DONE = "quick stop", "disable", "NMT pre-operational", "done"
@@ -148,8 +150,10 @@ class CanBackend(Backend):
         self._next_state_poll = 0  # tick of the next bus.state poll
         self._bus_name = f"can: {side} bus"
         self.stats = {
-            "ticks": 0, "missed_windows": 0, "late_frames": 0, "saturated": 0, "bus_warnings": 0
+            "ticks": 0, "missed_windows": 0, "late_frames": 0, "saturated": 0, "bus_warnings": 0,
+            "long_pdos": 0,
         }  # fmt: skip
+        self._long_pdos: dict[int, list[int]] = {}  # COB-ID: [count, length, mapped length]
         self.last_bus_warning: str | None = None  # the last warning error frame, described
         self.stop_report: list[str] = []
 
@@ -442,18 +446,25 @@ class CanBackend(Backend):
         data = msg.data
         try:
             if kind == _TPDO1:
-                self._pos[i], self._vel[i] = codec.unpack_tpdo1(data)
+                if len(data) != _TPDO1_SIZE:  # shorter: a fault; longer: its leading bytes
+                    self._long_pdo(msg, codec.TPDO1_NAME, _TPDO1_SIZE)
+                self._pos[i], self._vel[i] = _unpack_tpdo1(data)
                 if fresh:
                     self._got |= 1 << i
                 else:
                     self.stats["late_frames"] += 1
             elif kind == _TPDO2:
-                self._sw[i], self._torque_actual[i] = codec.unpack_tpdo2(data)
+                if len(data) != _TPDO2_SIZE:
+                    self._long_pdo(msg, codec.TPDO2_NAME, _TPDO2_SIZE)
+                self._sw[i], self._torque_actual[i] = _unpack_tpdo2(data)
                 if fresh:
                     self._got |= 1 << (self.n + i)
                 self._next_status[i] = self.tick + self.status_every
             elif kind == _SENSOR:
-                raw = self._sensor_layout.unpack(data)
+                layout = self._sensor_layout
+                if len(data) != layout.size:
+                    self._long_pdo(msg, "torque sensor TPDO", layout.size)
+                raw = layout.unpack_from(data)
                 self._sensor_raw[:] = raw
                 if fresh:
                     self._got |= 1 << (2 * self.n)
@@ -472,6 +483,17 @@ class CanBackend(Backend):
         except (codec.CanFrameError, ValueError) as exc:
             name = "torque sensor" if kind == _SENSOR else self._drive(i)
             self._faults.append(f"{name}: malformed frame 0x{msg.arbitration_id:03X}: {exc}")
+
+    def _long_pdo(self, msg: can.Message, name: str, mapped: int) -> None:
+        """A PDO of another length than its mapping: ``CanFrameError`` if shorter; if longer,
+        CiA 301 has the consumer use the mapped leading bytes: counted per COB-ID (notes)."""
+        codec.pdo_excess(name, mapped, msg.data)
+        self.stats["long_pdos"] += 1
+        seen = self._long_pdos.get(msg.arbitration_id)
+        if seen is None:
+            self._long_pdos[msg.arbitration_id] = [1, len(msg.data), mapped]
+        else:
+            seen[0] += 1
 
     def _check(self, running: bool) -> None:
         """Raise SafetyStop for every fault seen this tick (several are joined)."""
@@ -715,6 +737,13 @@ class CanBackend(Backend):
     def notes(self) -> list[str]:
         """The stop's problems, and the warning error frames the bus reported (not faults)."""
         out = list(self.stop_report)
+        for cob, (count, length, mapped) in self._long_pdos.items():
+            route = self._routes.get(cob)
+            who = "torque sensor" if route is None or route[0] == _SENSOR else self._drive(route[1])
+            out.append(
+                f"{who}: {count} PDO(s) 0x{cob:03X} of {length} bytes, longer than their mapping "
+                f"({mapped} bytes): the mapped leading bytes were used (CiA 301)"
+            )
         if self.stats["bus_warnings"]:
             out.append(
                 f"{self._bus_name}: {self.stats['bus_warnings']} warning error frames, not "

@@ -28,8 +28,9 @@ with the wall clock while no SYNC comes (heartbeats, the master-heartbeat watch)
 Fault injection: ``inject(Fault(kind, node_id, at_tick, ticks))`` with kind one of
 ``drop_tpdo`` (a drive sends no TPDO), ``emcy`` (EMCY 0x2310 and FAULT), ``stop_heartbeat``,
 ``status_fault`` (FAULT in the statusword, no EMCY), ``error_frame`` (a CAN error frame),
-``drop_sensor`` (the torque sensor sends nothing). ``at_tick`` counts world ticks (SYNCs
-since the joints were released); None means the next SYNC.
+``drop_sensor`` (the torque sensor sends nothing), ``long_tpdo`` (a drive's TPDOs shorter than
+8 bytes carry one byte more than their mapping, as some drives pad them). ``at_tick`` counts
+world ticks (SYNCs since the joints were released); None means the next SYNC.
 """
 
 from __future__ import annotations
@@ -81,7 +82,9 @@ EMCY_OVERCURRENT = 0x2310  # "continuous over current" (CiA 402)
 EMCY_HEARTBEAT = 0x8130  # "life guard error or heartbeat error" (CiA 301)
 EMCY_PDO_LENGTH = 0x8210  # "PDO not processed due to length error" (CiA 301)
 _ONE_SHOT = ("emcy", "status_fault", "error_frame")
-FAULT_KINDS = ("drop_tpdo", "emcy", "stop_heartbeat", "status_fault", "error_frame", "drop_sensor")
+FAULT_KINDS = (
+    "drop_tpdo", "emcy", "stop_heartbeat", "status_fault", "error_frame", "drop_sensor", "long_tpdo"
+)  # fmt: skip
 
 _FMT = {
     odt.INTEGER8: "b",
@@ -292,10 +295,10 @@ class EmulatedDrive:
 
     # --- cyclic -------------------------------------------------------------------------------
     def on_rpdo(self, pdo: _Pdo, data: bytes) -> None:
-        if len(data) != pdo.layout.size:
+        if len(data) < pdo.layout.size:  # longer: the mapped leading bytes (CiA 301)
             self.emu.send(0x80 + self.node_id, struct.pack("<HB5s", EMCY_PDO_LENGTH, 0, b""))
             return
-        for index, value in zip(pdo.objects, pdo.layout.unpack(data), strict=True):
+        for index, value in zip(pdo.objects, pdo.layout.unpack_from(data), strict=True):
             self.pending[index] = value
         if pdo.trans_type >= 254:  # asynchronous RPDO: takes effect at once
             self._latch()
@@ -578,6 +581,7 @@ class DriveEmulator:
         for kind, d in active:
             self._fire(kind, [d] if kind != "error_frame" else [])
         dropped = {id(d) for kind, d in active if kind == "drop_tpdo"}
+        padded = {id(d) for kind, d in active if kind == "long_tpdo"}
         self._silent = {id(d) for kind, d in active if kind == "stop_heartbeat"}
         out: list[tuple[int, bytes]] = []
         next_us = self.time_us + self.period_us if advance else self.time_us
@@ -585,7 +589,10 @@ class DriveEmulator:
             if d.nmt_state == "OPERATIONAL":
                 d.sample(self._q[j], self._v[j])
                 if id(d) not in dropped:
+                    first = len(out)
                     d.tpdo_frames(next_us, out)
+                    if id(d) in padded:
+                        out[first:] = _padded(out[first:])
         if self.sensor is not None and not any(k == "drop_sensor" for k, _ in active):
             out.append((self.sensor.cob_id, self._sensor_frame()))
         self._outbox = out
@@ -620,6 +627,9 @@ class DriveEmulator:
             out[:] = [(c, data) for c, data in out if c != self.sensor.cob_id]
         elif fault.kind == "stop_heartbeat":
             self._silent |= {id(d) for d in targets}
+        elif fault.kind == "long_tpdo":
+            cobs = {p.cob_id for d in targets for p in d.tpdos}
+            out[:] = [_padded([f])[0] if f[0] in cobs else f for f in out]
 
     def _fire(self, kind: str, targets: list[EmulatedDrive]) -> None:
         for d in targets:
@@ -682,6 +692,11 @@ class DriveEmulator:
                         d.advance_state()  # e.g. FAULT REACTION ACTIVE -> FAULT
                         d.heartbeat(self.time_us, False)
                         d.watch_master(self.time_us)
+
+
+def _padded(frames: list[tuple[int, bytes]]) -> list[tuple[int, bytes]]:
+    """The frames with one byte more (a CAN frame carries 8 at most)."""
+    return [(cob, data + b"\0" if len(data) < 8 else data) for cob, data in frames]
 
 
 class SteppedBus(can.BusABC):
