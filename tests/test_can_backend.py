@@ -402,6 +402,95 @@ def test_a_missing_drive_is_one_clear_error() -> None:
         backend.stop()
 
 
+def aborting(drive, index: int, sub: int, code: int):
+    """Make an emulated drive abort SDO writes to index:sub with ``code``."""
+    from canopen.sdo.exceptions import SdoAbortedError
+
+    def check(**request) -> None:  # canopen passes index, subindex, od, data
+        if (request["index"], request["subindex"]) == (index, sub):
+            raise SdoAbortedError(code)
+
+    drive.node.add_write_callback(check)
+
+
+@pytest.mark.parametrize(
+    ("index", "sub", "code", "message"),
+    [
+        (
+            0x605A,
+            0,
+            0x06090030,
+            "can: hsi drive node 2: SDO write 0x605A:00 (Quick stop option code) = 2 aborted by "
+            "the drive: Code 0x06090030, Value range of parameter exceeded",
+        ),
+        (  # inside canopen's PDO mapping, which does not say which object it wrote
+            0x1A01,
+            2,
+            0x06040041,
+            "can: hsi drive node 2: SDO write 0x1A01:02 (TPDO2 mapping parameter: Mapped object "
+            "2) aborted by the drive: Code 0x06040041, Object cannot be mapped to the PDO",
+        ),
+    ],
+    ids=["write", "pdo-mapping"],
+)
+def test_an_sdo_abort_at_start_names_the_drive_and_the_object(index, sub, code, message) -> None:
+    backend = make_backend(make_cfg())
+    backend._open_bus()
+    aborting(backend.emulator.drives[1], index, sub, code)
+    try:
+        with pytest.raises(BackendError) as info:
+            backend.start()
+        assert str(info.value) == message
+    finally:
+        backend.stop()
+
+
+def test_cli_an_sdo_abort_at_start_is_one_line(tmp_path) -> None:
+    """A drive whose EDS makes 0x605A read-only aborts the master's write (in-process
+    emulator, its own EDS): one line naming drive and object, no traceback."""
+    eds = DEFAULT_EDS.read_text().replace(
+        "ParameterName=Quick stop option code\nObjectType=0x7\nDataType=0x0003\nAccessType=rw",
+        "ParameterName=Quick stop option code\nObjectType=0x7\nDataType=0x0003\nAccessType=ro",
+    )
+    (tmp_path / "ro.eds").write_text(eds)
+    path = write_config(tmp_path, "ro.eds")
+    sets = [a for o in FAST for a in ("--set", o)]
+    run = subprocess.run(
+        [sys.executable, "-m", "teleop_rt.cli", "run", str(path), *sets, "--duration", "0.1",
+         "--no-log"],
+        capture_output=True, text=True, cwd=ROOT, timeout=120,
+    )  # fmt: skip
+    assert run.returncode != 0
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in run.stderr, run.stderr
+    assert (
+        "can: hsi drive node 1: SDO write 0x605A:00 (Quick stop option code) = 2 aborted by the "
+        "drive: Code 0x06010002, Attempt to write a read only object"
+    ) in lines[0]
+
+
+def test_cli_no_boot_up_names_the_bus_by_interface_and_channel() -> None:
+    """No drive on the bus (a port nobody serves): the message names the configured bus."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # free now; no emulator listens there
+    run = subprocess.run(
+        [sys.executable, "-m", "teleop_rt.cli", "run", str(CAN_CONFIG), "--no-log",
+         "--duration", "0.1", "--set", "can.boot_timeout_s=0.3",
+         "--set", f"can.hsi.bus.options={{port: {port}, hop_limit: 0}}"],
+        capture_output=True, text=True, cwd=ROOT, timeout=120,
+    )  # fmt: skip
+    assert run.returncode != 0
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in run.stderr, run.stderr
+    assert (
+        "can: hsi drive node 1: no boot-up within 0.3 s after NMT reset (is the drive powered "
+        "and on udp_multicast 239.74.163.1?)"
+    ) in lines[0]
+
+
 def test_an_unopenable_bus_is_one_clear_error() -> None:
     cfg = make_cfg("can.emulate=false", "can.hsi.bus.interface=nonexistent_interface")
     backend = make_backend(cfg)

@@ -162,7 +162,10 @@ class CanBackend(Backend):
         from teleop_rt.hal.can.startup import Startup
 
         self._open_bus()
-        info = Startup(self.bus, self.side, self.side_spec, self.spec, self.cfg.dt).run()
+        startup = Startup(
+            self.bus, self.side, self.side_spec, self.spec, self.cfg.dt, self._bus_label()
+        )
+        info = startup.run()
         self.begin_cyclic(info)
         if not self.spec.emulate:
             self._start_keepalive()
