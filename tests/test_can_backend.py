@@ -206,7 +206,7 @@ def test_a_lost_heartbeat_stops_within_3_ticks_of_its_timeout(started) -> None:
     backend.emulator.inject(Fault("stop_heartbeat", 1))
     with pytest.raises(SafetyStop, match=r"hsi joint 0 \(drive node 1\): heartbeat lost") as info:
         run_ticks(backend, 100)
-    overdue = backend.tick - backend._last_hb[0] - backend.hb_timeout_ticks
+    overdue = (backend._now() - backend._last_hb_ns[0] - backend.hb_timeout_ns) / 1e6  # ticks
     assert 1 <= overdue <= 3, info.value
     assert_stopped_safely(backend)
 
@@ -302,11 +302,11 @@ def test_a_short_sensor_pdo_is_a_safe_stop_not_a_crash(started) -> None:
 
 def test_drives_fault_when_the_master_heartbeat_stops(started) -> None:
     backend = started()
-    backend.master_hb_ticks = 10**9  # the master goes silent (but keeps SYNCing)
+    backend.master_hb_ns = 1 << 62  # the master goes silent (but keeps SYNCing)
     with pytest.raises(SafetyStop, match=r"EMCY 0x8130 \(Monitoring\)"):
         run_ticks(backend, 300)
     # the drives' own watch (0x1016, 200 ms) fired 200 ms after the master's last heartbeat
-    assert 200 < backend.tick - backend.master_hb_tick <= 203
+    assert 200 < (backend._now() - backend.master_hb_at_ns) / 1e6 <= 203  # ticks of 1 ms
 
 
 def test_nan_torque_never_reaches_a_drive(started) -> None:
@@ -579,7 +579,7 @@ def free_running(tmp_path):
 
     stops: list = []
 
-    def start() -> CanBackend:
+    def start(*overrides: str) -> CanBackend:
         channel = f"free-running-{tmp_path.name}"
         cfg = make_cfg(
             "can.emulate=false",
@@ -588,6 +588,7 @@ def free_running(tmp_path):
             "can.missed_feedback_ticks=20",
             "can.heartbeat_ms=20",
             "can.heartbeat_timeout_ms=60",
+            *overrides,
         )
         emu = DriveEmulator(can.Bus(interface="virtual", channel=channel), cfg, "hsi")
         stop = threading.Event()
@@ -682,3 +683,27 @@ def test_the_free_running_emulator_answers_sync_blocking_or_polling(poll_s) -> N
         emulator_bus.shutdown()
         master.shutdown()
     assert not thread.is_alive()
+
+
+SLOW_TICK_S = 0.01  # a loaded host in fast mode: ticks 10 times longer than the period
+
+
+def test_heartbeats_are_wall_clock_times_when_ticks_are_slow(free_running) -> None:
+    """Ticks of 10 ms against a 1 ms period: the master's heartbeat (50 ms) still goes out by
+    the wall clock, so the drives' 200 ms watch (0x1016) stays quiet; counted in ticks it
+    would go out every 500 ms and every drive would fault. A drive's heartbeat (every 20 ms)
+    that stops is missed after 150 ms of wall time, not after 150 ticks."""
+    backend = free_running("can.heartbeat_timeout_ms=150")
+    emu = backend.emu
+    for _ in range(60):  # 0.6 s and more
+        time.sleep(SLOW_TICK_S)
+        run_ticks(backend, 1)
+    with emu._lock:
+        assert [d.state for d in emu.drives] == [OE, OE]
+        emu.inject(Fault("stop_heartbeat", 2))
+    start = backend.tick
+    with pytest.raises(SafetyStop, match=r"hsi joint 1 \(drive node 2\): heartbeat lost") as info:
+        for _ in range(150):
+            time.sleep(SLOW_TICK_S)
+            run_ticks(backend, 1)
+    assert backend.tick - start < 50, info.value  # 150 ms at >= 10 ms a tick: about 15

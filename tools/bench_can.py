@@ -138,7 +138,7 @@ def transport_free(cfg: config.SessionConfig, side: str, cycles: int) -> None:
         frames.append(can.Message(arbitration_id=backend.sensor.cob_id, data=bytes(size)))
     backend.spec = backend.spec.model_copy(update={"emulate": True})  # no pacing
     backend.window_ns = 0
-    backend.hb_timeout_ticks = 10**9  # no heartbeats on this bus
+    backend.hb_timeout_ns = 1 << 62  # no heartbeats on this bus
     backend.begin_cyclic(info, PrimedBus(frames))
     tau = [0.0] * backend.n
     cpu = np.zeros(cycles, dtype=np.int64)

@@ -18,16 +18,17 @@ messages (canopen's PDO objects cost about 15 us per access).
 
 Faults end the session with ``SafetyStop`` from ``read()`` or ``write()``, naming the robot,
 joint, drive node and reason: a drive's feedback missing ``missed_feedback_ticks`` (3) ticks in
-a row, an EMCY, a drive heartbeat not seen for ``heartbeat_timeout_ms`` (counted in ticks), a
-statusword that leaves OPERATION ENABLED (fault, quick stop, disabled), a drive leaving NMT
-OPERATIONAL, a CAN error frame (seen in the frames the cycle reads anyway), a bus the interface
-reports in ``BusState.ERROR`` (polled every ``missed_feedback_ticks`` ticks: a counter check per
-tick, the interface call only then) or a failing send / receive. The stop then sends zero
-torque with quick stop until each drive reports SWITCH ON DISABLED (disable voltage for those
-that did not get there within ``stop_ticks``), then NMT pre-operational.
-It is stepped, one SYNC period per ``stop_step`` (``begin_stop`` first), so that
-``teleop_rt.hal.stopping.stop_all`` stops both robots together, each bus cycling every period
-until its drives are disabled; ``stop()`` runs it to the end here.
+a row, an EMCY, a drive heartbeat not seen for ``heartbeat_timeout_ms`` (wall clock, like the
+master's heartbeat every ``master_heartbeat_ms``: not counted in ticks), a statusword that
+leaves OPERATION ENABLED (fault, quick stop, disabled), a drive leaving NMT OPERATIONAL, a CAN
+error frame (seen in the frames the cycle reads anyway), a bus the interface reports in
+``BusState.ERROR`` (polled every ``missed_feedback_ticks`` ticks: a counter check per tick, the
+interface call only then) or a failing send / receive. The stop then sends zero torque with
+quick stop until each drive reports SWITCH ON DISABLED (disable voltage for those that did not
+get there within ``stop_ticks``), then NMT pre-operational. It is stepped, one SYNC period per
+``stop_step`` (``begin_stop`` first), so that ``teleop_rt.hal.stopping.stop_all`` stops both
+robots together, each bus cycling every period until its drives are disabled; ``stop()`` runs
+it to the end here.
 
 Between a robot's start and the loop's first ``read`` (while the session starts the other
 robot), a keepalive thread runs the same cycle with zero torque, so the drives keep their SYNC
@@ -39,7 +40,6 @@ RPDO), one tick later than on the simulated backend, whose ``write`` acts on the
 
 from __future__ import annotations
 
-import math
 import time
 from typing import TYPE_CHECKING
 
@@ -110,11 +110,15 @@ class CanBackend(Backend):
         self.emulator = None  # the in-process emulator when can.emulate is on
         self.bus: can.BusABC | None = None
         self.drive_info: list = []
-        rate = cfg.rate_hz
         self.period_ns = round(cfg.dt * 1e9)
         self.window_ns = 0 if spec.emulate else spec.feedback_window_us * 1000
-        self.hb_timeout_ticks = math.ceil(spec.heartbeat_timeout_ms * rate / 1000)
-        self.master_hb_ticks = max(1, round(spec.master_heartbeat_ms * rate / 1000))
+        # Heartbeats are wall-clock times on both sides (a drive's 0x1016 watch runs on its own
+        # clock), whatever the tick rate: ticks run faster than real time in fast mode, and a
+        # loaded host stretches them. The in-process emulator's clock is the tick, so there
+        # ``_now`` is too (deterministic tests).
+        self._now = self._tick_time if spec.emulate else time.perf_counter_ns
+        self.hb_timeout_ns = spec.heartbeat_timeout_ms * 1_000_000  # a drive's heartbeat lost
+        self.master_hb_ns = spec.master_heartbeat_ms * 1_000_000  # the master's, this often
         self.status_every = spec.status_every_sync
         self.missed_limit = spec.missed_feedback_ticks
         # per drive, raw feedback and state
@@ -124,7 +128,7 @@ class CanBackend(Backend):
         self._torque_actual = [0] * n
         self._cw = [0] * n
         self._miss = [0] * n
-        self._last_hb = [0] * n
+        self._last_hb_ns = [0] * n  # when each drive's heartbeat last came (``_now``)
         self._hb_operational = [False] * n  # a drive's heartbeat said OPERATIONAL once
         self._next_status = [0] * n
         self._rad_per_count = [0.0] * n
@@ -139,7 +143,7 @@ class CanBackend(Backend):
         self._faults: list[str] = []
         self._got = 0
         self.tick = 0
-        self.master_hb_tick = -(10**9)  # tick of the master's last heartbeat (first: at once)
+        self.master_hb_at_ns = -(1 << 62)  # the master's last heartbeat (``_now``; first: at once)
         self.running = False  # the session's ticks (after start-up)
         self._cyclic = False  # drives are NMT operational and the loop owns the bus
         self._stop_phase: str | None = None  # None, then _QUICK_STOP, ..., _DONE
@@ -188,6 +192,7 @@ class CanBackend(Backend):
         self._steppers = [Cia402Stepper() for _ in info]
         self._build_routes()
         self._prepare_messages(can)
+        self._last_hb_ns[:] = [self._now()] * self.n  # the watch starts now
         self._cyclic = True
         try:
             self._zero_sensor()
@@ -314,6 +319,10 @@ class CanBackend(Backend):
         self._recv = self.bus.recv
         self._send_raw = self.bus.send
         self._next_ns = time.perf_counter_ns()
+
+    def _tick_time(self) -> int:
+        """The in-process emulator's clock: the ticks so far, in ns."""
+        return self.tick * self.period_ns
 
     def _pace(self) -> None:
         """Start-up and stop run at the real SYNC period (a drive expects it); not emulated."""
@@ -476,7 +485,7 @@ class CanBackend(Backend):
                 if not emcy.is_reset:
                     self._faults.append(f"{self._drive(i)}: {emcy.describe()}")
             else:
-                self._last_hb[i] = self.tick
+                self._last_hb_ns[i] = self._now()
                 state = codec.decode_heartbeat(data)
                 if state == "OPERATIONAL":
                     self._hb_operational[i] = True
@@ -501,16 +510,17 @@ class CanBackend(Backend):
     def _check(self, running: bool) -> None:
         """Raise SafetyStop for every fault seen this tick (several are joined)."""
         faults = self._faults
-        tick = self.tick
+        now = self._now()
         for i in range(self.n):
             if self._miss[i] >= self.missed_limit:
                 faults.append(
                     f"{self._drive(i)}: no feedback (TPDO) for {self._miss[i]} ticks in a row"
                 )
-            if tick - self._last_hb[i] > self.hb_timeout_ticks:
+            if now - self._last_hb_ns[i] > self.hb_timeout_ns:
                 faults.append(
-                    f"{self._drive(i)}: heartbeat lost (none for {tick - self._last_hb[i]} ticks, "
-                    f"timeout {self.spec.heartbeat_timeout_ms} ms)"
+                    f"{self._drive(i)}: heartbeat lost (none for "
+                    f"{(now - self._last_hb_ns[i]) / 1e6:.0f} ms, timeout "
+                    f"{self.spec.heartbeat_timeout_ms} ms)"
                 )
             if running:
                 state = self._steppers[i].state
@@ -544,9 +554,10 @@ class CanBackend(Backend):
                         self.stats["saturated"] += 1
                 pack(msg.data, 0, self._cw[i], permille)
                 send(msg)
-            if self.tick - self.master_hb_tick >= self.master_hb_ticks:
+            now = self._now()
+            if now - self.master_hb_at_ns >= self.master_hb_ns:
                 send(self._hb_msg)
-                self.master_hb_tick = self.tick
+                self.master_hb_at_ns = now
         except self._can_error as exc:
             raise SafetyStop(f"{self._bus_name}: bus error: {exc}") from None
         except ValueError as exc:  # a NaN torque: never reaches a drive as a number

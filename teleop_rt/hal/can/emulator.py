@@ -23,7 +23,9 @@ delay, as on real drives in a SYNC cycle.
 
 The emulator's clock is the SYNC count (``period_us`` per SYNC), so stepping it from the
 master (``poll``, see ``SteppedBus``) is deterministic; run free (``serve``) it also advances
-with the wall clock while no SYNC comes (heartbeats, the master-heartbeat watch).
+with the wall clock while no SYNC comes, and the heartbeats (the drives' own, 0x1017, and
+their watch of the master's, 0x1016) follow the wall clock, as a real drive's do, however
+fast or slow the SYNCs come.
 
 Fault injection: ``inject(Fault(kind, node_id, at_tick, ticks))`` with kind one of
 ``drop_tpdo`` (a drive sends no TPDO), ``emcy`` (EMCY 0x2310 and FAULT), ``stop_heartbeat``,
@@ -195,7 +197,7 @@ class EmulatedDrive:
 
     def _set_heartbeat(self, heartbeat_time_ms: int) -> None:
         self.heartbeat_us = int(heartbeat_time_ms) * 1000
-        self.last_heartbeat_us = self.emu.time_us - self.heartbeat_us  # first one at once
+        self.last_heartbeat_us = self.emu.heartbeat_clock_us() - self.heartbeat_us  # at once
 
     @property
     def nmt_state(self) -> str:
@@ -447,6 +449,7 @@ class DriveEmulator:
         spec.check_eds(f"can.{side}")
         self.period_us = round(cfg.dt * 1e6)
         self.time_us = 0
+        self._wall_origin: float | None = None  # set by ``serve``: heartbeats by the wall clock
         self.network = canopen.Network(bus)  # no notifier: poll() feeds it, one thread
         self.drives = [EmulatedDrive(self, d) for d in spec.drives]
         if rated_torque_raw is not None:
@@ -534,7 +537,7 @@ class DriveEmulator:
         if 0x701 <= cob <= 0x77F:
             for d in self.drives:
                 if d.watch_master_id == cob - 0x700:
-                    d.master_seen_us = self.time_us
+                    d.master_seen_us = self.heartbeat_clock_us()
             return
         self.network.notify(cob, bytearray(data), msg.timestamp)  # SDO requests
 
@@ -545,7 +548,7 @@ class DriveEmulator:
         when the SYNC comes, before answering."""
         self.sync_count += 1
         self.time_us += self.period_us
-        now = self.time_us
+        now = self.heartbeat_clock_us()
         if self._lazy:  # asynchronous RPDOs acted during the period: advance only now
             self._prepare(advance=True)
         elif self._outbox is None:  # nothing prepared (start, NMT change): sample now
@@ -562,6 +565,12 @@ class DriveEmulator:
             self.released = True  # brakes off: the world clock starts at this SYNC
         if not self._lazy:
             self._prepare(advance=True)
+
+    def heartbeat_clock_us(self) -> int:
+        """The drives' clock for heartbeats: the SYNC count when stepped, the wall in ``serve``."""
+        if self._wall_origin is None:
+            return self.time_us
+        return round((time.monotonic() - self._wall_origin) * 1e6)
 
     def _prepare(self, advance: bool) -> None:
         """The state at the next SYNC: the plant advanced over the coming period with the torques
@@ -668,6 +677,8 @@ class DriveEmulator:
         look, instead of blocking in the bus's ``recv``. A drive is always listening; on a VM,
         an emulator woken by each frame from another CPU answers late far more often."""
         last_wall = time.monotonic()
+        with self._lock:  # from here heartbeats run on the wall clock (from the same value)
+            self._wall_origin = last_wall - self.heartbeat_clock_us() / 1e6
         last_sync = self.sync_count
         idle_after = idle_sync_periods * self.period_us / 1e6
         recv, sleep = self.bus.recv, time.sleep
@@ -676,9 +687,10 @@ class DriveEmulator:
                 msg = recv(0.0)
                 if msg is None:
                     sleep(poll_s)
-                    continue
             else:
                 msg = recv(0.01)
+            if msg is None and time.monotonic() - last_wall <= idle_after:
+                continue  # nothing came and nothing is due
             with self._lock:
                 if msg is not None:
                     self.handle(msg)
@@ -690,8 +702,8 @@ class DriveEmulator:
                     last_wall = now
                     for d in self.drives:
                         d.advance_state()  # e.g. FAULT REACTION ACTIVE -> FAULT
-                        d.heartbeat(self.time_us, False)
-                        d.watch_master(self.time_us)
+                        d.heartbeat(self.heartbeat_clock_us(), False)
+                        d.watch_master(self.heartbeat_clock_us())
 
 
 def _padded(frames: list[tuple[int, bytes]]) -> list[tuple[int, bytes]]:
