@@ -707,3 +707,39 @@ def test_heartbeats_are_wall_clock_times_when_ticks_are_slow(free_running) -> No
             time.sleep(SLOW_TICK_S)
             run_ticks(backend, 1)
     assert backend.tick - start < 50, info.value  # 150 ms at >= 10 ms a tick: about 15
+
+
+# --- frames stay on this host -------------------------------------------------------------
+def multicast_ttl(bus: can.BusABC) -> int:
+    """The multicast TTL of a python-can udp_multicast bus's socket."""
+    import socket
+    import struct
+
+    sock = bus._multicast._socket
+    raw = sock.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 4)
+    return struct.unpack("@I", raw)[0]
+
+
+def test_udp_multicast_buses_keep_their_frames_on_this_host() -> None:
+    """python-can's udp_multicast sends with a TTL of 1 (out on the network) unless told: the
+    default ``can:`` section, configs/can_emulated.yaml and a bus without a hop_limit of its
+    own all resolve to hop_limit 0 (a TTL of 0 never leaves the host); one given is kept."""
+    from teleop_rt.hal.can.config import CanBusSpec, CanSpec
+
+    given = CanBusSpec(interface="udp_multicast", channel="239.74.163.7", options={"port": 47811})
+    cases = [CanSpec().hsi.bus, CanSpec().to.bus, make_cfg().can.hsi.bus, make_cfg().can.to.bus]
+    for bus in [*cases, given]:
+        assert bus.kwargs()["hop_limit"] == 0, bus
+    own = CanBusSpec(interface="udp_multicast", channel="239.74.163.7", options={"hop_limit": 2})
+    assert own.kwargs()["hop_limit"] == 2  # the user's choice
+    assert "hop_limit" not in CanBusSpec(interface="socketcan", channel="can0").kwargs()
+    # --backend can on a config without a can: section: the bus the backend opens
+    plain = config.load(ROOT / "configs" / "paper_experiment.yaml", ["backend=can"])
+    assert plain.can is None
+    for side in ("hsi", "to"):
+        backend = make_backend(plain, side)
+        backend._open_bus()
+        try:
+            assert multicast_ttl(backend.bus) == 0
+        finally:
+            backend.stop()

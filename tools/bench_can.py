@@ -5,9 +5,10 @@
                               [--emulator-realtime] [--emulator-poll-us US]
 
 Starts ``tools/drive_emulator.py`` for one robot (two drives and a torque sensor by default)
-over the config's bus (``udp_multicast`` on loopback in configs/can_emulated.yaml), runs the
-backend's start-up, then ``read`` / ``write`` at the config's rate with absolute deadlines for
-S seconds (default 60), a light joint damper as the controller. Prints:
+over the config's bus (``udp_multicast`` on this host in configs/can_emulated.yaml: hop_limit
+0, as for every udp_multicast bus that does not set one), runs the backend's start-up, then
+``read`` / ``write`` at the config's rate with absolute deadlines for S seconds (default 60), a
+light joint damper as the controller. Prints:
 
 * missed feedback windows: cycles in which some drive's TPDO (or the sensor's) was not in
   within ``feedback_window_us`` after SYNC, and frames that came late;

@@ -9,7 +9,8 @@ backend over a real python-can interface.
 
 The buses, node ids and units come from the config's ``can:`` section (its defaults when the
 config has none: udp_multicast 239.74.163.1 port 43113 for the HSI, 239.74.163.2 port 43114 for
-the TO, nodes 1 and 2, sensor TPDO 0x18A), the joint dynamics, operator and environment from
+the TO, hop_limit 0 so no frame leaves this host, nodes 1 and 2, sensor TPDO 0x18A), the joint
+dynamics, operator and environment from
 the rest of the config: the project's simulated plant, advanced one period per SYNC. Every
 robot (``--side both``, the default) is served by a process of its own.
 
