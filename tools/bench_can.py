@@ -51,7 +51,10 @@ def pct(a: np.ndarray, p: float) -> float:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("config", nargs="?", default=str(ROOT / "configs" / "can_emulated.yaml"))
-    p.add_argument("--seconds", type=float, default=60.0)
+    p.add_argument(
+        "--seconds", type=float, default=60.0, metavar="S",
+        help="how long the loop runs against the emulator, in seconds of wall time (default 60)",
+    )  # fmt: skip
     p.add_argument("--side", choices=("hsi", "to"), default="hsi")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
     p.add_argument("--emulator-realtime", action="store_true", help="SCHED_FIFO for the emulator")
