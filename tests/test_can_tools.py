@@ -62,6 +62,8 @@ def test_sigint_to_the_emulator_ends_both_robots_emulators() -> None:
             line = proc.stdout.readline()
             assert line, f"the emulator ended early: {proc.stderr.read()}"
             ready += line.startswith("ready")
+            if line.startswith("emulating"):  # the bus as configured (was 'on unknown')
+                assert " on udp_multicast 239.74." in line, line
         children = children_of(proc.pid)
         assert ready == 2 and len(children) == 2, children
         proc.send_signal(signal.SIGINT)

@@ -181,7 +181,8 @@ def main(argv: list[str] | None = None) -> int:
             nodes = ", ".join(str(d.node_id) for d in emu.drives)
             sensor = spec.side(side).torque_sensor
             extra = f", torque sensor TPDO 0x{sensor.cob_id:03X}" if sensor else ""
-            print(f"emulating {side}: drives {nodes}{extra} on {bus.channel_info}", flush=True)
+            where = " ".join(str(kwargs[k]) for k in ("interface", "channel") if k in kwargs)
+            print(f"emulating {side}: drives {nodes}{extra} on {where}", flush=True)
 
     if args.realtime:
         from teleop_rt.loop import acquire_realtime
