@@ -35,6 +35,7 @@ from teleop_rt.config import SessionConfig
 from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop
 from teleop_rt.flat import Block, Packed
 from teleop_rt.hal.base import FusedPlants
+from teleop_rt.hal.stopping import stop_all
 from teleop_rt.lockstep import SESSION_BLOCKS, PairState, lockstep_after, lockstep_before
 from teleop_rt.loop import StopSignals, TickClock, TimingStats, acquire_realtime
 from teleop_rt.site import HsiSite, Site, ToSite
@@ -311,8 +312,7 @@ class Session:
             raise
         finally:
             stop.uninstall()
-            self.hsi.backend.stop()
-            self.to.backend.stop()
+            stop_all([self.hsi.backend, self.to.backend], self.dt)
             if grant:
                 grant.release()
             notes += self.hsi.backend.notes() + self.to.backend.notes()

@@ -27,7 +27,7 @@ from teleop_rt.errors import BackendError, ConfigError, SafetyStop
 from teleop_rt.hal.base import create_backend
 from teleop_rt.hal.can.backend import CanBackend
 from teleop_rt.hal.can.config import DEFAULT_EDS
-from teleop_rt.hal.can.emulator import FAULT, OE, SOD, DriveEmulator, Fault, emulated_bus
+from teleop_rt.hal.can.emulator import FAULT, OE, QSA, SOD, DriveEmulator, Fault, emulated_bus
 from teleop_rt.model import RobotModel
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -206,7 +206,7 @@ def test_a_lost_heartbeat_stops_within_3_ticks_of_its_timeout(started) -> None:
     backend.emulator.inject(Fault("stop_heartbeat", 1))
     with pytest.raises(SafetyStop, match=r"hsi joint 0 \(drive node 1\): heartbeat lost") as info:
         run_ticks(backend, 100)
-    overdue = backend.tick - backend._last_hb[0] - backend.hb_timeout_ticks
+    overdue = (backend._now() - backend._last_hb_ns[0] - backend.hb_timeout_ns) / 1e6  # ticks
     assert 1 <= overdue <= 3, info.value
     assert_stopped_safely(backend)
 
@@ -275,13 +275,38 @@ def test_a_bus_the_interface_reports_in_error_is_a_safe_stop(started, monkeypatc
     assert_stopped_safely(backend)
 
 
+def test_a_pdo_shorter_than_its_mapping_is_a_safe_stop(started) -> None:
+    backend = started()
+    run_ticks(backend, 4)
+    short = can.Message(arbitration_id=0x282, data=b"\x37\x02\x00", is_extended_id=False)
+    backend.emulator.bus.send(short)  # seen in the drain before the next SYNC
+    with pytest.raises(
+        SafetyStop,
+        match=r"hsi joint 1 \(drive node 2\): malformed frame 0x282: TPDO2 .*: expected 4 data "
+        r"bytes, received 3",
+    ):
+        run_ticks(backend, 1)
+    assert_stopped_safely(backend)
+
+
+def test_a_short_sensor_pdo_is_a_safe_stop_not_a_crash(started) -> None:
+    backend = started()
+    run_ticks(backend, 4)
+    backend.emulator.bus.send(can.Message(arbitration_id=0x18A, data=bytes(5)))
+    with pytest.raises(
+        SafetyStop, match=r"torque sensor: malformed frame 0x18A: .*expected 8 data bytes, rec"
+    ):
+        run_ticks(backend, 1)
+    assert_stopped_safely(backend)
+
+
 def test_drives_fault_when_the_master_heartbeat_stops(started) -> None:
     backend = started()
-    backend.master_hb_ticks = 10**9  # the master goes silent (but keeps SYNCing)
+    backend.master_hb_ns = 1 << 62  # the master goes silent (but keeps SYNCing)
     with pytest.raises(SafetyStop, match=r"EMCY 0x8130 \(Monitoring\)"):
         run_ticks(backend, 300)
     # the drives' own watch (0x1016, 200 ms) fired 200 ms after the master's last heartbeat
-    assert 200 < backend.tick - backend.master_hb_tick <= 203
+    assert 200 < (backend._now() - backend.master_hb_at_ns) / 1e6 <= 203  # ticks of 1 ms
 
 
 def test_nan_torque_never_reaches_a_drive(started) -> None:
@@ -317,6 +342,43 @@ def test_normal_stop_quick_stops_then_disables(started) -> None:
         assert all(t == 0 for _, t, _ in drive.commands[last_enabled + 1 :])
 
 
+def test_a_quick_stop_that_does_not_finish_ends_disabled(started) -> None:
+    """A drive that stays in QUICK STOP ACTIVE (quick stop option 5..8, or a slow ramp) when
+    stop_ticks runs out gets disable voltage until SWITCH ON DISABLED, then NMT pre-op."""
+    backend = started("can.stop_ticks=10")
+    run_ticks(backend, 5, tau=0.3)
+    held = backend.emulator.drives[0]
+    held.quick_stop_option = 6  # the drive stays halted in QUICK STOP ACTIVE
+    backend.stop()
+    all_cws = [cw for cw, _, _ in held.commands]
+    stop = held.commands[max(k for k, cw in enumerate(all_cws) if cw == 0x0F) + 1 :]
+    cws = [cw for cw, _, _ in stop]
+    assert cws[:10] == [0x02] * 10 and set(cws[10:]) == {0x00}  # quick stop, then disable
+    # ... the first disable voltage reaching it in QUICK STOP ACTIVE, the rest as it reports SOD
+    assert [state for _, _, state in stop] == [OE] + [QSA] * 10 + [SOD] * (len(stop) - 11)
+    assert held.state == SOD and held.nmt_log[-1] == "pre-op"
+    assert all(t == 0 for _, t, _ in stop)
+    assert backend.notes() == [
+        "can: hsi: quick stop not complete after 10 ticks (node 1: QUICK STOP ACTIVE): "
+        "disable voltage sent"
+    ]
+
+
+def test_a_drive_that_is_not_disabled_at_the_end_is_named(started) -> None:
+    backend = started("can.stop_ticks=5", "can.disable_ticks=4")
+    run_ticks(backend, 5)
+    stuck = backend.emulator.drives[1]
+    stuck.quick_stop_option = 6
+    stuck._controlword = lambda cw: None  # then ignores every controlword: stays enabled
+    backend.stop()
+    assert stuck.state == OE and stuck.nmt_log[-1] == "pre-op"  # NMT pre-op all the same
+    assert backend.notes()[-1] == (
+        "can: hsi joint 1 (drive node 2): not SWITCH ON DISABLED at NMT pre-operational "
+        "(OPERATION ENABLED, statusword 0x0237)"
+    )
+    assert backend.emulator.drives[0].state == SOD
+
+
 # --- configuration errors -----------------------------------------------------------------
 def test_drive_count_must_match_the_joints() -> None:
     cfg = make_cfg("can.hsi.drives=[{node_id: 1, counts_per_rev: 4096}]")
@@ -338,6 +400,95 @@ def test_a_missing_drive_is_one_clear_error() -> None:
             backend.start()
     finally:
         backend.stop()
+
+
+def aborting(drive, index: int, sub: int, code: int):
+    """Make an emulated drive abort SDO writes to index:sub with ``code``."""
+    from canopen.sdo.exceptions import SdoAbortedError
+
+    def check(**request) -> None:  # canopen passes index, subindex, od, data
+        if (request["index"], request["subindex"]) == (index, sub):
+            raise SdoAbortedError(code)
+
+    drive.node.add_write_callback(check)
+
+
+@pytest.mark.parametrize(
+    ("index", "sub", "code", "message"),
+    [
+        (
+            0x605A,
+            0,
+            0x06090030,
+            "can: hsi drive node 2: SDO write 0x605A:00 (Quick stop option code) = 2 aborted by "
+            "the drive: Code 0x06090030, Value range of parameter exceeded",
+        ),
+        (  # inside canopen's PDO mapping, which does not say which object it wrote
+            0x1A01,
+            2,
+            0x06040041,
+            "can: hsi drive node 2: SDO write 0x1A01:02 (TPDO2 mapping parameter: Mapped object "
+            "2) aborted by the drive: Code 0x06040041, Object cannot be mapped to the PDO",
+        ),
+    ],
+    ids=["write", "pdo-mapping"],
+)
+def test_an_sdo_abort_at_start_names_the_drive_and_the_object(index, sub, code, message) -> None:
+    backend = make_backend(make_cfg())
+    backend._open_bus()
+    aborting(backend.emulator.drives[1], index, sub, code)
+    try:
+        with pytest.raises(BackendError) as info:
+            backend.start()
+        assert str(info.value) == message
+    finally:
+        backend.stop()
+
+
+def test_cli_an_sdo_abort_at_start_is_one_line(tmp_path) -> None:
+    """A drive whose EDS makes 0x605A read-only aborts the master's write (in-process
+    emulator, its own EDS): one line naming drive and object, no traceback."""
+    eds = DEFAULT_EDS.read_text().replace(
+        "ParameterName=Quick stop option code\nObjectType=0x7\nDataType=0x0003\nAccessType=rw",
+        "ParameterName=Quick stop option code\nObjectType=0x7\nDataType=0x0003\nAccessType=ro",
+    )
+    (tmp_path / "ro.eds").write_text(eds)
+    path = write_config(tmp_path, "ro.eds")
+    sets = [a for o in FAST for a in ("--set", o)]
+    run = subprocess.run(
+        [sys.executable, "-m", "teleop_rt.cli", "run", str(path), *sets, "--duration", "0.1",
+         "--no-log"],
+        capture_output=True, text=True, cwd=ROOT, timeout=120,
+    )  # fmt: skip
+    assert run.returncode != 0
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in run.stderr, run.stderr
+    assert (
+        "can: hsi drive node 1: SDO write 0x605A:00 (Quick stop option code) = 2 aborted by the "
+        "drive: Code 0x06010002, Attempt to write a read only object"
+    ) in lines[0]
+
+
+def test_cli_no_boot_up_names_the_bus_by_interface_and_channel() -> None:
+    """No drive on the bus (a port nobody serves): the message names the configured bus."""
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # free now; no emulator listens there
+    run = subprocess.run(
+        [sys.executable, "-m", "teleop_rt.cli", "run", str(CAN_CONFIG), "--no-log",
+         "--duration", "0.1", "--set", "can.boot_timeout_s=0.3",
+         "--set", f"can.hsi.bus.options={{port: {port}, hop_limit: 0}}"],
+        capture_output=True, text=True, cwd=ROOT, timeout=120,
+    )  # fmt: skip
+    assert run.returncode != 0
+    lines = run.stderr.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in run.stderr, run.stderr
+    assert (
+        "can: hsi drive node 1: no boot-up within 0.3 s after NMT reset (is the drive powered "
+        "and on udp_multicast 239.74.163.1?)"
+    ) in lines[0]
 
 
 def test_an_unopenable_bus_is_one_clear_error() -> None:
@@ -428,7 +579,7 @@ def free_running(tmp_path):
 
     stops: list = []
 
-    def start() -> CanBackend:
+    def start(*overrides: str) -> CanBackend:
         channel = f"free-running-{tmp_path.name}"
         cfg = make_cfg(
             "can.emulate=false",
@@ -437,6 +588,7 @@ def free_running(tmp_path):
             "can.missed_feedback_ticks=20",
             "can.heartbeat_ms=20",
             "can.heartbeat_timeout_ms=60",
+            *overrides,
         )
         emu = DriveEmulator(can.Bus(interface="virtual", channel=channel), cfg, "hsi")
         stop = threading.Event()
@@ -531,3 +683,63 @@ def test_the_free_running_emulator_answers_sync_blocking_or_polling(poll_s) -> N
         emulator_bus.shutdown()
         master.shutdown()
     assert not thread.is_alive()
+
+
+SLOW_TICK_S = 0.01  # a loaded host in fast mode: ticks 10 times longer than the period
+
+
+def test_heartbeats_are_wall_clock_times_when_ticks_are_slow(free_running) -> None:
+    """Ticks of 10 ms against a 1 ms period: the master's heartbeat (50 ms) still goes out by
+    the wall clock, so the drives' 200 ms watch (0x1016) stays quiet; counted in ticks it
+    would go out every 500 ms and every drive would fault. A drive's heartbeat (every 20 ms)
+    that stops is missed after 150 ms of wall time, not after 150 ticks."""
+    backend = free_running("can.heartbeat_timeout_ms=150")
+    emu = backend.emu
+    for _ in range(60):  # 0.6 s and more
+        time.sleep(SLOW_TICK_S)
+        run_ticks(backend, 1)
+    with emu._lock:
+        assert [d.state for d in emu.drives] == [OE, OE]
+        emu.inject(Fault("stop_heartbeat", 2))
+    start = backend.tick
+    with pytest.raises(SafetyStop, match=r"hsi joint 1 \(drive node 2\): heartbeat lost") as info:
+        for _ in range(150):
+            time.sleep(SLOW_TICK_S)
+            run_ticks(backend, 1)
+    assert backend.tick - start < 50, info.value  # 150 ms at >= 10 ms a tick: about 15
+
+
+# --- frames stay on this host -------------------------------------------------------------
+def multicast_ttl(bus: can.BusABC) -> int:
+    """The multicast TTL of a python-can udp_multicast bus's socket."""
+    import socket
+    import struct
+
+    sock = bus._multicast._socket
+    raw = sock.getsockopt(socket.IPPROTO_IP, socket.IP_MULTICAST_TTL, 4)
+    return struct.unpack("@I", raw)[0]
+
+
+def test_udp_multicast_buses_keep_their_frames_on_this_host() -> None:
+    """python-can's udp_multicast sends with a TTL of 1 (out on the network) unless told: the
+    default ``can:`` section, configs/can_emulated.yaml and a bus without a hop_limit of its
+    own all resolve to hop_limit 0 (a TTL of 0 never leaves the host); one given is kept."""
+    from teleop_rt.hal.can.config import CanBusSpec, CanSpec
+
+    given = CanBusSpec(interface="udp_multicast", channel="239.74.163.7", options={"port": 47811})
+    cases = [CanSpec().hsi.bus, CanSpec().to.bus, make_cfg().can.hsi.bus, make_cfg().can.to.bus]
+    for bus in [*cases, given]:
+        assert bus.kwargs()["hop_limit"] == 0, bus
+    own = CanBusSpec(interface="udp_multicast", channel="239.74.163.7", options={"hop_limit": 2})
+    assert own.kwargs()["hop_limit"] == 2  # the user's choice
+    assert "hop_limit" not in CanBusSpec(interface="socketcan", channel="can0").kwargs()
+    # --backend can on a config without a can: section: the bus the backend opens
+    plain = config.load(ROOT / "configs" / "paper_experiment.yaml", ["backend=can"])
+    assert plain.can is None
+    for side in ("hsi", "to"):
+        backend = make_backend(plain, side)
+        backend._open_bus()
+        try:
+            assert multicast_ttl(backend.bus) == 0
+        finally:
+            backend.stop()

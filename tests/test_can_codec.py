@@ -96,17 +96,19 @@ def test_pack_rpdo1_rejects_a_buffer_of_the_wrong_size(size: int) -> None:
 
 
 # --- wrong-length frames -------------------------------------------------------------------
+# a shorter PDO is an error, a longer one is read (CiA 301); EMCY and heartbeat have one length
 @pytest.mark.parametrize(
-    ("decode", "obj", "expected"),
+    ("decode", "obj", "expected", "delta"),
     [
-        (codec.unpack_rpdo1, "RPDO1", 4),
-        (codec.unpack_tpdo1, "TPDO1", 8),
-        (codec.unpack_tpdo2, "TPDO2", 4),
-        (codec.decode_emcy, "EMCY", 8),
-        (codec.decode_heartbeat, "heartbeat", 1),
+        (codec.unpack_rpdo1, "RPDO1", 4, -1),
+        (codec.unpack_tpdo1, "TPDO1", 8, -1),
+        (codec.unpack_tpdo2, "TPDO2", 4, -1),
+        (codec.decode_emcy, "EMCY", 8, -1),
+        (codec.decode_emcy, "EMCY", 8, +1),
+        (codec.decode_heartbeat, "heartbeat", 1, -1),
+        (codec.decode_heartbeat, "heartbeat", 1, +1),
     ],
 )
-@pytest.mark.parametrize("delta", [-1, +1])
 def test_wrong_length_frame_names_object_and_lengths(decode, obj, expected, delta) -> None:
     received = expected + delta
     with pytest.raises(ValueError) as info:
@@ -117,6 +119,18 @@ def test_wrong_length_frame_names_object_and_lengths(decode, obj, expected, delt
     assert "\n" not in message
     # One error tree: the CLI prints a BackendError as one line.
     assert isinstance(info.value, CanFrameError) and isinstance(info.value, BackendError)
+
+
+@pytest.mark.parametrize(
+    ("decode", "size"),
+    [(codec.unpack_rpdo1, 4), (codec.unpack_tpdo1, 8), (codec.unpack_tpdo2, 4)],
+)
+def test_a_longer_pdo_is_read_from_its_leading_bytes(decode, size) -> None:
+    """CiA 301: a PDO consumer uses the mapped leading bytes of a longer PDO."""
+    frame = bytes(range(1, size + 1))
+    assert decode(frame + b"\xff\xee") == decode(frame)
+    assert codec.pdo_excess("x", size, frame + b"\xff") == 1
+    assert codec.pdo_excess("x", size, frame) == 0
 
 
 def test_tpdo1_length_error_names_the_mapped_objects() -> None:

@@ -32,7 +32,7 @@ from teleop_rt import config
 from teleop_rt.cli import main
 from teleop_rt.hal import sim
 from teleop_rt.hal.base import register_backend
-from teleop_rt.hal.can.emulator import SOD, Fault
+from teleop_rt.hal.can.emulator import QSA, SOD, Fault
 from teleop_rt.recording.reader import read_log
 from teleop_rt.recording.recorder import Recorder
 from teleop_rt.session import Session
@@ -153,3 +153,103 @@ def test_a_drive_that_never_enables_is_a_safe_stop_at_start() -> None:
     assert summary.safety_stop and summary.ticks == 0
     assert "hsi drives did not reach OPERATION ENABLED within 30 ticks" in summary.stopped_early
     assert "node 1: SWITCH ON DISABLED" in summary.stopped_early
+
+
+def test_both_robots_stop_together_each_bus_cycling_until_its_drives_are_disabled() -> None:
+    """The stop is stepped on both buses at once: every period each bus still stopping gets
+    its SYNC and one RPDO per drive, until its drives report SWITCH ON DISABLED; then one
+    last SYNC and NMT pre-operational. The drives take a few SYNCs to decelerate in QUICK
+    STOP ACTIVE (the TO's longer), so the two robots' stops overlap."""
+    cfg = config.load(CAN, [*FAST, "duration_s=0.03"])
+    session = Session(cfg)
+    total = cfg.n_ticks
+    events: list[tuple] = []  # (side, frame kind, the drives' states when it arrived)
+
+    def watch(s: Session) -> None:
+        if s.tick == 1:
+            for name, side, syncs in (("hsi", s.hsi, 4), ("to", s.to, 9)):
+                emu = side.backend.emulator
+                for d in emu.drives:
+                    d.quick_stop_syncs = syncs
+                emu.handle = logged(name, emu, emu.handle)
+        if s.tick == total:
+            events.append(("stop",))  # the loop is over: the stop begins
+
+    def logged(name, emu, handle):
+        def log(msg) -> None:
+            cob = msg.arbitration_id
+            kind = {0x080: "SYNC", 0x000: "NMT"}.get(cob, "RPDO" if 0x201 <= cob <= 0x27F else "")
+            if kind:
+                events.append((name, kind, tuple(d.state for d in emu.drives)))
+            handle(msg)
+
+        return log
+
+    summary = session.run(observer=watch)
+    assert summary.ticks == total and summary.stopped_early is None
+    stop = events[events.index(("stop",)) + 1 :]
+    counts = {}
+    for name in ("hsi", "to"):
+        frames = [e[1:] for e in stop if e[0] == name]
+        kinds = [k for k, _ in frames]
+        n = kinds.count("SYNC")
+        counts[name] = n
+        # every period a SYNC and an RPDO per drive, then the last SYNC and NMT per drive
+        assert kinds == ["SYNC", "RPDO", "RPDO"] * (n - 1) + ["SYNC", "NMT", "NMT"], kinds
+        last_sync = len(kinds) - 3
+        assert frames[last_sync][1] == (SOD, SOD)  # disabled before NMT pre-operational
+        decelerating = [states for kind, states in frames if kind == "SYNC" and QSA in states]
+        assert len(decelerating) >= {"hsi": 4, "to": 9}[name]  # SYNC all the way through it
+    assert counts["to"] > counts["hsi"] + 2  # the TO went on stopping after the HSI was done
+    syncs = [e[0] for e in stop if e[1] == "SYNC"]
+    both = ["hsi", "to"] * counts["hsi"] + ["to"] * (counts["to"] - counts["hsi"])
+    assert syncs == both  # one period: one SYNC on each bus still stopping
+
+
+def test_stop_all_stops_the_others_when_one_robot_fails_to_stop() -> None:
+    from teleop_rt.hal.stopping import stop_all
+
+    class Robot:
+        def __init__(self, steps: int, fail: bool = False) -> None:
+            self.steps, self.fail, self.calls = steps, fail, 0
+
+        def begin_stop(self) -> None:
+            pass
+
+        def stop_step(self) -> bool:
+            self.calls += 1
+            if self.fail:
+                raise RuntimeError("bus gone")
+            return self.calls >= self.steps
+
+    broken, slow = Robot(1, fail=True), Robot(5)
+    with pytest.raises(RuntimeError, match="bus gone"):
+        stop_all([broken, slow], 1e-4)
+    assert (broken.calls, slow.calls) == (1, 5)  # the broken one not retried, the other done
+    stuck = Robot(10**9)
+    assert stop_all([stuck, Robot(2)], 1e-5, max_steps=20) == [stuck]  # bounded
+    assert stuck.calls == 20
+
+
+def test_a_pdo_longer_than_its_mapping_is_read_counted_and_noted() -> None:
+    """A drive that pads its 4-byte TPDO2 to 5 bytes from the first SYNC on (CiA 301: the
+    consumer uses the mapped leading bytes): the session runs, the summary says so."""
+    cfg = config.load(CAN, [*FAST, "duration_s=0.2"])
+    session = Session(cfg)
+    backend = session.hsi.backend
+    original = backend._open_bus
+
+    def open_bus() -> None:
+        original()
+        backend.emulator.inject(Fault("long_tpdo", 1, 0))  # from world tick 0: start-up too
+
+    backend._open_bus = open_bus
+    summary = session.run()
+    assert summary.ticks == 200 and summary.stopped_early is None
+    count = backend.stats["long_pdos"]
+    assert count > 100  # TPDO2 every second SYNC, start-up included
+    assert (
+        f"can: hsi joint 0 (drive node 1): {count} PDO(s) 0x281 of 5 bytes, longer than their "
+        "mapping (4 bytes): the mapped leading bytes were used (CiA 301)"
+    ) in summary.notes
+    assert [d.state for d in backend.emulator.drives] == [SOD, SOD]  # stopped as usual

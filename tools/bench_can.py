@@ -5,9 +5,10 @@
                               [--emulator-realtime] [--emulator-poll-us US]
 
 Starts ``tools/drive_emulator.py`` for one robot (two drives and a torque sensor by default)
-over the config's bus (``udp_multicast`` on loopback in configs/can_emulated.yaml), runs the
-backend's start-up, then ``read`` / ``write`` at the config's rate with absolute deadlines for
-S seconds (default 60), a light joint damper as the controller. Prints:
+over the config's bus (``udp_multicast`` on this host in configs/can_emulated.yaml: hop_limit
+0, as for every udp_multicast bus that does not set one), runs the backend's start-up, then
+``read`` / ``write`` at the config's rate with absolute deadlines for S seconds (default 60), a
+light joint damper as the controller. Prints:
 
 * missed feedback windows: cycles in which some drive's TPDO (or the sensor's) was not in
   within ``feedback_window_us`` after SYNC, and frames that came late;
@@ -56,8 +57,9 @@ def main(argv: list[str] | None = None) -> int:
         help="session config with a can: section (default: configs/can_emulated.yaml)",
     )
     p.add_argument(
-        "--seconds", type=float, default=60.0, metavar="S", help="real-time run (default 60)"
-    )
+        "--seconds", type=float, default=60.0, metavar="S",
+        help="how long the loop runs against the emulator, in seconds of wall time (default 60)",
+    )  # fmt: skip
     p.add_argument(
         "--side", choices=("hsi", "to"), default="hsi", help="the robot to run (default hsi)"
     )
@@ -153,7 +155,7 @@ def transport_free(cfg: config.SessionConfig, side: str, cycles: int) -> None:
         frames.append(can.Message(arbitration_id=backend.sensor.cob_id, data=bytes(size)))
     backend.spec = backend.spec.model_copy(update={"emulate": True})  # no pacing
     backend.window_ns = 0
-    backend.hb_timeout_ticks = 10**9  # no heartbeats on this bus
+    backend.hb_timeout_ns = 1 << 62  # no heartbeats on this bus
     backend.begin_cyclic(info, PrimedBus(frames))
     tau = [0.0] * backend.n
     cpu = np.zeros(cycles, dtype=np.int64)

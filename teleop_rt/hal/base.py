@@ -103,6 +103,19 @@ class Backend(ABC):
     def stop(self) -> None:
         """Leave the hardware safe: zero torque, drives disabled. Must be idempotent."""
 
+    def begin_stop(self) -> None:
+        """Start ``stop`` without blocking: ``stop_step`` then does one period of it per call,
+        so ``teleop_rt.hal.stopping.stop_all`` steps every robot's stop together (no bus goes
+        without its SYNC while another robot stops). Default: nothing to begin."""
+        return
+
+    def stop_step(self) -> bool:
+        """One period of the stop begun by ``begin_stop``: True once stopped (and on every
+        later call). Bounded: a backend is done within a number of calls it documents.
+        Default: the whole ``stop()`` at once (a simulated robot needs no periods)."""
+        self.stop()
+        return True
+
     def notes(self) -> list[str]:
         """What the session summary should say of this backend once it is stopped (what went
         wrong while stopping, warnings that were not faults); none by default."""

@@ -18,13 +18,17 @@ messages (canopen's PDO objects cost about 15 us per access).
 
 Faults end the session with ``SafetyStop`` from ``read()`` or ``write()``, naming the robot,
 joint, drive node and reason: a drive's feedback missing ``missed_feedback_ticks`` (3) ticks in
-a row, an EMCY, a drive heartbeat not seen for ``heartbeat_timeout_ms`` (counted in ticks), a
-statusword that leaves OPERATION ENABLED (fault, quick stop, disabled), a drive leaving NMT
-OPERATIONAL, a CAN error frame (seen in the frames the cycle reads anyway), a bus the interface
-reports in ``BusState.ERROR`` (polled every ``missed_feedback_ticks`` ticks: a counter check per
-tick, the interface call only then) or a failing send / receive. ``stop()`` then sends zero
-torque with quick stop until each drive reports SWITCH ON DISABLED, then disable voltage, then
-NMT pre-operational.
+a row, an EMCY, a drive heartbeat not seen for ``heartbeat_timeout_ms`` (wall clock, like the
+master's heartbeat every ``master_heartbeat_ms``: not counted in ticks), a statusword that
+leaves OPERATION ENABLED (fault, quick stop, disabled), a drive leaving NMT OPERATIONAL, a CAN
+error frame (seen in the frames the cycle reads anyway), a bus the interface reports in
+``BusState.ERROR`` (polled every ``missed_feedback_ticks`` ticks: a counter check per tick, the
+interface call only then) or a failing send / receive. The stop then sends zero torque with
+quick stop until each drive reports SWITCH ON DISABLED (disable voltage for those that did not
+get there within ``stop_ticks``), then NMT pre-operational. It is stepped, one SYNC period per
+``stop_step`` (``begin_stop`` first), so that ``teleop_rt.hal.stopping.stop_all`` stops both
+robots together, each bus cycling every period until its drives are disabled; ``stop()`` runs
+it to the end here.
 
 Between a robot's start and the loop's first ``read`` (while the session starts the other
 robot), a keepalive thread runs the same cycle with zero torque, so the drives keep their SYNC
@@ -36,7 +40,6 @@ RPDO), one tick later than on the simulated backend, whose ``write`` acts on the
 
 from __future__ import annotations
 
-import math
 import time
 from typing import TYPE_CHECKING
 
@@ -54,7 +57,11 @@ if TYPE_CHECKING:
     from teleop_rt.model import RobotModel
 
 _TPDO1, _TPDO2, _EMCY, _HEARTBEAT, _SENSOR = range(5)
+_TPDO1_SIZE, _TPDO2_SIZE = codec.TPDO1_STRUCT.size, codec.TPDO2_STRUCT.size
+_unpack_tpdo1, _unpack_tpdo2 = codec.TPDO1_STRUCT.unpack_from, codec.TPDO2_STRUCT.unpack_from
 _SOD = "SWITCH ON DISABLED"
+# the stop's phases
+_QUICK_STOP, _DISABLE, _NMT, _DONE = "quick stop", "disable", "NMT pre-operational", "done"
 _FAULT_STATES = ("FAULT", "FAULT REACTION ACTIVE")
 
 
@@ -103,11 +110,15 @@ class CanBackend(Backend):
         self.emulator = None  # the in-process emulator when can.emulate is on
         self.bus: can.BusABC | None = None
         self.drive_info: list = []
-        rate = cfg.rate_hz
         self.period_ns = round(cfg.dt * 1e9)
         self.window_ns = 0 if spec.emulate else spec.feedback_window_us * 1000
-        self.hb_timeout_ticks = math.ceil(spec.heartbeat_timeout_ms * rate / 1000)
-        self.master_hb_ticks = max(1, round(spec.master_heartbeat_ms * rate / 1000))
+        # Heartbeats are wall-clock times on both sides (a drive's 0x1016 watch runs on its own
+        # clock), whatever the tick rate: ticks run faster than real time in fast mode, and a
+        # loaded host stretches them. The in-process emulator's clock is the tick, so there
+        # ``_now`` is too (deterministic tests).
+        self._now = self._tick_time if spec.emulate else time.perf_counter_ns
+        self.hb_timeout_ns = spec.heartbeat_timeout_ms * 1_000_000  # a drive's heartbeat lost
+        self.master_hb_ns = spec.master_heartbeat_ms * 1_000_000  # the master's, this often
         self.status_every = spec.status_every_sync
         self.missed_limit = spec.missed_feedback_ticks
         # per drive, raw feedback and state
@@ -117,7 +128,7 @@ class CanBackend(Backend):
         self._torque_actual = [0] * n
         self._cw = [0] * n
         self._miss = [0] * n
-        self._last_hb = [0] * n
+        self._last_hb_ns = [0] * n  # when each drive's heartbeat last came (``_now``)
         self._hb_operational = [False] * n  # a drive's heartbeat said OPERATIONAL once
         self._next_status = [0] * n
         self._rad_per_count = [0.0] * n
@@ -132,18 +143,21 @@ class CanBackend(Backend):
         self._faults: list[str] = []
         self._got = 0
         self.tick = 0
-        self.master_hb_tick = -(10**9)  # tick of the master's last heartbeat (first: at once)
+        self.master_hb_at_ns = -(1 << 62)  # the master's last heartbeat (``_now``; first: at once)
         self.running = False  # the session's ticks (after start-up)
         self._cyclic = False  # drives are NMT operational and the loop owns the bus
-        self._stopped = False
+        self._stop_phase: str | None = None  # None, then _QUICK_STOP, ..., _DONE
+        self._stop_count = 0  # periods spent in the stop phase
         self._faulted = False
         self._keepalive = None
         self._keepalive_fault: str | None = None  # the first fault the keepalive saw
         self._next_state_poll = 0  # tick of the next bus.state poll
         self._bus_name = f"can: {side} bus"
         self.stats = {
-            "ticks": 0, "missed_windows": 0, "late_frames": 0, "saturated": 0, "bus_warnings": 0
+            "ticks": 0, "missed_windows": 0, "late_frames": 0, "saturated": 0, "bus_warnings": 0,
+            "long_pdos": 0,
         }  # fmt: skip
+        self._long_pdos: dict[int, list[int]] = {}  # COB-ID: [count, length, mapped length]
         self.last_bus_warning: str | None = None  # the last warning error frame, described
         self.stop_report: list[str] = []
 
@@ -152,7 +166,10 @@ class CanBackend(Backend):
         from teleop_rt.hal.can.startup import Startup
 
         self._open_bus()
-        info = Startup(self.bus, self.side, self.side_spec, self.spec, self.cfg.dt).run()
+        startup = Startup(
+            self.bus, self.side, self.side_spec, self.spec, self.cfg.dt, self._bus_label()
+        )
+        info = startup.run()
         self.begin_cyclic(info)
         if not self.spec.emulate:
             self._start_keepalive()
@@ -175,6 +192,7 @@ class CanBackend(Backend):
         self._steppers = [Cia402Stepper() for _ in info]
         self._build_routes()
         self._prepare_messages(can)
+        self._last_hb_ns[:] = [self._now()] * self.n  # the watch starts now
         self._cyclic = True
         try:
             self._zero_sensor()
@@ -301,6 +319,10 @@ class CanBackend(Backend):
         self._recv = self.bus.recv
         self._send_raw = self.bus.send
         self._next_ns = time.perf_counter_ns()
+
+    def _tick_time(self) -> int:
+        """The in-process emulator's clock: the ticks so far, in ns."""
+        return self.tick * self.period_ns
 
     def _pace(self) -> None:
         """Start-up and stop run at the real SYNC period (a drive expects it); not emulated."""
@@ -436,18 +458,25 @@ class CanBackend(Backend):
         data = msg.data
         try:
             if kind == _TPDO1:
-                self._pos[i], self._vel[i] = codec.unpack_tpdo1(data)
+                if len(data) != _TPDO1_SIZE:  # shorter: a fault; longer: its leading bytes
+                    self._long_pdo(msg, codec.TPDO1_NAME, _TPDO1_SIZE)
+                self._pos[i], self._vel[i] = _unpack_tpdo1(data)
                 if fresh:
                     self._got |= 1 << i
                 else:
                     self.stats["late_frames"] += 1
             elif kind == _TPDO2:
-                self._sw[i], self._torque_actual[i] = codec.unpack_tpdo2(data)
+                if len(data) != _TPDO2_SIZE:
+                    self._long_pdo(msg, codec.TPDO2_NAME, _TPDO2_SIZE)
+                self._sw[i], self._torque_actual[i] = _unpack_tpdo2(data)
                 if fresh:
                     self._got |= 1 << (self.n + i)
                 self._next_status[i] = self.tick + self.status_every
             elif kind == _SENSOR:
-                raw = self._sensor_layout.unpack(data)
+                layout = self._sensor_layout
+                if len(data) != layout.size:
+                    self._long_pdo(msg, "torque sensor TPDO", layout.size)
+                raw = layout.unpack_from(data)
                 self._sensor_raw[:] = raw
                 if fresh:
                     self._got |= 1 << (2 * self.n)
@@ -456,7 +485,7 @@ class CanBackend(Backend):
                 if not emcy.is_reset:
                     self._faults.append(f"{self._drive(i)}: {emcy.describe()}")
             else:
-                self._last_hb[i] = self.tick
+                self._last_hb_ns[i] = self._now()
                 state = codec.decode_heartbeat(data)
                 if state == "OPERATIONAL":
                     self._hb_operational[i] = True
@@ -467,19 +496,31 @@ class CanBackend(Backend):
             name = "torque sensor" if kind == _SENSOR else self._drive(i)
             self._faults.append(f"{name}: malformed frame 0x{msg.arbitration_id:03X}: {exc}")
 
+    def _long_pdo(self, msg: can.Message, name: str, mapped: int) -> None:
+        """A PDO of another length than its mapping: ``CanFrameError`` if shorter; if longer,
+        CiA 301 has the consumer use the mapped leading bytes: counted per COB-ID (notes)."""
+        codec.pdo_excess(name, mapped, msg.data)
+        self.stats["long_pdos"] += 1
+        seen = self._long_pdos.get(msg.arbitration_id)
+        if seen is None:
+            self._long_pdos[msg.arbitration_id] = [1, len(msg.data), mapped]
+        else:
+            seen[0] += 1
+
     def _check(self, running: bool) -> None:
         """Raise SafetyStop for every fault seen this tick (several are joined)."""
         faults = self._faults
-        tick = self.tick
+        now = self._now()
         for i in range(self.n):
             if self._miss[i] >= self.missed_limit:
                 faults.append(
                     f"{self._drive(i)}: no feedback (TPDO) for {self._miss[i]} ticks in a row"
                 )
-            if tick - self._last_hb[i] > self.hb_timeout_ticks:
+            if now - self._last_hb_ns[i] > self.hb_timeout_ns:
                 faults.append(
-                    f"{self._drive(i)}: heartbeat lost (none for {tick - self._last_hb[i]} ticks, "
-                    f"timeout {self.spec.heartbeat_timeout_ms} ms)"
+                    f"{self._drive(i)}: heartbeat lost (none for "
+                    f"{(now - self._last_hb_ns[i]) / 1e6:.0f} ms, timeout "
+                    f"{self.spec.heartbeat_timeout_ms} ms)"
                 )
             if running:
                 state = self._steppers[i].state
@@ -513,9 +554,10 @@ class CanBackend(Backend):
                         self.stats["saturated"] += 1
                 pack(msg.data, 0, self._cw[i], permille)
                 send(msg)
-            if self.tick - self.master_hb_tick >= self.master_hb_ticks:
+            now = self._now()
+            if now - self.master_hb_at_ns >= self.master_hb_ns:
                 send(self._hb_msg)
-                self.master_hb_tick = self.tick
+                self.master_hb_at_ns = now
         except self._can_error as exc:
             raise SafetyStop(f"{self._bus_name}: bus error: {exc}") from None
         except ValueError as exc:  # a NaN torque: never reaches a drive as a number
@@ -598,69 +640,130 @@ class CanBackend(Backend):
         self.feedback.age_ticks = max(self.feedback.age_ticks, self.missed_limit)
 
     def stop(self) -> None:
-        if self._stopped:
+        """The stepped stop run to its end here, at the SYNC period (``stop_all`` steps both
+        robots' stops together instead)."""
+        self.begin_stop()
+        while self._stop_phase != _DONE:
+            self._pace()
+            self.stop_step()
+
+    def begin_stop(self) -> None:
+        if self._stop_phase is not None:
             return
-        self._stopped = True
         self.running = False
         self._join_keepalive()
-        bus = self.bus
-        if bus is None:
+        if self.bus is None or not self._cyclic:  # never cycled: nothing to walk through
+            self._stop_phase = _DONE
+            self._close_bus()
             return
-        try:
-            if self._cyclic:
-                self._stop_drives()
-        finally:
-            self.bus = None
-            bus.shutdown()
-
-    def notes(self) -> list[str]:
-        """The stop's problems, and the warning error frames the bus reported (not faults)."""
-        out = list(self.stop_report)
-        if self.stats["bus_warnings"]:
-            out.append(
-                f"{self._bus_name}: {self.stats['bus_warnings']} warning error frames, not "
-                f"faults (the last: {self.last_bus_warning})"
-            )
-        return out
-
-    def _stop_drives(self) -> None:
-        """Quick stop with zero torque until SWITCH ON DISABLED (or silent), then disable, then
-        NMT pre-operational. Never raises: what went wrong is kept in ``stop_report``."""
         for st in self._steppers:
             st.request_stop()
-        for _ in range(self.spec.stop_ticks):
-            try:
-                self._pace()
-                self._cycle()
-            except SafetyStop as exc:
-                self.stop_report.append(str(exc))
-                break
-            self._faults.clear()
-            done = True
-            for i, st in enumerate(self._steppers):
-                self._cw[i] = st.step(self._sw[i])
-                silent = self._miss[i] >= self.missed_limit
-                if silent:
-                    self._cw[i] = 0x00
-                done = done and (silent or st.state in (_SOD, "FAULT"))
-            try:
-                self._send_commands(None)
-            except SafetyStop as exc:
-                self.stop_report.append(str(exc))
-                break
-            if done:
-                break
-        else:
-            self.stop_report.append(f"can: {self.side}: drives not disabled after stop_ticks")
+        self._stop_phase, self._stop_count = _QUICK_STOP, 0
+        self._next_ns = time.perf_counter_ns()  # ``stop`` paces from here
+
+    def stop_step(self) -> bool:
+        """One SYNC period of the stop, zero torque throughout: quick stop until every drive
+        reports SWITCH ON DISABLED (or FAULT, or is silent), for at most ``stop_ticks``
+        periods; if some did not get there, disable voltage (0x00) until they do, for at most
+        ``disable_ticks``; then one last SYNC (the last synchronous RPDO takes effect) and NMT
+        pre-operational, and the bus is closed. A drive that did not end in SWITCH ON
+        DISABLED is named in ``stop_report``, as is anything else that went wrong: this never
+        raises. At most ``stop_ticks + disable_ticks + 1`` calls."""
+        if self._stop_phase is None:
+            self.begin_stop()
+        if self._stop_phase == _DONE:
+            return True
         try:
-            self._pace()
-            self._send_raw(self._sync_msg)  # the last (synchronous) RPDO takes effect
+            if self._stop_phase != _NMT:
+                self._stop_cycle_step(self._stop_phase == _DISABLE)
+                return False
+            self._stop_nmt_step()
+        except BaseException:  # a bug, or Ctrl-C: the bus is closed all the same
+            self._stop_phase = _DONE
+            self._close_bus()
+            raise
+        return True
+
+    def _stop_nmt_step(self) -> None:
+        try:
+            self._send_raw(self._sync_msg)
             data = self._nmt_msg.data
             for node in self.node_ids:
                 data[0], data[1] = 0x80, node  # enter PRE-OPERATIONAL: PDOs off
                 self._send_raw(self._nmt_msg)
         except self._can_error as exc:
             self.stop_report.append(f"{self._bus_name}: bus error at stop: {exc}")
+        self._report_drive_states()
+        self._stop_phase = _DONE
+        self._close_bus()
+
+    def _stop_cycle_step(self, disable: bool) -> None:
+        """A quick-stop (or, ``disable``, a disable-voltage) period: SYNC, feedback, RPDOs."""
+        self._stop_count += 1
+        try:
+            self._cycle()
+        except SafetyStop as exc:
+            self.stop_report.append(str(exc))
+            self._stop_phase = _NMT
+            return
+        self._faults.clear()
+        pending = []
+        for i, st in enumerate(self._steppers):
+            cw = st.step(self._sw[i])  # quick stop until SWITCH ON DISABLED, then 0x00
+            silent = self._miss[i] >= self.missed_limit
+            self._cw[i] = 0x00 if disable or silent else cw
+            if not (silent or st.state in (_SOD, "FAULT")):
+                pending.append(f"node {self.node_ids[i]}: {st.state}")
+        try:
+            self._send_commands(None)
+        except SafetyStop as exc:
+            self.stop_report.append(str(exc))
+            pending = []
+        if not pending:
+            self._stop_phase = _NMT
+        elif not disable and self._stop_count >= self.spec.stop_ticks:
+            self.stop_report.append(
+                f"can: {self.side}: quick stop not complete after {self._stop_count} ticks "
+                f"({', '.join(pending)}): disable voltage sent"
+            )
+            self._stop_phase, self._stop_count = _DISABLE, 0
+        elif disable and self._stop_count >= self.spec.disable_ticks:
+            self._stop_phase = _NMT
+
+    def _report_drive_states(self) -> None:
+        """Name every drive that is not in SWITCH ON DISABLED as NMT pre-operational goes out."""
+        for i, st in enumerate(self._steppers):
+            if self._miss[i] >= self.missed_limit:
+                what = "no feedback, its state unknown"
+            elif st.state != _SOD:
+                what = f"{st.state}, statusword 0x{self._sw[i]:04X}"
+            else:
+                continue
+            self.stop_report.append(
+                f"{self._drive(i)}: not SWITCH ON DISABLED at NMT pre-operational ({what})"
+            )
+
+    def _close_bus(self) -> None:
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            bus.shutdown()
+
+    def notes(self) -> list[str]:
+        """The stop's problems, and the warning error frames the bus reported (not faults)."""
+        out = list(self.stop_report)
+        for cob, (count, length, mapped) in self._long_pdos.items():
+            route = self._routes.get(cob)
+            who = "torque sensor" if route is None or route[0] == _SENSOR else self._drive(route[1])
+            out.append(
+                f"{who}: {count} PDO(s) 0x{cob:03X} of {length} bytes, longer than their mapping "
+                f"({mapped} bytes): the mapped leading bytes were used (CiA 301)"
+            )
+        if self.stats["bus_warnings"]:
+            out.append(
+                f"{self._bus_name}: {self.stats['bus_warnings']} warning error frames, not "
+                f"faults (the last: {self.last_bus_warning})"
+            )
+        return out
 
 
 @register_backend("can")

@@ -9,8 +9,11 @@ configures on every drive (all CANopen data is little-endian):
 
 Encoders write into caller-owned, preallocated bytearrays with precompiled ``struct.Struct``
 objects (the moteus / canopen style), so the 1 kHz path builds no frame buffers. Decoders check
-the exact length first: a malformed frame raises ``CanFrameError`` (both a ``ValueError`` and a
-``BackendError``, so the CLI prints it as one line) naming the object and both lengths.
+the length first: a frame shorter than its object (or, for EMCY and heartbeat, of any other
+length) raises ``CanFrameError`` (both a ``ValueError`` and a ``BackendError``, so the CLI
+prints it as one line) naming the object and both lengths. A PDO longer than its mapping is
+read from its mapped leading bytes, as CiA 301 has a PDO consumer do (``pdo_excess`` tells
+the caller, who counts them).
 
 Sign convention (owned here): ``JointUnits.direction`` maps the motor sense to the joint sense
 for position, velocity and torque alike, so mechanical power is the same number in both frames.
@@ -99,6 +102,15 @@ def _check_length(obj: str, expected: int, data: Buffer) -> None:
         raise CanFrameError(f"{obj}: expected {expected} data bytes, received {len(data)}")
 
 
+def pdo_excess(obj: str, mapped: int, data: Buffer) -> int:
+    """Bytes a PDO carries beyond its ``mapped`` length (CiA 301: the consumer uses the mapped
+    leading bytes); ``CanFrameError`` naming ``obj`` if it carries fewer."""
+    extra = len(data) - mapped
+    if extra < 0:
+        raise CanFrameError(f"{obj}: expected {mapped} data bytes, received {len(data)}")
+    return extra
+
+
 def _pack(layout: struct.Struct, obj: str, buf: bytearray, a: int, b: int) -> None:
     # Exact size: a longer buffer would put trailing bytes on the bus as a wrong-length PDO.
     if len(buf) != layout.size:
@@ -115,9 +127,10 @@ def pack_rpdo1(buf: bytearray, controlword: int, torque_permille: int) -> None:
 
 
 def unpack_rpdo1(data: Buffer) -> tuple[int, int]:
-    """Decode RPDO1 -> (controlword, target torque per-mille); the drive emulator's side."""
-    _check_length(RPDO1_NAME, RPDO1_STRUCT.size, data)
-    return RPDO1_STRUCT.unpack(data)
+    """Decode RPDO1 -> (controlword, target torque per-mille); the drive emulator's side.
+    A longer PDO: its leading 4 bytes (as for every PDO decoder here)."""
+    pdo_excess(RPDO1_NAME, RPDO1_STRUCT.size, data)
+    return RPDO1_STRUCT.unpack_from(data)
 
 
 def pack_tpdo1(buf: bytearray, counts: int, velocity: int) -> None:
@@ -127,8 +140,8 @@ def pack_tpdo1(buf: bytearray, counts: int, velocity: int) -> None:
 
 def unpack_tpdo1(data: Buffer) -> tuple[int, int]:
     """Decode TPDO1 -> (position actual in counts, velocity actual in drive velocity units)."""
-    _check_length(TPDO1_NAME, TPDO1_STRUCT.size, data)
-    return TPDO1_STRUCT.unpack(data)
+    pdo_excess(TPDO1_NAME, TPDO1_STRUCT.size, data)
+    return TPDO1_STRUCT.unpack_from(data)
 
 
 def pack_tpdo2(buf: bytearray, statusword: int, torque_permille: int) -> None:
@@ -138,8 +151,8 @@ def pack_tpdo2(buf: bytearray, statusword: int, torque_permille: int) -> None:
 
 def unpack_tpdo2(data: Buffer) -> tuple[int, int]:
     """Decode TPDO2 -> (statusword, torque actual in per-mille of rated motor torque)."""
-    _check_length(TPDO2_NAME, TPDO2_STRUCT.size, data)
-    return TPDO2_STRUCT.unpack(data)
+    pdo_excess(TPDO2_NAME, TPDO2_STRUCT.size, data)
+    return TPDO2_STRUCT.unpack_from(data)
 
 
 class Emcy(NamedTuple):

@@ -29,6 +29,7 @@ CobId = Annotated[int, Field(ge=0x001, le=0x7FF)]
 OptionValue = str | int | float | bool
 
 DEFAULT_EDS = Path(__file__).resolve().parent / "od" / "cia402_drive.eds"
+LOCAL_HOP_LIMIT = 0  # udp_multicast: a multicast TTL of 0 never leaves this host
 
 
 class _Strict(BaseModel):
@@ -40,7 +41,12 @@ class CanBusSpec(_Strict):
 
     Examples: ``{interface: socketcan, channel: can0}`` (bitrate set with ``ip link``),
     ``{interface: pcan, channel: PCAN_USBBUS1, bitrate: 1000000}``,
-    ``{interface: udp_multicast, channel: 239.74.163.1, options: {port: 43113}}`` (emulator).
+    ``{interface: udp_multicast, channel: 239.74.163.1, options: {port: 43113, hop_limit: 0}}``
+    (the emulator in another process).
+
+    ``udp_multicast`` gets ``hop_limit: 0`` unless the options give one: python-can's default
+    (a multicast TTL of 1) sends every frame out on the machine's network interface, a TTL of
+    0 keeps it on this host.
     """
 
     interface: str
@@ -55,6 +61,8 @@ class CanBusSpec(_Strict):
             out["channel"] = self.channel
         if self.bitrate is not None:
             out["bitrate"] = self.bitrate
+        if self.interface == "udp_multicast":
+            out["hop_limit"] = LOCAL_HOP_LIMIT
         out.update(self.options)
         return out
 
@@ -147,7 +155,11 @@ _DRIVE_COBS = (
 
 def _emulated_side(channel: str, port: int) -> CanSideSpec:
     return CanSideSpec(
-        bus=CanBusSpec(interface="udp_multicast", channel=channel, options={"port": port}),
+        bus=CanBusSpec(
+            interface="udp_multicast",
+            channel=channel,
+            options={"port": port, "hop_limit": LOCAL_HOP_LIMIT},
+        ),
         drives=[
             DriveSpec(node_id=1, counts_per_rev=4096, gear_ratio=20, velocity_unit="counts_per_s"),
             DriveSpec(node_id=2, counts_per_rev=4096, gear_ratio=20, velocity_unit="counts_per_s"),
@@ -183,7 +195,8 @@ class CanSpec(_Strict):
     boot_timeout_s: PositiveFloat = 5.0
     sdo_timeout_s: PositiveFloat = 0.5
     enable_timeout_ticks: Annotated[int, Field(ge=10, le=60_000)] = 2000
-    stop_ticks: Annotated[int, Field(ge=1, le=10_000)] = 100
+    stop_ticks: Annotated[int, Field(ge=1, le=10_000)] = 100  # quick stop, at most
+    disable_ticks: Annotated[int, Field(ge=1, le=10_000)] = 20  # then disable voltage, at most
     emulate: bool = False  # in-process drive emulator on a virtual bus (tests, demos)
 
     @model_validator(mode="after")

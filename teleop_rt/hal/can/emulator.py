@@ -23,13 +23,16 @@ delay, as on real drives in a SYNC cycle.
 
 The emulator's clock is the SYNC count (``period_us`` per SYNC), so stepping it from the
 master (``poll``, see ``SteppedBus``) is deterministic; run free (``serve``) it also advances
-with the wall clock while no SYNC comes (heartbeats, the master-heartbeat watch).
+with the wall clock while no SYNC comes, and the heartbeats (the drives' own, 0x1017, and
+their watch of the master's, 0x1016) follow the wall clock, as a real drive's do, however
+fast or slow the SYNCs come.
 
 Fault injection: ``inject(Fault(kind, node_id, at_tick, ticks))`` with kind one of
 ``drop_tpdo`` (a drive sends no TPDO), ``emcy`` (EMCY 0x2310 and FAULT), ``stop_heartbeat``,
 ``status_fault`` (FAULT in the statusword, no EMCY), ``error_frame`` (a CAN error frame),
-``drop_sensor`` (the torque sensor sends nothing). ``at_tick`` counts world ticks (SYNCs
-since the joints were released); None means the next SYNC.
+``drop_sensor`` (the torque sensor sends nothing), ``long_tpdo`` (a drive's TPDOs shorter than
+8 bytes carry one byte more than their mapping, as some drives pad them). ``at_tick`` counts
+world ticks (SYNCs since the joints were released); None means the next SYNC.
 """
 
 from __future__ import annotations
@@ -81,7 +84,9 @@ EMCY_OVERCURRENT = 0x2310  # "continuous over current" (CiA 402)
 EMCY_HEARTBEAT = 0x8130  # "life guard error or heartbeat error" (CiA 301)
 EMCY_PDO_LENGTH = 0x8210  # "PDO not processed due to length error" (CiA 301)
 _ONE_SHOT = ("emcy", "status_fault", "error_frame")
-FAULT_KINDS = ("drop_tpdo", "emcy", "stop_heartbeat", "status_fault", "error_frame", "drop_sensor")
+FAULT_KINDS = (
+    "drop_tpdo", "emcy", "stop_heartbeat", "status_fault", "error_frame", "drop_sensor", "long_tpdo"
+)  # fmt: skip
 
 _FMT = {
     odt.INTEGER8: "b",
@@ -142,6 +147,8 @@ class EmulatedDrive:
         self.mapping_errors: list[str] = []
         # every RPDO taken at a SYNC: (controlword, target torque, state it was received in)
         self.commands: list[tuple[int, int, str]] = []
+        # SYNCs a quick stop takes (QUICK STOP ACTIVE, decelerating) before SWITCH ON DISABLED
+        self.quick_stop_syncs = 0
         self.power_on()
 
     # --- life cycle ---------------------------------------------------------------------
@@ -161,6 +168,7 @@ class EmulatedDrive:
             0x1001: 0,
         }
         self.state = SOD
+        self._quick_stop_left = 0
         self._cw_prev = 0
         self.active_permille = 0
         self.heartbeat_us = 0
@@ -189,7 +197,7 @@ class EmulatedDrive:
 
     def _set_heartbeat(self, heartbeat_time_ms: int) -> None:
         self.heartbeat_us = int(heartbeat_time_ms) * 1000
-        self.last_heartbeat_us = self.emu.time_us - self.heartbeat_us  # first one at once
+        self.last_heartbeat_us = self.emu.heartbeat_clock_us() - self.heartbeat_us  # at once
 
     @property
     def nmt_state(self) -> str:
@@ -289,10 +297,10 @@ class EmulatedDrive:
 
     # --- cyclic -------------------------------------------------------------------------------
     def on_rpdo(self, pdo: _Pdo, data: bytes) -> None:
-        if len(data) != pdo.layout.size:
+        if len(data) < pdo.layout.size:  # longer: the mapped leading bytes (CiA 301)
             self.emu.send(0x80 + self.node_id, struct.pack("<HB5s", EMCY_PDO_LENGTH, 0, b""))
             return
-        for index, value in zip(pdo.objects, pdo.layout.unpack(data), strict=True):
+        for index, value in zip(pdo.objects, pdo.layout.unpack_from(data), strict=True):
             self.pending[index] = value
         if pdo.trans_type >= 254:  # asynchronous RPDO: takes effect at once
             self._latch()
@@ -329,7 +337,10 @@ class EmulatedDrive:
         if self.state == FRA:
             self.state = FAULT
         elif self.state == QSA and 1 <= self.quick_stop_option <= 4:
-            self.state = SOD  # stopped (instantly: torque mode), then voltage off
+            if self._quick_stop_left > 0:  # still decelerating
+                self._quick_stop_left -= 1
+            else:
+                self.state = SOD  # stopped, then voltage off
 
     def _latch(self) -> None:
         pending = self.pending
@@ -364,6 +375,8 @@ class EmulatedDrive:
             self.state = SOD
         elif cw & 0x06 == 0x02:  # quick stop
             self.state = QSA if s == OE else (SOD if s in (RTSO, SO) else s)
+            if s == OE:
+                self._quick_stop_left = self.quick_stop_syncs
         elif cw & 0x07 == 0x06:  # shutdown
             if s in (SOD, SO, OE):
                 self.state = RTSO
@@ -436,6 +449,7 @@ class DriveEmulator:
         spec.check_eds(f"can.{side}")
         self.period_us = round(cfg.dt * 1e6)
         self.time_us = 0
+        self._wall_origin: float | None = None  # set by ``serve``: heartbeats by the wall clock
         self.network = canopen.Network(bus)  # no notifier: poll() feeds it, one thread
         self.drives = [EmulatedDrive(self, d) for d in spec.drives]
         if rated_torque_raw is not None:
@@ -523,7 +537,7 @@ class DriveEmulator:
         if 0x701 <= cob <= 0x77F:
             for d in self.drives:
                 if d.watch_master_id == cob - 0x700:
-                    d.master_seen_us = self.time_us
+                    d.master_seen_us = self.heartbeat_clock_us()
             return
         self.network.notify(cob, bytearray(data), msg.timestamp)  # SDO requests
 
@@ -534,7 +548,7 @@ class DriveEmulator:
         when the SYNC comes, before answering."""
         self.sync_count += 1
         self.time_us += self.period_us
-        now = self.time_us
+        now = self.heartbeat_clock_us()
         if self._lazy:  # asynchronous RPDOs acted during the period: advance only now
             self._prepare(advance=True)
         elif self._outbox is None:  # nothing prepared (start, NMT change): sample now
@@ -551,6 +565,12 @@ class DriveEmulator:
             self.released = True  # brakes off: the world clock starts at this SYNC
         if not self._lazy:
             self._prepare(advance=True)
+
+    def heartbeat_clock_us(self) -> int:
+        """The drives' clock for heartbeats: the SYNC count when stepped, the wall in ``serve``."""
+        if self._wall_origin is None:
+            return self.time_us
+        return round((time.monotonic() - self._wall_origin) * 1e6)
 
     def _prepare(self, advance: bool) -> None:
         """The state at the next SYNC: the plant advanced over the coming period with the torques
@@ -570,6 +590,7 @@ class DriveEmulator:
         for kind, d in active:
             self._fire(kind, [d] if kind != "error_frame" else [])
         dropped = {id(d) for kind, d in active if kind == "drop_tpdo"}
+        padded = {id(d) for kind, d in active if kind == "long_tpdo"}
         self._silent = {id(d) for kind, d in active if kind == "stop_heartbeat"}
         out: list[tuple[int, bytes]] = []
         next_us = self.time_us + self.period_us if advance else self.time_us
@@ -577,7 +598,10 @@ class DriveEmulator:
             if d.nmt_state == "OPERATIONAL":
                 d.sample(self._q[j], self._v[j])
                 if id(d) not in dropped:
+                    first = len(out)
                     d.tpdo_frames(next_us, out)
+                    if id(d) in padded:
+                        out[first:] = _padded(out[first:])
         if self.sensor is not None and not any(k == "drop_sensor" for k, _ in active):
             out.append((self.sensor.cob_id, self._sensor_frame()))
         self._outbox = out
@@ -612,6 +636,9 @@ class DriveEmulator:
             out[:] = [(c, data) for c, data in out if c != self.sensor.cob_id]
         elif fault.kind == "stop_heartbeat":
             self._silent |= {id(d) for d in targets}
+        elif fault.kind == "long_tpdo":
+            cobs = {p.cob_id for d in targets for p in d.tpdos}
+            out[:] = [_padded([f])[0] if f[0] in cobs else f for f in out]
 
     def _fire(self, kind: str, targets: list[EmulatedDrive]) -> None:
         for d in targets:
@@ -650,6 +677,8 @@ class DriveEmulator:
         look, instead of blocking in the bus's ``recv``. A drive is always listening; on a VM,
         an emulator woken by each frame from another CPU answers late far more often."""
         last_wall = time.monotonic()
+        with self._lock:  # from here heartbeats run on the wall clock (from the same value)
+            self._wall_origin = last_wall - self.heartbeat_clock_us() / 1e6
         last_sync = self.sync_count
         idle_after = idle_sync_periods * self.period_us / 1e6
         recv, sleep = self.bus.recv, time.sleep
@@ -658,9 +687,10 @@ class DriveEmulator:
                 msg = recv(0.0)
                 if msg is None:
                     sleep(poll_s)
-                    continue
             else:
                 msg = recv(0.01)
+            if msg is None and time.monotonic() - last_wall <= idle_after:
+                continue  # nothing came and nothing is due
             with self._lock:
                 if msg is not None:
                     self.handle(msg)
@@ -672,8 +702,13 @@ class DriveEmulator:
                     last_wall = now
                     for d in self.drives:
                         d.advance_state()  # e.g. FAULT REACTION ACTIVE -> FAULT
-                        d.heartbeat(self.time_us, False)
-                        d.watch_master(self.time_us)
+                        d.heartbeat(self.heartbeat_clock_us(), False)
+                        d.watch_master(self.heartbeat_clock_us())
+
+
+def _padded(frames: list[tuple[int, bytes]]) -> list[tuple[int, bytes]]:
+    """The frames with one byte more (a CAN frame carries 8 at most)."""
+    return [(cob, data + b"\0" if len(data) < 8 else data) for cob, data in frames]
 
 
 class SteppedBus(can.BusABC):

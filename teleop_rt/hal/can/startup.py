@@ -26,7 +26,8 @@ from dataclasses import dataclass
 
 import can
 import canopen
-from canopen.sdo.exceptions import SdoError
+from canopen import objectdictionary as odt
+from canopen.sdo.exceptions import SdoAbortedError, SdoError
 
 from teleop_rt.errors import BackendError
 from teleop_rt.hal.can.codec import JointUnits, rated_torque_nm
@@ -49,15 +50,41 @@ class DriveInfo:
     units: JointUnits
 
 
+def object_name(od: odt.ObjectDictionary, index: int, sub: int) -> str:
+    """An object's name as the EDS gives it (a record's or array's entry: 'parent: entry')."""
+    try:
+        obj = od[index]
+    except KeyError:
+        return "not in the EDS"
+    if isinstance(obj, odt.ODVariable):
+        return obj.name
+    try:
+        entry = obj[sub].name
+    except KeyError:
+        return f"{obj.name}: no subindex {sub} in the EDS"
+    return entry if entry.startswith(obj.name) else f"{obj.name}: {entry}"
+
+
 class Startup:
     """Runs the start-up sequence of one robot's drives on ``bus`` (see the module docstring).
 
-    ``what`` names the robot in error messages ('hsi', 'to').
+    ``what`` names the robot in error messages ('hsi', 'to'), ``bus_label`` its bus as the
+    config gives it (interface and channel; default: python-can's ``channel_info``).
     """
 
-    def __init__(self, bus: can.BusABC, what: str, side: CanSideSpec, spec: CanSpec, dt: float):
+    def __init__(
+        self,
+        bus: can.BusABC,
+        what: str,
+        side: CanSideSpec,
+        spec: CanSpec,
+        dt: float,
+        bus_label: str | None = None,
+    ):
         self.bus = bus
         self.what = what
+        self.bus_label = bus_label or str(bus.channel_info)
+        self._sdo_at = ("access", 0, 0)  # the last SDO request: what, index, subindex
         self.side = side
         self.spec = spec
         self.period_us = round(dt * 1e6)
@@ -78,6 +105,7 @@ class Startup:
         for d in self.side.drives:
             node = canopen.RemoteNode(d.node_id, self._od(d))
             node.sdo.RESPONSE_TIMEOUT = self.spec.sdo_timeout_s
+            self._track_sdo(node.sdo)
             self.network.add_node(node)
             self.network.subscribe(0x700 + d.node_id, on_bootup)
             self.nodes.append(node)
@@ -89,7 +117,7 @@ class Startup:
             for node in self.nodes:
                 node.nmt.state = "OPERATIONAL"
         except can.CanError as exc:
-            raise BackendError(f"can: {self.what} bus: {exc}") from None
+            raise BackendError(f"can: {self.what} bus ({self.bus_label}): {exc}") from None
         finally:
             self.stop_notifier()
         return infos
@@ -99,6 +127,31 @@ class Startup:
         if notifier is not None:
             notifier.stop(1.0)
             self.network.notifier = None
+
+    def _track_sdo(self, sdo: canopen.sdo.SdoClient) -> None:
+        """Remember each request's object, so that an abort in the middle of canopen's PDO
+        mapping (which does not say which object it wrote) names it."""
+        upload, download = sdo.upload, sdo.download
+
+        def tracked_upload(index: int, subindex: int) -> bytes:
+            self._sdo_at = ("read", index, subindex)
+            return upload(index, subindex)
+
+        def tracked_download(index: int, subindex: int, data: bytes, force_segment=False):
+            self._sdo_at = ("write", index, subindex)
+            return download(index, subindex, data, force_segment)
+
+        sdo.upload, sdo.download = tracked_upload, tracked_download
+
+    def _sdo_failed(self, node: canopen.RemoteNode, d: DriveSpec, exc: SdoError, value=None):
+        """BackendError naming the drive, the object of the failed request and why."""
+        what, index, sub = self._sdo_at
+        name = object_name(node.object_dictionary, index, sub)
+        to = "" if value is None else f" = {value}"
+        how = "aborted by the drive" if isinstance(exc, SdoAbortedError) else "failed"
+        return BackendError(
+            f"can: {self._drive(d)}: SDO {what} 0x{index:04X}:{sub:02X} ({name}){to} {how}: {exc}"
+        )
 
     # --- steps -------------------------------------------------------------------------------
     def _od(self, d: DriveSpec) -> canopen.ObjectDictionary:
@@ -123,7 +176,7 @@ class Startup:
             if not booted[d.node_id].wait(self.spec.boot_timeout_s):
                 raise BackendError(
                     f"can: {self._drive(d)}: no boot-up within {self.spec.boot_timeout_s:g} s "
-                    f"after NMT reset (is the drive powered and on {self.bus.channel_info}?)"
+                    f"after NMT reset (is the drive powered and on {self.bus_label}?)"
                 )
 
     def _configure(self, node: canopen.RemoteNode, d: DriveSpec) -> DriveInfo:
@@ -184,30 +237,44 @@ class Startup:
                     for index in objects or ():
                         pdo.add_variable(index)
                     pdo.save()
-        except (SdoError, KeyError, ValueError) as exc:
+        except SdoError as exc:
+            raise self._sdo_failed(node, d, exc) from None
+        except (KeyError, ValueError) as exc:  # an object the EDS lacks or cannot map
             raise BackendError(f"can: {self._drive(d)}: PDO mapping failed: {exc}") from None
         for kind, number in layout:
             if number not in getattr(node, kind).map:
                 raise BackendError(f"can: {self._drive(d)}: the EDS has no {kind.upper()}{number}")
 
-    def _read(self, node: canopen.RemoteNode, d: DriveSpec, index: int, sub: int = 0) -> int:
+    def _variable(self, node: canopen.RemoteNode, d: DriveSpec, index: int, sub: int):
         try:
             obj = node.sdo[index]
-            return int(
-                (obj[sub] if sub or not isinstance(obj, canopen.sdo.SdoVariable) else obj).raw
-            )
-        except (SdoError, KeyError) as exc:
+            return obj[sub] if sub or not isinstance(obj, canopen.sdo.SdoVariable) else obj
+        except KeyError:
+            name = object_name(node.object_dictionary, index, sub)
+            eds = d.eds or DEFAULT_EDS
             raise BackendError(
-                f"can: {self._drive(d)}: SDO read 0x{index:04X}:{sub:02X} failed: {exc}"
+                f"can: {self._drive(d)}: object 0x{index:04X}:{sub:02X} ({name}): not in the "
+                f"EDS {eds}"
             ) from None
 
-    def _write(self, node: canopen.RemoteNode, d: DriveSpec, index: int, value: int, sub: int = 0):
+    def _read(self, node: canopen.RemoteNode, d: DriveSpec, index: int, sub: int = 0) -> int:
+        var = self._variable(node, d, index, sub)
         try:
-            obj = node.sdo[index]
-            (obj[sub] if sub or not isinstance(obj, canopen.sdo.SdoVariable) else obj).raw = value
-        except (SdoError, KeyError, ValueError) as exc:
+            return int(var.raw)
+        except SdoError as exc:
+            raise self._sdo_failed(node, d, exc) from None
+
+    def _write(self, node: canopen.RemoteNode, d: DriveSpec, index: int, value: int, sub: int = 0):
+        var = self._variable(node, d, index, sub)
+        try:
+            var.raw = value
+        except SdoError as exc:
+            raise self._sdo_failed(node, d, exc, value) from None
+        except ValueError as exc:  # the value does not fit the EDS's data type
+            name = object_name(node.object_dictionary, index, sub)
             raise BackendError(
-                f"can: {self._drive(d)}: SDO write 0x{index:04X}:{sub:02X} = {value} failed: {exc}"
+                f"can: {self._drive(d)}: SDO write 0x{index:04X}:{sub:02X} ({name}) = {value}: "
+                f"{exc}"
             ) from None
 
     def _drive(self, d: DriveSpec) -> str:
