@@ -20,7 +20,6 @@ kernels instead of through ``read`` / ``write`` (``Backend.fuse``): bit for bit 
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
@@ -32,13 +31,13 @@ from teleop_rt.analysis.transparency import TransparencyAccumulator
 from teleop_rt.com.channel import ChannelMonitor
 from teleop_rt.com.link import InProcessLink
 from teleop_rt.config import SessionConfig
-from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop
+from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
 from teleop_rt.hal.base import FusedPlants
-from teleop_rt.hal.stopping import stop_all
 from teleop_rt.lockstep import SESSION_BLOCKS, PairState, lockstep_after, lockstep_before
-from teleop_rt.loop import StopSignals, TickClock, TimingStats, acquire_realtime
-from teleop_rt.site import HsiSite, Site, ToSite
+from teleop_rt.loop import TickClock
+from teleop_rt.runner import LoopOutcome, run_loop
+from teleop_rt.site import HsiSite, SensorsUnusable, Site, ToSite
 
 if TYPE_CHECKING:
     from teleop_rt.recording.recorder import Recorder
@@ -269,115 +268,54 @@ class Session:
         log still holds every completed tick.
         """
         total = self.cfg.n_ticks if ticks is None else ticks
-        period_ns = int(round(self.dt * 1e9))
-        stats = TimingStats(total, period_ns)
-        clock = TickClock(period_ns, realtime, overrun, max_missed=max_missed)
-        grant = acquire_realtime() if realtime else None
-        notes = list(grant.notes) if grant else []
-        stop = StopSignals()
-        error: str | None = None
-        safety_stop = False
-        perf = time.perf_counter_ns
-        next_report = 0
-        wall_start = perf()
-        try:
-            stop.install()
-            self.hsi.backend.start()
-            self.to.backend.start()
-            clock.start()
-            for k in range(total):
-                if stop.requested:
-                    break
-                lateness = clock.wait()
-                t0 = perf()
-                self.step()
-                if observer is not None:
-                    observer(self)
-                t1 = perf()
-                missed = clock.finish(clock.now_ns()) if realtime else False
-                stats.add(t1 - t0, lateness, missed)
-                if recorder is not None:
-                    recorder.record(t1 - t0, lateness, missed)
-                if progress is not None and t1 >= next_report:
-                    progress(k + 1, total)
-                    next_report = t1 + 50_000_000
-        except SafetyStop as exc:
-            error = f"safety stop: {exc}"
-            safety_stop = True
-            notes.append(f"after the stop: {self._bring_to_rest()}")
-        except RecordingFailure as exc:  # on_loss: stop; a normal stop, as by Ctrl-C
-            error = f"recording failed: {exc}"
-        except BaseException as exc:
-            error = f"{type(exc).__name__}: {exc}"
-            raise
-        finally:
-            stop.uninstall()
-            stop_all([self.hsi.backend, self.to.backend], self.dt)
-            if grant:
-                grant.release()
-            notes += self.hsi.backend.notes() + self.to.backend.notes()
-            summary = self._summary(
-                stats, clock, realtime, notes, wall_start, stop, error, safety_stop
-            )
-            if recorder is not None:
-                recorder.close(summary.to_dict())
-        if progress is not None:
-            progress(stats.count, total)
-        return summary
+        summary: list[Summary] = []
 
-    def _bring_to_rest(self) -> str:
-        """The reaction to a safety stop: the HSI is damped, the TO is brought to zero velocity
-        under its own velocity loop; then (in run's finally) both get zero torque. Sensors that
-        are not usable end it at once with zero torque."""
-        spec = self.cfg.safety
+        def finish(outcome: LoopOutcome) -> dict:
+            summary.append(self._summary(outcome))
+            return summary[0].to_dict()
+
+        run_loop(
+            self.step, total, self.dt, [self.hsi.backend, self.to.backend], self._bring_to_rest,
+            realtime=realtime, overrun=overrun, max_missed=max_missed, progress=progress,
+            after_tick=None if observer is None else lambda: observer(self), recorder=recorder,
+            finish=finish,
+        )  # fmt: skip
+        return summary[0]
+
+    def _bring_to_rest(self, clock: TickClock) -> str:
+        """The reaction to a safety stop, one tick at a time (paced in real time): each site
+        brings its robot to rest (``Site.rest_step``) until the TO is at rest; then both get
+        zero torque (the backends' stop). Sensors that are not usable end it at once."""
         hsi, to = self.hsi, self.to
+        limit = self.cfg.safety.stop_max_ticks
         try:
-            return self._damp_and_rest(spec, hsi, to)
-        except SafetyStop as exc:  # a second fault while stopping: zero torque at once
+            for i in range(limit):
+                clock.wait()
+                try:
+                    hsi.rest_step()
+                    if to.rest_step():
+                        return f"TO at rest after {i + 1} ticks, then zero torque"
+                except SensorsUnusable:
+                    return f"sensors unusable after {i} ticks: zero torque"
+        except SafetyStop as exc:  # a further fault while stopping: zero torque at once
             return f"a further fault while stopping ({exc}): zero torque"
+        return f"TO not at rest after {limit} ticks; zero torque"
 
-    def _damp_and_rest(self, spec, hsi: Site, to: Site) -> str:
-        zeros = np.zeros(self.n)
-        gains = to.controller.kp
-        limits = {"hsi": hsi.guard.limits, "to": to.guard.limits}
-        for i in range(spec.stop_max_ticks):
-            fb_h, fb_t = hsi.backend.read(), to.backend.read()
-            values = (fb_h.v, fb_t.v, fb_h.q, fb_t.q, fb_t.tau_ext)
-            if fb_h.age_ticks or fb_t.age_ticks or not all(np.isfinite(x).all() for x in values):
-                return f"sensors unusable after {i} ticks: zero torque"
-            gravity = hsi.model.rnea(fb_h.q, zeros, zeros)
-            g_h = gravity - spec.stop_damping_nm_s_per_rad * fb_h.v
-            g_t = to.computed_torque.step(fb_t.q, fb_t.v, -gains * fb_t.v, fb_t.tau_ext)
-            limits["hsi"].clamp_effort(g_h)
-            limits["to"].clamp_effort(g_t)
-            hsi.backend.write(g_h)
-            to.backend.write(g_t)
-            if np.abs(fb_t.v).max() < 1e-3:
-                return f"TO at rest after {i + 1} ticks, then zero torque"
-        return f"TO not at rest after {spec.stop_max_ticks} ticks; zero torque"
-
-    def _summary(
-        self, stats, clock, realtime, notes, wall_start, stop, error, safety_stop
-    ) -> Summary:
-        timing = stats.summary()
-        timing["wall_s"] = (time.perf_counter_ns() - wall_start) / 1e9
-        if realtime and clock.skipped:
-            timing["skipped_deadlines"] = clock.skipped
-        stopped = stop.reason if stop.requested else error
+    def _summary(self, outcome: LoopOutcome) -> Summary:
         return Summary(
             name=self.cfg.name,
-            ticks=stats.count,
-            simulated_time_s=stats.count * self.dt,
+            ticks=outcome.stats.count,
+            simulated_time_s=outcome.stats.count * self.dt,
             delay_ticks=self.cfg.delay_ticks,
             t_p=self.metrics.t_p.tolist(),
             t_tau=self.metrics.t_tau.tolist(),
             channel_energy_j=self.monitor.total_energy,
             min_channel_energy_j=self.monitor.min_total_energy,
-            timing=timing,
-            realtime=realtime,
-            notes=notes,
-            stopped_early=stopped,
-            stop_signal=stop.signum,
-            safety_stop=safety_stop,
+            timing=outcome.timing(),
+            realtime=outcome.realtime,
+            notes=outcome.notes,
+            stopped_early=outcome.stopped_early,
+            stop_signal=outcome.stop.signum,
+            safety_stop=outcome.safety_stop,
             saturated_ticks=self.saturated_ticks,
         )

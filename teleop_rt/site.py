@@ -39,6 +39,11 @@ if TYPE_CHECKING:
     from teleop_rt.world import Load
 
 SIDES = {"hsi": HSI, "to": TO}
+REST_SPEED_RAD_S = 1e-3  # a robot slower than this on every joint is at rest
+
+
+class SensorsUnusable(Exception):
+    """A robot's sensors cannot be trusted while stopping: zero torque at once."""
 
 
 class Site:
@@ -67,6 +72,7 @@ class Site:
             port_for(cfg, n)[SIDES[name]],
             cfg.dt,
         )
+        self.stop_damping = cfg.safety.stop_damping_nm_s_per_rad
 
     @classmethod
     def from_parts(
@@ -83,6 +89,7 @@ class Site:
         computed_torque: ComputedTorque, guard: RobotGuard, port: Port, dt: float,
     ) -> None:  # fmt: skip
         self.side, self.dt = SIDES[self.name], dt
+        self.stop_damping = 0.5  # N m s/rad (safety.stop_damping_nm_s_per_rad)
         self.model, self.n = model, model.nv
         self.controller, self.computed_torque, self.guard = controller, computed_torque, guard
         self.backend = backend
@@ -158,6 +165,24 @@ class Site:
             q = self.feedback.q
             if np.isfinite(q).all():
                 guard.check_workspace(self.tick, q)
+
+    def rest_step(self) -> bool:
+        """One tick of the staged stop after a safety finding: the HSI damped (gravity
+        compensated, ``safety.stop_damping_nm_s_per_rad``), the TO brought to zero velocity
+        under its own velocity loop; True once this robot is at rest. ``SensorsUnusable`` if
+        its sensors cannot be trusted (the caller then commands zero torque)."""
+        fb = self.backend.read()
+        usable = (fb.q, fb.v, fb.tau_ext) if self.side == TO else (fb.q, fb.v)
+        if fb.age_ticks or not all(np.isfinite(x).all() for x in usable):
+            raise SensorsUnusable(self.name)
+        if self.side == HSI:
+            zeros = np.zeros(self.n)
+            g = self.model.rnea(fb.q, zeros, zeros) - self.stop_damping * fb.v
+        else:
+            g = self.computed_torque.step(fb.q, fb.v, -self.controller.kp * fb.v, fb.tau_ext)
+        self.guard.limits.clamp_effort(g)
+        self.backend.write(g)
+        return float(np.abs(fb.v).max()) < REST_SPEED_RAD_S
 
     def stop_for(self, code: int) -> SafetyStop:
         """The SafetyStop that words a finding of this site's compiled checks."""
