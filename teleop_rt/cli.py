@@ -67,8 +67,28 @@ def _build_parser() -> argparse.ArgumentParser:
         help="real-time mode: a safety stop (exit 3) at the (N+1)th missed deadline",
     )
     add_backend_arg(run)
+    run.add_argument(
+        "--link",
+        choices=["inprocess", "zenoh"],
+        help="what joins the two sites: one process (default, the config's link.kind) or two "
+        "processes over Zenoh (teleop-rt site hsi / to as children; needs --realtime)",
+    )
     run.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     add_log_args(run)
+
+    site = sub.add_parser("site", help="run one site (hsi or to) against its peer over Zenoh")
+    site.add_argument("site", choices=["hsi", "to"], help="which site this process runs")
+    add_config_args(site)
+    site.add_argument("--duration", type=_positive_float, metavar="S", help="seconds to run")
+    site.add_argument(
+        "--overrun", choices=["catch_up", "skip", "stop"], default="catch_up",
+        help="what a late tick does (default: catch_up)",
+    )  # fmt: skip
+    site.add_argument("--max-missed", type=_non_negative_int, metavar="N",
+                      help="a safety stop (exit 3) at the (N+1)th missed deadline")  # fmt: skip
+    add_backend_arg(site)
+    site.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    site.add_argument("--record-ticks", metavar="NPZ", help=argparse.SUPPRESS)  # for run --link
 
     check = sub.add_parser("check", help="validate a config (and load its robots) without running")
     add_config_args(check)
@@ -243,7 +263,7 @@ def _print_warnings(session) -> None:
     lines = [*safety_warnings(cfg), *contact_warnings(cfg, session.to.model)]
     if cfg.can is not None and "can" not in cfg.backends.values():
         lines.append(
-            f"the config's can section is not used: the backends are {_backends_text(cfg)} "
+            f"the config's can section is not used: the backends are {_backends_text(cfg)!r} "
             "(--backend can, or hsi:can / to:can, uses it)"
         )
     for line in lines:
@@ -260,6 +280,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.max_missed is not None and not args.realtime:
         raise ConfigError("--max-missed counts missed deadlines: it needs --realtime")
     cfg = _load_config(args, extra)
+    if (args.link or cfg.link.kind) == "zenoh":
+        from teleop_rt.cli_sites import run_two_sites
+
+        return run_two_sites(args, cfg)
     session = Session(cfg)
     _print_warnings(session)
     if args.realtime and not args.json:
@@ -283,6 +307,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
         )  # fmt: skip
     _print_summary(summary, args.json, recorder)
     return exit_code(summary, recorder)
+
+
+def _cmd_site(args: argparse.Namespace) -> int:
+    from teleop_rt.cli_sites import cmd_site
+
+    return cmd_site(args, _load_config)
 
 
 def _recorder(
@@ -595,6 +625,7 @@ def _main(argv: Sequence[str] | None) -> int:
         "replay": _cmd_replay,
         "plot": _cmd_plot,
         "bode": _cmd_bode,
+        "site": _cmd_site,
     }[args.command]
     try:
         return handler(args)

@@ -312,6 +312,51 @@ class MassSpec(HalfPlane):
 Environment = Annotated[WallSpec | SpringSpec | MassSpec, Field(discriminator="kind")]
 
 
+class ZenohEndpoints(Strict):
+    """Where one site's Zenoh session listens and what it connects to (Zenoh locators such as
+    ``udp/127.0.0.1:7447``, ``tcp/host:7447``, ``tls/host:7447``)."""
+
+    listen: list[str] = Field(default_factory=list)
+    connect: list[str] = Field(default_factory=list)
+
+
+class TlsFiles(Strict):
+    certificate: Path  # PEM, with a subjectAltName matching the endpoint's host name
+    private_key: Path
+
+
+class TlsSpec(Strict):
+    """Mutual TLS: both sites' certificates signed by ``root_ca``; a peer without one is never
+    connected (paths relative to the config file, like URDFs)."""
+
+    root_ca: Path
+    hsi: TlsFiles
+    to: TlsFiles
+
+
+class ZenohSpec(Strict):
+    """The Zenoh link (teleop_rt.com.zenoh_link): peer mode by default (client: through a
+    router, for sites behind NAT), multicast scouting always off, explicit endpoints."""
+
+    mode: Literal["peer", "client"] = "peer"
+    hsi: ZenohEndpoints = ZenohEndpoints(listen=["udp/127.0.0.1:7447"])
+    to: ZenohEndpoints = ZenohEndpoints(connect=["udp/127.0.0.1:7447"])
+    tls: TlsSpec | None = None
+
+
+class LinkSpec(Strict):
+    """What carries the packets between the two sites (teleop_rt.com)."""
+
+    kind: Literal["inprocess", "zenoh"] = "inprocess"
+    # the key expressions: KEY/<session name>/<site>/...
+    key: Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")] = "teleop_rt"
+    # no packet from the peer for this long: the site stops its robot (staged stop)
+    peer_timeout_ms: Annotated[float, Field(gt=0, le=10_000, allow_inf_nan=False)] = 50.0
+    # the peer must appear (and agree on the session) within this, else the site refuses
+    handshake_timeout_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = 10.0
+    zenoh: ZenohSpec = ZenohSpec()
+
+
 class SessionConfig(Strict):
     """A whole session: rate, duration, both robots, the channel, plant, operator, environment."""
 
@@ -326,6 +371,7 @@ class SessionConfig(Strict):
     plant: PlantSpec = PlantSpec()
     safety: SafetySpec = SafetySpec()
     recording: RecordingSpec = RecordingSpec()
+    link: LinkSpec = LinkSpec()
     operator: Operator
     environment: list[Environment] = Field(default_factory=list)
     can: CanSpec | None = None  # the CAN backend's buses and drives (teleop_rt.hal.can)
@@ -490,6 +536,17 @@ def _resolve_paths(cfg: SessionConfig, base_dir: Path) -> SessionConfig:
             sides[side] = spec.model_copy(update={"robot": robot})
     if cfg.can is not None:  # drive EDS files, like the URDFs
         sides["can"] = cfg.can.with_paths_resolved(base_dir)
+    tls = cfg.link.zenoh.tls
+    if tls is not None:  # certificates too
+
+        def at(p: Path) -> Path:
+            return p if p.is_absolute() else (base_dir / p).resolve()
+
+        files = {s: TlsFiles(certificate=at(f.certificate), private_key=at(f.private_key))
+                 for s, f in (("hsi", tls.hsi), ("to", tls.to))}  # fmt: skip
+        tls = TlsSpec(root_ca=at(tls.root_ca), **files)
+        zenoh = cfg.link.zenoh.model_copy(update={"tls": tls})
+        sides["link"] = cfg.link.model_copy(update={"zenoh": zenoh})
     return cfg.model_copy(update=sides)
 
 

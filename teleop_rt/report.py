@@ -113,3 +113,60 @@ def print_comparison(
     for row in rows:
         table.add_row(*row)
     console.print(table)
+
+
+def _link_text(link: dict) -> str:
+    peer = link.get("from_peer") or {}
+    delay = peer.get("delay_ticks") or {}
+    return (
+        f"sent {link.get('sent', 0)}; from the peer: received {peer.get('received', 0)}, used "
+        f"{peer.get('used', 0)}, lost {peer.get('lost', 0)}, late {peer.get('late', 0)}, "
+        f"duplicated {peer.get('duplicated', 0)}, reordered {peer.get('reordered', 0)}, rejected "
+        f"{peer.get('rejected', 0)}; one-way delay p50 {delay.get('p50')} / p99 "
+        f"{delay.get('p99')} / max {delay.get('max')} ticks"
+    )
+
+
+def print_site_summary(summary, console: Console | None = None) -> None:
+    """One site's summary (``teleop-rt site``) as a table."""
+    console = console or Console()
+    table = Table(title=f"{summary.site} site of {summary.name}", show_header=False,
+                  title_justify="left")  # fmt: skip
+    table.add_column("what", style="bold")
+    table.add_column("value")
+    table.add_row("ticks", f"{summary.ticks} ({summary.simulated_time_s:g} s)")
+    table.add_row("energy into the channel here", f"{summary.port_energy_j:.6g} J")
+    table.add_row("link", _link_text(summary.link))
+    late = summary.timing.get("lateness_us", {})
+    table.add_row("deadline lateness", f"p99 {late.get('p99', 0):.1f} us, missed "
+                  f"{summary.timing.get('missed_deadlines', 0)}")  # fmt: skip
+    if summary.stopped_early:
+        table.add_row("stopped early", summary.stopped_early)
+    for note in summary.notes:
+        table.add_row("note", note)
+    console.print(table)
+
+
+def print_pair_summary(combined: dict, console: Console | None = None) -> None:
+    """Both sites of ``run --link zenoh`` and the pair's transparency, as a table."""
+    console = console or Console()
+    table = Table(title=f"session {combined['name']} over Zenoh (two processes)",
+                  show_header=False, title_justify="left")  # fmt: skip
+    table.add_column("what", style="bold")
+    table.add_column("value")
+    pair = combined.get("pair")
+    if pair:
+        table.add_row("ticks of both", str(pair["ticks"]))
+        table.add_row("T_p (eq 18)", f"{pair['t_p_total']:.6g} rad^2 s")
+        table.add_row("T_tau (eq 18)", f"{pair['t_tau_total']:.6g} N^2 m^2 s")
+    for name, s in combined["sites"].items():
+        if "error" in s:
+            table.add_row(f"{name} site", f"failed: {s['error']}")
+            continue
+        energy = f"{s['port_energy_j']:.6g} J into the channel"
+        table.add_row(f"{name} site", f"{s['ticks']} ticks; {energy}; exit "
+                      f"{combined['exit_codes'][name]}")  # fmt: skip
+        table.add_row(f"{name} link", _link_text(s["link"]))
+        if s.get("stopped_early"):
+            table.add_row(f"{name} stopped", s["stopped_early"])
+    console.print(table)

@@ -57,12 +57,14 @@ def run_loop(
     after_tick: Callable[[], None] | None = None,
     recorder: Recorder | None = None,
     before_start: Callable[[], None] | None = None,
+    at_start: Callable[[], None] | None = None,
     finish: Callable[[LoopOutcome], dict] | None = None,
 ) -> LoopOutcome:
     """Run ``step`` ``total`` times, one per period ``dt`` in real time (else back to back).
 
     ``before_start`` runs once the signals are caught and before the backends start (a site's
-    handshake with its peer: no motor is enabled before it); ``after_tick`` after each tick
+    handshake with its peer: no motor is enabled before it), ``at_start`` just before the first
+    tick (a site waits there for the instant both sites start at); ``after_tick`` after each tick
     (tests' observers); ``bring_to_rest(clock)`` after a safety finding (the staged stop, paced
     by the clock in real time). Whatever ends the run, every backend is stopped together and
     ``recorder`` is closed with the summary ``finish(outcome)`` gives."""
@@ -81,6 +83,8 @@ def run_loop(
             before_start()
         for backend in backends:
             backend.start()
+        if at_start is not None:
+            at_start()
         clock.start()
         for k in range(total):
             if stop.requested:

@@ -12,7 +12,8 @@ that is lost (the receiver's playout rule replaces it with a passive zero).
 Nothing here runs on the tick: ``send`` copies the bytes into a one-slot mailbox and wakes a
 sender thread, which publishes while the loop sleeps to its next deadline (a ``put`` took 26 us
 at p50 and over a millisecond at p99 on this VM); a packet that the sender has not taken by
-the next tick is replaced and counted. Received bytes go to ``on_bytes`` on Zenoh's thread.
+the next tick is replaced and counted. Received bytes go to ``listen``'s callback on Zenoh's
+thread.
 """
 
 from __future__ import annotations
@@ -62,16 +63,10 @@ def zenoh_config(
 
 
 class ZenohTransport:
-    """Bytes out on ``key_out``, bytes in from ``key_in`` (to ``on_bytes``), off the tick."""
+    """One site's Zenoh session: ``send`` bytes on ``key_out`` (off the tick), ``listen`` to a
+    peer's key; ``session`` serves the handshake too."""
 
-    def __init__(
-        self,
-        config: Any,
-        key_out: str,
-        key_in: str,
-        on_bytes: Callable[[bytes], None],
-        max_bytes: int = 4096,
-    ) -> None:
+    def __init__(self, config: Any, key_out: str, max_bytes: int = 4096) -> None:
         import zenoh
 
         try:
@@ -84,8 +79,7 @@ class ZenohTransport:
             priority=zenoh.Priority.REAL_TIME,
             express=True,
         )
-        self._on_bytes = on_bytes
-        self.subscriber = self.session.declare_subscriber(key_in, self._received)
+        self.subscribers: list[Any] = []
         # the mailbox: one slot, written by the tick, taken by the sender thread
         self._slot = bytearray(max_bytes)
         self._size = 0
@@ -96,6 +90,14 @@ class ZenohTransport:
         self.sent = self.replaced = self.send_errors = 0
         self._thread = threading.Thread(target=self._sender, name="teleop-rt-send", daemon=True)
         self._thread.start()
+
+    def listen(self, key: str, on_bytes: Callable[[bytes], None]) -> None:
+        """Call ``on_bytes`` with every payload published on ``key`` (on Zenoh's thread)."""
+
+        def received(sample: Any) -> None:
+            on_bytes(sample.payload.to_bytes())
+
+        self.subscribers.append(self.session.declare_subscriber(key, received))
 
     def send(self, data: bytes | bytearray | memoryview) -> None:
         """Hand this tick's packet to the sender (never blocks on the network)."""
@@ -123,9 +125,6 @@ class ZenohTransport:
             except Exception:  # a closed session while stopping; counted, never raised
                 self.send_errors += 1
 
-    def _received(self, sample: Any) -> None:
-        self._on_bytes(sample.payload.to_bytes())
-
     def close(self) -> None:
         """Stop the sender and close the session (idempotent)."""
         if not self._running:
@@ -133,7 +132,7 @@ class ZenohTransport:
         self._running = False
         self._wake.set()
         self._thread.join(1.0)
-        for thing in (self.subscriber, self.publisher):
+        for thing in (*self.subscribers, self.publisher):
             try:
                 thing.undeclare()
             except Exception:

@@ -1,0 +1,137 @@
+"""``teleop-rt site hsi|to CONFIG`` (one site, its own process) and ``teleop-rt run CONFIG
+--link zenoh`` (both sites as child processes on this host, one combined summary)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from teleop_rt.errors import ConfigError
+
+CHILD_GRACE_S = 30.0  # after the run's duration: handshake, start-up, staged stop
+
+
+def cmd_site(args, load_config) -> int:
+    """One site: real time, its own loop and summary; exit as a run's (0, 3, 5, 130, 143)."""
+    from teleop_rt.report import print_site_summary
+    from teleop_rt.site_run import run_site
+
+    extra = [f"duration_s={args.duration}"] if args.duration is not None else []
+    cfg = load_config(args, extra)
+    if cfg.link.kind != "zenoh":
+        cfg = cfg.model_copy(update={"link": cfg.link.model_copy(update={"kind": "zenoh"})})
+    if not args.json:
+        print(f"{args.site} site: {cfg.duration_s:g} s at {cfg.rate_hz} Hz over Zenoh, waiting "
+              f"for the {'to' if args.site == 'hsi' else 'hsi'} site (Ctrl-C stops)",
+              file=sys.stderr)  # fmt: skip
+    record = Path(args.record_ticks) if args.record_ticks else None
+    summary = run_site(cfg, args.site, realtime=True, overrun=args.overrun,
+                       max_missed=args.max_missed, record=record)  # fmt: skip
+    if args.json:
+        json.dump(summary.to_dict(), sys.stdout, indent=2)
+        print()
+    else:
+        print_site_summary(summary)
+    if summary.safety_stop:
+        return 3
+    if summary.stop_signal:
+        return 128 + summary.stop_signal
+    return 130 if summary.stopped_early else 0
+
+
+def run_two_sites(args, cfg) -> int:
+    """Both sites as child processes of this one (``teleop-rt site``), waited for; the pair's
+    T_p and T_tau from their tick records; one combined summary."""
+    from teleop_rt.report import print_pair_summary
+    from teleop_rt.site_run import pair_transparency
+
+    if not args.realtime:
+        raise ConfigError("--link zenoh runs two processes in real time: add --realtime")
+    cpus = sorted(os.sched_getaffinity(0))
+    with tempfile.TemporaryDirectory(prefix="teleop-rt-sites-") as tmp:
+        children = {}
+        for index, site in enumerate(("hsi", "to")):
+            cmd = [sys.executable, "-m", "teleop_rt", "site", site, str(args.config), "--json",
+                   "--record-ticks", str(Path(tmp) / f"{site}.npz")]  # fmt: skip
+            for o in args.overrides:
+                cmd += ["--set", o]
+            for side, name in args.backend:
+                if side in ("", site):
+                    cmd += ["--backend", name]
+            if args.duration is not None:
+                cmd += ["--duration", str(args.duration)]
+            if args.max_missed is not None:
+                cmd += ["--max-missed", str(args.max_missed)]
+            cmd += ["--overrun", args.overrun]
+            # a CPU each where there are two (the real-time grant pins a loop to the last CPU it
+            # may use: two spinning SCHED_FIFO loops on one CPU would take turns)
+            cpu = {cpus[index % len(cpus)]} if len(cpus) > 1 else None
+            children[site] = subprocess.Popen(
+                cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                start_new_session=True,  # a Ctrl-C here is passed on, once, below
+                preexec_fn=(lambda c=cpu: os.sched_setaffinity(0, c)) if cpu else None,
+            )  # fmt: skip
+        outs = _wait(children, cfg.duration_s + cfg.link.handshake_timeout_s + CHILD_GRACE_S)
+        summaries, codes = {}, {}
+        for site, (code, out, err) in outs.items():
+            codes[site] = code
+            try:
+                summaries[site] = json.loads(out)
+            except ValueError:
+                last = (err.strip().splitlines() or [f"exit {code}"])[-1]
+                summaries[site] = {"site": site, "error": last}
+        files = [Path(tmp) / f"{s}.npz" for s in ("hsi", "to")]
+        pair = None
+        if all(f.exists() for f in files):
+            t_p, t_tau, ticks = pair_transparency(*files, cfg.dt)
+            pair = {"ticks": ticks, "t_p": t_p, "t_tau": t_tau,
+                    "t_p_total": sum(t_p), "t_tau_total": sum(t_tau)}  # fmt: skip
+    combined = {"name": cfg.name, "link": "zenoh", "pair": pair, "sites": summaries,
+                "exit_codes": codes}  # fmt: skip
+    if args.json:
+        json.dump(combined, sys.stdout, indent=2)
+        print()
+    else:
+        print_pair_summary(combined)
+    return max(codes.values(), key=lambda c: (c != 0, c))
+
+
+def _wait(children: dict, timeout_s: float) -> dict:
+    """Wait for every child; on Ctrl-C pass SIGINT on once (each stops at a tick boundary);
+    past the timeout, SIGTERM then SIGKILL."""
+    deadline = time.monotonic() + timeout_s
+    interrupted = False
+    while any(p.poll() is None for p in children.values()):
+        try:
+            time.sleep(0.05)
+        except KeyboardInterrupt:
+            if not interrupted:
+                interrupted = True
+                for p in children.values():
+                    _signal(p, signal.SIGINT)
+        if time.monotonic() > deadline:
+            for p in children.values():
+                _signal(p, signal.SIGTERM)
+            deadline = time.monotonic() + 5.0
+            timeout_s = 0.0
+            if all(p.poll() is not None for p in children.values()):
+                break
+            for p in children.values():
+                if p.poll() is None and interrupted:
+                    _signal(p, signal.SIGKILL)
+            interrupted = True
+    return {site: (p.returncode, *p.communicate()) for site, p in children.items()}
+
+
+def _signal(p: subprocess.Popen, signum: int) -> None:
+    if p.poll() is None:
+        try:
+            os.kill(p.pid, signum)
+        except ProcessLookupError:
+            pass

@@ -1,0 +1,217 @@
+"""The link between two sites in separate processes (or machines): packets over Zenoh.
+
+One ``ZenohLink`` per site. Its packets go out once complete (``end_tick``: encoded into a
+preallocated buffer, ``teleop_rt.com.wire``, and handed to the transport's sender thread); the
+peer's arrive on Zenoh's thread into the playout buffer (``teleop_rt.com.playout``: the packet
+the peer sent at tick k - D is used at tick k if it has arrived, else a passive zero packet).
+
+Before any motor is enabled the two sites shake hands (``handshake``): each publishes what it
+runs (joints, rate, delay, the channel, a hash of these) until it hears the other; a mismatch is
+a refusal naming the field. The HSI site chooses the session id and a start time on the wall
+clock; the TO starts only once it has heard the HSI (its robot is not enabled before) and both
+start their tick clocks at that instant, so that their tick counts agree (on one host exactly;
+across hosts as well as their clocks agree: see README, "Two sites over a network").
+
+A site that hears nothing from its peer for ``link.peer_timeout_ms`` stops its robot: the
+silence is a ``SafetyStop`` raised at the tick that notices it (the staged stop follows).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import random
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+from teleop_rt.com.link import Link
+from teleop_rt.com.playout import Receiver
+from teleop_rt.com.port import HSI, Packet
+from teleop_rt.com.wire import WireBuffer, encode_into
+from teleop_rt.com.zenoh_transport import ZenohTransport, zenoh_config
+from teleop_rt.errors import SafetyStop, TeleopError
+
+if TYPE_CHECKING:
+    from teleop_rt.config import SessionConfig
+
+NAMES = ("hsi", "to")
+
+
+class HandshakeError(TeleopError):
+    """The peer site never appeared, or runs another session (exit code 5)."""
+
+    exit_code = 5
+
+
+def shared_parts(cfg: SessionConfig, joints: int) -> dict:
+    """What both sites must agree on, and a hash of it."""
+    parts = {
+        "name": cfg.name,
+        "joints": joints,
+        "rate_hz": cfg.rate_hz,
+        "delay_ticks": cfg.delay_ticks,
+        "channel": cfg.channel.model_dump(mode="json"),
+    }
+    digest = hashlib.sha256(json.dumps(parts, sort_keys=True).encode()).hexdigest()[:16]
+    return {**parts, "config_hash": digest}
+
+
+class ZenohLink(Link):
+    """Site ``side``'s end of a Zenoh link for the session of ``cfg``."""
+
+    def __init__(self, cfg: SessionConfig, side: int, n: int, clock_tick: Any) -> None:
+        """``clock_tick()``: the site's current tick (where an arrival is counted)."""
+        spec = cfg.link
+        if cfg.delay_ticks < 1:
+            raise TeleopError(
+                "channel.delay_ms: a link between processes needs a delay of at least one tick "
+                f"({1000.0 / cfg.rate_hz:g} ms): the packets take time"
+            )
+        self.cfg, self.side, self.n = cfg, side, n
+        self.name, self.peer = NAMES[side], NAMES[1 - side]
+        self.base = f"{spec.key}/{cfg.name}"
+        ends = getattr(spec.zenoh, self.name)
+        tls = spec.zenoh.tls
+        files = None
+        if tls is not None:
+            own = getattr(tls, self.name)
+            files = {"root_ca": tls.root_ca, "certificate": own.certificate,
+                     "private_key": own.private_key}  # fmt: skip
+        config = zenoh_config(ends.listen, ends.connect, files, spec.zenoh.mode)
+        self.transport = ZenohTransport(config, f"{self.base}/{self.name}/waves")
+        self._tick = clock_tick
+        self._lock = threading.Lock()
+        self._wire = WireBuffer(n)
+        self._packet: Packet | None = None
+        self.receiver: Receiver | None = None
+        self.session_id = 0
+        self.timeout_ns = round(spec.peer_timeout_ms * 1e6)
+        self.last_arrival_ns = 0
+        self.sent = 0
+        self._warm_up()
+
+    def _warm_up(self) -> None:
+        """Load (or compile) the codec's and the playout's kernels now, not at the first tick:
+        one packet through a scratch receiver."""
+        scratch, into = Packet(self.n), Packet(self.n)
+        scratch.seq = scratch.tick = 1
+        receiver = Receiver(self.n, self.cfg.delay_ticks, 1)
+        receiver.arrive(1, encode_into(WireBuffer(self.n), scratch, 1, 0))
+        receiver.take(1 + self.cfg.delay_ticks, into)
+
+    # --- before the loop --------------------------------------------------------------------
+    def handshake(self, timeout_s: float | None = None) -> int:
+        """Agree with the peer on the session; the wall-clock time (ns) to start at. Raises
+        ``HandshakeError`` on a mismatch or when the peer does not appear in time."""
+        timeout_s = self.cfg.link.handshake_timeout_s if timeout_s is None else timeout_s
+        session = self.transport.session
+        mine = {"site": self.name, **shared_parts(self.cfg, self.n)}
+        if self.side == HSI:
+            mine["session_id"] = random.getrandbits(63) or 1
+        heard: dict[str, Any] = {}
+
+        def on_hello(sample: Any) -> None:
+            try:
+                heard.update(json.loads(sample.payload.to_bytes()))
+            except ValueError:
+                pass  # not a hello of ours: ignored (the waves' decoder counts its own)
+
+        hello = session.declare_publisher(f"{self.base}/{self.name}/hello")
+        listener = session.declare_subscriber(f"{self.base}/{self.peer}/hello", on_hello)
+        deadline = time.monotonic() + timeout_s
+        try:
+            while True:
+                hello.put(json.dumps(mine))
+                if heard:
+                    self._check_compatible(mine, heard)
+                    if self.side == HSI:
+                        if "start_ns" not in mine:  # the TO is there: when both start
+                            mine["start_ns"] = time.time_ns() + 300_000_000
+                        elif heard.get("start_ns") == mine["start_ns"]:
+                            break  # the TO has it
+                    elif "start_ns" in heard:
+                        mine["session_id"], mine["start_ns"] = (
+                            heard["session_id"],
+                            heard["start_ns"],
+                        )
+                        for _ in range(5):  # the HSI may miss one
+                            hello.put(json.dumps(mine))
+                            time.sleep(0.01)
+                        break
+                if time.monotonic() > deadline:
+                    raise HandshakeError(
+                        f"link: the {self.peer} site did not answer within {timeout_s:g} s "
+                        f"(key {self.base}/{self.peer}, endpoints "
+                        f"{self._endpoints_text()})"
+                    )
+                time.sleep(0.02)
+        finally:
+            listener.undeclare()
+            hello.undeclare()
+        self.session_id = int(mine["session_id"])
+        self.receiver = Receiver(self.n, self.cfg.delay_ticks, self.session_id)
+        self.transport.listen(f"{self.base}/{self.peer}/waves", self._arrive)
+        return int(mine["start_ns"])
+
+    def _check_compatible(self, mine: dict, theirs: dict) -> None:
+        if theirs.get("site") != self.peer:
+            raise HandshakeError(f"link: a second {self.name} site answers on {self.base}")
+        for key in ("joints", "rate_hz", "delay_ticks", "channel", "config_hash"):
+            if theirs.get(key) != mine[key]:
+                raise HandshakeError(
+                    f"link: the {self.peer} site runs another session: {key} is "
+                    f"{theirs.get(key)!r} there, {mine[key]!r} here"
+                )
+
+    def _endpoints_text(self) -> str:
+        ends = getattr(self.cfg.link.zenoh, self.name)
+        return ", ".join([*(f"listen {e}" for e in ends.listen),
+                          *(f"connect {e}" for e in ends.connect)]) or "none"  # fmt: skip
+
+    def start(self) -> None:
+        """The loop starts now: the peer's silence is counted from here."""
+        self.last_arrival_ns = time.monotonic_ns()
+
+    # --- the Link interface -------------------------------------------------------------------
+    def _arrive(self, data: bytes) -> None:  # on Zenoh's thread
+        receiver = self.receiver
+        if receiver is None:
+            return
+        with self._lock:  # the playout's kernels release the GIL: one thread at a time
+            status = receiver.arrive(self._tick(), data)
+        if status == 0:
+            self.last_arrival_ns = time.monotonic_ns()
+
+    def send(self, side: int, packet: Packet) -> None:
+        self._packet = packet
+
+    def receive(self, side: int, into: Packet) -> None:
+        k = self._tick()
+        silent = time.monotonic_ns() - self.last_arrival_ns
+        if silent > self.timeout_ns:
+            raise SafetyStop(
+                f"tick {k}: link: nothing from the {self.peer} site for {silent / 1e6:.0f} ms "
+                f"(link.peer_timeout_ms = {self.cfg.link.peer_timeout_ms:g})"
+            )
+        with self._lock:
+            self.receiver.take(k, into)
+
+    def end_tick(self, side: int) -> None:
+        data = encode_into(self._wire, self._packet, self.session_id, time.monotonic_ns())
+        self.transport.send(data)
+        self.sent += 1
+
+    # --- afterwards -----------------------------------------------------------------------------
+    def stats(self) -> dict:
+        """What the link did: this site's packets sent, and the peer's as received here."""
+        received = self.receiver.stats() if self.receiver is not None else {}
+        return {
+            "sent": self.sent,
+            "send_replaced": self.transport.replaced,
+            "send_errors": self.transport.send_errors,
+            "from_peer": received,
+        }
+
+    def close(self) -> None:
+        self.transport.close()

@@ -1,0 +1,157 @@
+"""One site as a process of its own: ``teleop-rt site hsi|to CONFIG``.
+
+The site builds its robot's loop (``teleop_rt.site``) and its end of the network link
+(``teleop_rt.com.zenoh_link``), shakes hands with its peer before its backend starts, and runs
+its own real-time loop (``teleop_rt.runner``) with its own clock, signals, staged stop and
+summary. It keeps every tick's joint angles and measured torque (``TickRecord``, preallocated)
+so that a parent that ran both sites can compute T_p and T_tau of the pair (eq 18), aligned by
+tick: both sites start their tick clocks at the instant the handshake agreed on.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from teleop_rt.com.zenoh_link import ZenohLink
+from teleop_rt.config import SessionConfig
+from teleop_rt.errors import SafetyStop
+from teleop_rt.loop import TickClock
+from teleop_rt.runner import LoopOutcome, run_loop
+from teleop_rt.site import HsiSite, SensorsUnusable, Site, ToSite
+
+
+@dataclass
+class SiteSummary:
+    """End-of-run figures of one site (SI; timing in microseconds)."""
+
+    name: str
+    site: str
+    ticks: int
+    simulated_time_s: float
+    delay_ticks: int
+    port_energy_j: float  # energy that entered the channel at this site's port (eq 7, 8)
+    timing: dict
+    realtime: bool
+    link: dict
+    notes: list[str] = field(default_factory=list)
+    stopped_early: str | None = None
+    stop_signal: int | None = None
+    safety_stop: bool = False
+    saturated_ticks: int = 0
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+class TickRecord:
+    """Every tick's q and tau (tau_h at the HSI, tau_e at the TO), preallocated."""
+
+    def __init__(self, ticks: int, n: int) -> None:
+        self.q = np.zeros((ticks, n))
+        self.tau = np.zeros((ticks, n))
+        self.count = 0
+
+    def add(self, site: Site) -> None:
+        k = self.count
+        self.q[k] = site.feedback.q
+        self.tau[k] = site.signals.tau
+        self.count = k + 1
+
+    def save(self, path: Path) -> None:
+        np.savez(path, q=self.q[: self.count], tau=self.tau[: self.count])
+
+
+def run_site(
+    cfg: SessionConfig,
+    name: str,
+    backend: str | None = None,
+    realtime: bool = True,
+    overrun: str = "catch_up",
+    max_missed: int | None = None,
+    record: Path | None = None,
+) -> SiteSummary:
+    """Run site ``name`` ('hsi' or 'to') of ``cfg`` against its peer over the config's link."""
+    site: Site = (HsiSite if name == "hsi" else ToSite)(cfg, backend)
+    site.warm_up()
+    link = ZenohLink(cfg, site.side, site.n, lambda: site.tick)
+    ticks = TickRecord(cfg.n_ticks, site.n)
+    start_ns = [0]
+
+    def handshake() -> None:
+        start_ns[0] = link.handshake()
+
+    def at_start() -> None:  # both sites start their clocks at the agreed instant
+        delay = (start_ns[0] - time.time_ns()) / 1e9
+        if delay > 0:
+            time.sleep(delay)
+        link.start()
+
+    def step() -> None:
+        site.sense(link)
+        site.update(link)
+        ticks.add(site)
+
+    def bring_to_rest(clock: TickClock) -> str:
+        limit = cfg.safety.stop_max_ticks
+        try:
+            for i in range(limit):
+                clock.wait()
+                if site.rest_step():
+                    return f"{name} at rest after {i + 1} ticks, then zero torque"
+        except SensorsUnusable:
+            return "sensors unusable: zero torque"
+        except SafetyStop as exc:
+            return f"a further fault while stopping ({exc}): zero torque"
+        return f"{name} not at rest after {limit} ticks; zero torque"
+
+    summary: list[SiteSummary] = []
+
+    def finish(out: LoopOutcome) -> dict:
+        summary.append(
+            SiteSummary(
+                name=cfg.name,
+                site=name,
+                ticks=out.stats.count,
+                simulated_time_s=out.stats.count * cfg.dt,
+                delay_ticks=cfg.delay_ticks,
+                port_energy_j=site.port.total_energy,
+                timing=out.timing(),
+                realtime=realtime,
+                link=link.stats(),
+                notes=out.notes,
+                stopped_early=out.stopped_early,
+                stop_signal=out.stop.signum,
+                safety_stop=out.safety_stop,
+                saturated_ticks=site.guard.saturated_ticks,
+            )  # fmt: skip
+        )
+        return summary[0].to_dict()
+
+    try:
+        run_loop(
+            step, cfg.n_ticks, cfg.dt, [site.backend], bring_to_rest, realtime=realtime,
+            overrun=overrun, max_missed=max_missed, before_start=handshake, at_start=at_start,
+            finish=finish,
+        )  # fmt: skip
+    finally:
+        link.close()
+        if record is not None:
+            ticks.save(record)
+    return summary[0]
+
+
+def pair_transparency(hsi: Path, to: Path, dt: float) -> tuple[list[float], list[float], int]:
+    """T_p and T_tau (eq 18) per joint of two sites' tick records, aligned by tick (both sites
+    count ticks from the instant they agreed to start); the ticks both ran."""
+    from teleop_rt.analysis.transparency import transparency
+
+    a, b = np.load(hsi), np.load(to)
+    k = min(len(a["q"]), len(b["q"]))
+    if k == 0:
+        return [0.0], [0.0], 0
+    t_p, t_tau = transparency(a["q"][:k], b["q"][:k], a["tau"][:k], b["tau"][:k], dt)
+    return t_p.tolist(), t_tau.tolist(), k
