@@ -78,6 +78,17 @@ def test_late_duplicate_early_and_reordered() -> None:
                  "reordered": 1, "early": 1, "skipped": 0, "repeated": 0}  # fmt: skip
 
 
+def test_an_arrival_after_its_ticks_take_is_late() -> None:
+    """A transport's thread may deliver during tick k after the site took tick k's packet."""
+    playout = Playout(N, 2)
+    assert taken(playout, 2) is None  # sender tick 0 not there yet
+    assert playout.arrive(2, sent(0)) == DROPPED_LATE
+    assert playout.arrive(2, sent(1)) == STORED
+    assert taken(playout, 3) == 1
+    c = playout.counters()
+    assert (c["late"], c["lost"], c["used"]) == (1, 1, 1)
+
+
 def test_the_lost_count_starts_at_the_senders_first_tick() -> None:
     playout = Playout(N, 3)
     for k in range(10):
@@ -130,7 +141,7 @@ class Model:
     def arrive(self, k: int, s: int) -> None:
         self.c["received"] += 1
         target = s + self.d + self.offset
-        if target < k:
+        if target < k or (self.last is not None and s <= self.last):
             self.c["late"] += 1
         elif s in self.stored:
             self.c["duplicated"] += 1
