@@ -1,0 +1,246 @@
+"""The receiver's playout rule: which of the peer's packets a site uses at its tick.
+
+At its tick k a site uses the packet the peer sent at tick k - D - offset, if it has arrived by
+then, else a zero packet (``valid = 0``: a zero wave is passive, holding the last one is not).
+D is the playout delay in ticks (the channel's nominal one-way delay, >= 1 over a network), and
+``offset`` how far the receiver's tick count runs ahead of the sender's (0 in one process;
+``retarget`` moves it by whole ticks when the clocks have drifted, which the caller decides).
+So jitter up to D becomes the constant delay D (Kosuge et al., 1996), and an arrival is:
+
+- on time (stored, used at its tick; ``reordered`` too if a later-sent packet came first);
+- ``late``: after its playout tick, or after its tick's packet was taken (also a copy of a
+  packet already used): dropped;
+- ``duplicated``: a second copy before its playout tick: dropped;
+- ``early``: more than ``early_ticks`` ticks before its playout tick: dropped (bounds memory
+  and what a peer with a wrong clock can queue).
+
+``lost`` counts playout ticks whose packet was not there (never arrived, or late). Every
+arrival's one-way delay in ticks, k - s - offset, goes into a preallocated histogram (p50, p99;
+delays beyond it count in its last bin, the max is exact). Packets sit in a ring indexed by
+sender tick (``early_ticks + 1`` slots): nothing is allocated per packet.
+
+``Receiver`` puts the wire decoder in front: a packet the decoder drops is counted
+``rejected`` by reason, except a stale one (its sequence number not newer than the newest used),
+which is a late arrival; using a packet tells the decoder its sequence number.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from teleop_rt.com.port import Packet
+from teleop_rt.com.wire import OK, REASONS, STALE, Decoder, WireBounds
+from teleop_rt.flat import jit
+
+EARLY_SLACK_TICKS = 50  # default early horizon beyond D: room for the clocks' offset
+NONE = -(1 << 62)  # an empty slot's sender tick
+
+# the state's entries: parameters, then counters (COUNTERS, in order)
+DELAY, EARLY_TICKS, SLOTS, OFFSET, NEWEST, LAST_TAKEN, MAX_DELAY = range(7)
+COUNTERS = ("received", "used", "lost", "late", "duplicated", "reordered", "early", "skipped",
+            "repeated")  # fmt: skip
+RECEIVED, USED, LOST, LATE, DUPLICATED, REORDERED, EARLY, SKIPPED, REPEATED = range(
+    7, 7 + len(COUNTERS)
+)
+HISTOGRAM = 7 + len(COUNTERS)  # the delay histogram's first bin
+# what arrive() did with a packet
+STORED, DROPPED_LATE, DROPPED_DUPLICATE, DROPPED_EARLY = range(4)
+
+P_TICK = Packet.tick.k
+
+
+class Playout:
+    """The playout buffer of one direction, for packets of ``n`` joints."""
+
+    def __init__(
+        self,
+        n: int,
+        delay_ticks: int,
+        early_ticks: int | None = None,
+        histogram_ticks: int | None = None,
+    ) -> None:
+        if delay_ticks < 1:
+            raise ValueError("a playout delay needs at least one tick")
+        early = delay_ticks + EARLY_SLACK_TICKS if early_ticks is None else early_ticks
+        if early < delay_ticks:
+            raise ValueError("early_ticks must be >= the playout delay (a packet with no delay)")
+        self.n = n
+        slots = early + 1
+        bins = max(1024, 4 * (early + 1)) if histogram_ticks is None else histogram_ticks
+        # one int array for the state, the counters and the delay histogram, one float and one
+        # int array for the ring (fewer arrays: each costs a compiled call ~80 ns)
+        self.st = np.zeros(HISTOGRAM + bins, dtype=np.int64)
+        self.st[[DELAY, EARLY_TICKS, SLOTS]] = delay_ticks, early, slots
+        self.st[[NEWEST, LAST_TAKEN]] = NONE
+        self.histogram = self.st[HISTOGRAM:]
+        probe = Packet(n)
+        self.ring_f = np.zeros((slots, probe.f.size))
+        # per slot: the packet's ints, then the slot's sender tick and whether it was used
+        self.ring_i = np.zeros((slots, probe.i.size + 2), dtype=np.int64)
+        self.ring_i[:, probe.i.size] = NONE
+
+    @property
+    def delay_ticks(self) -> int:
+        return int(self.st[DELAY])
+
+    @property
+    def offset_ticks(self) -> int:
+        return int(self.st[OFFSET])
+
+    def retarget(self, offset_ticks: int) -> None:
+        """From now on tick k plays the sender's tick k - D - ``offset_ticks``: a larger offset
+        replays no new tick for a while (zero packets, counted ``repeated``), a smaller one
+        jumps over sender ticks (``skipped``)."""
+        self.st[OFFSET] = offset_ticks
+
+    def arrive(self, k: int, packet: Packet) -> int:
+        """A packet (valid, decoded) arriving at receiver tick ``k``: STORED or why dropped."""
+        return _arrive(self.st, self.ring_f, self.ring_i, k, packet.f, packet.i)
+
+    def late(self, k: int, sender_tick: int) -> None:
+        """A late arrival that was dropped before reaching the buffer (the decoder's stale)."""
+        _count_late(self.st, k, sender_tick)
+
+    def take(self, k: int, into: Packet) -> int:
+        """The packet to use at tick ``k`` into ``into``; 1 if one arrived, 0 (zeros) if not."""
+        return _take(self.st, self.ring_f, self.ring_i, k, into.f, into.i)
+
+    def counters(self) -> dict[str, int]:
+        return {name: int(self.st[RECEIVED + k]) for k, name in enumerate(COUNTERS)}
+
+    def delay_percentiles(self) -> dict[str, int | None]:
+        """One-way delay of the arrivals, ticks: p50, p99 (upper bins) and the exact max."""
+        total = int(self.histogram.sum())
+        if total == 0:
+            return {"p50": None, "p99": None, "max": None}
+        cumulative = np.cumsum(self.histogram)
+        p50, p99 = (int(np.searchsorted(cumulative, q * total)) for q in (0.5, 0.99))
+        return {"p50": p50, "p99": p99, "max": int(self.st[MAX_DELAY])}
+
+
+N_INTS = len(Packet.INTS)
+R_TICK, R_USED = N_INTS, N_INTS + 1  # a slot's sender tick and used flag, after the packet's
+
+
+@jit
+def _record_delay(st: np.ndarray, k: int, sender_tick: int) -> None:
+    st[RECEIVED] += 1
+    delay = k - sender_tick - st[OFFSET]
+    if delay > st[MAX_DELAY]:
+        st[MAX_DELAY] = delay
+    last = st.size - 1
+    st[min(HISTOGRAM + max(delay, 0), last)] += 1
+
+
+@jit
+def _count_late(st: np.ndarray, k: int, sender_tick: int) -> None:
+    _record_delay(st, k, sender_tick)
+    st[LATE] += 1
+
+
+@jit
+def _arrive(
+    st: np.ndarray, ring_f: np.ndarray, ring_i: np.ndarray, k: int, pf: np.ndarray,
+    pi: np.ndarray,
+) -> int:  # fmt: skip
+    s = pi[P_TICK]
+    _record_delay(st, k, s)
+    target = s + st[DELAY] + st[OFFSET]  # the tick this packet plays at
+    # late: its tick has passed, or has been played (an arrival after this tick's take, as
+    # from a transport's own thread)
+    if target < k or (st[LAST_TAKEN] != NONE and s <= st[LAST_TAKEN]):
+        st[LATE] += 1
+        return DROPPED_LATE
+    slot = s % st[SLOTS]
+    if ring_i[slot, R_TICK] == s:
+        st[DUPLICATED] += 1
+        return DROPPED_DUPLICATE
+    if target > k + st[EARLY_TICKS]:
+        st[EARLY] += 1
+        return DROPPED_EARLY
+    # the slot's previous tick is at least SLOTS older: played (or missed) already
+    for j in range(pf.size):
+        ring_f[slot, j] = pf[j]
+    for j in range(N_INTS):
+        ring_i[slot, j] = pi[j]
+    ring_i[slot, R_TICK] = s
+    ring_i[slot, R_USED] = 0
+    if s < st[NEWEST]:
+        st[REORDERED] += 1
+    else:
+        st[NEWEST] = s
+    return STORED
+
+
+@jit
+def _take(
+    st: np.ndarray, ring_f: np.ndarray, ring_i: np.ndarray, k: int, pf: np.ndarray,
+    pi: np.ndarray,
+) -> int:  # fmt: skip
+    s = k - st[DELAY] - st[OFFSET]
+    last = st[LAST_TAKEN]
+    if last == NONE or s > last:
+        if last != NONE:
+            st[SKIPPED] += s - last - 1
+        st[LAST_TAKEN] = s
+        slot = s % st[SLOTS]
+        if ring_i[slot, R_TICK] == s and ring_i[slot, R_USED] == 0:
+            for j in range(pf.size):
+                pf[j] = ring_f[slot, j]
+            for j in range(N_INTS):
+                pi[j] = ring_i[slot, j]
+            ring_i[slot, R_USED] = 1
+            st[USED] += 1
+            return 1
+        if s >= 0:  # before the sender's first tick nothing is missing
+            st[LOST] += 1
+    else:
+        st[REPEATED] += 1
+    pf[:] = 0.0
+    pi[:] = 0
+    return 0
+
+
+class Receiver:
+    """One direction's receiving end: the wire decoder, then the playout."""
+
+    def __init__(
+        self,
+        n: int,
+        delay_ticks: int,
+        session_id: int,
+        bounds: WireBounds | None = None,
+        early_ticks: int | None = None,
+    ) -> None:
+        self.session_id = session_id
+        self.decoder = Decoder(n, bounds)
+        self.playout = Playout(n, delay_ticks, early_ticks)
+        self._scratch = Packet(n)
+
+    def arrive(self, k: int, data: bytes | bytearray | memoryview) -> int:
+        """Bytes from the network at receiver tick ``k``; returns the decoder's status."""
+        status = self.decoder.decode(data, self.session_id, self._scratch)
+        if status == OK:
+            self.playout.arrive(k, self._scratch)
+        elif status == STALE:
+            self.playout.late(k, self.decoder.seen_tick)
+        return status
+
+    def take(self, k: int, into: Packet) -> int:
+        """The packet to use at tick ``k`` (zeros if none); 1 if one arrived."""
+        used = self.playout.take(k, into)
+        if used:
+            self.decoder.used_seq = into.seq
+        return used
+
+    def stats(self, sent: int | None = None) -> dict:
+        """What the link did in this direction (``sent``: the sender's count, if known)."""
+        counts = self.decoder.counts
+        rejected = {REASONS[r]: int(counts[r]) for r in range(len(REASONS)) if r not in (OK, STALE)}
+        return {
+            "sent": sent,
+            **self.playout.counters(),
+            "rejected": sum(rejected.values()),
+            "rejected_by_reason": {k: v for k, v in rejected.items() if v},
+            "delay_ticks": self.playout.delay_percentiles(),
+        }
