@@ -31,8 +31,12 @@ def cmd_site(args, load_config) -> int:
               f"for the {'to' if args.site == 'hsi' else 'hsi'} site (Ctrl-C stops)",
               file=sys.stderr)  # fmt: skip
     record = Path(args.record_ticks) if args.record_ticks else None
+
+    def say(line: str) -> None:
+        print(f"{args.site} site: {line}", file=sys.stderr, flush=True)
+
     summary = run_site(cfg, args.site, realtime=True, overrun=args.overrun,
-                       max_missed=args.max_missed, record=record)  # fmt: skip
+                       max_missed=args.max_missed, record=record, on_peer=say)  # fmt: skip
     if args.json:
         json.dump(summary.to_dict(), sys.stdout, indent=2)
         print()

@@ -11,6 +11,7 @@ tick: both sites start their tick clocks at the instant the handshake agreed on.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +23,8 @@ from teleop_rt.errors import SafetyStop
 from teleop_rt.loop import TickClock
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, SensorsUnusable, Site, ToSite
+
+SENDER_PRIORITY = 81  # the link's sender thread: above the loop's SCHED_FIFO 80
 
 
 @dataclass
@@ -73,6 +76,7 @@ def run_site(
     overrun: str = "catch_up",
     max_missed: int | None = None,
     record: Path | None = None,
+    on_peer: Callable[[str], None] | None = None,
 ) -> SiteSummary:
     """Run site ``name`` ('hsi' or 'to') of ``cfg`` against its peer over the config's link."""
     site: Site = (HsiSite if name == "hsi" else ToSite)(cfg, backend)
@@ -83,8 +87,12 @@ def run_site(
 
     def handshake() -> None:
         start_ns[0] = link.handshake()
+        if on_peer is not None:
+            on_peer(f"the {link.peer} site answered (session {link.session_id:x}); starting")
 
     def at_start() -> None:  # both sites start their clocks at the agreed instant
+        if realtime:
+            link.transport.raise_priority(SENDER_PRIORITY)
         delay = (start_ns[0] - time.time_ns()) / 1e9
         if delay > 0:
             time.sleep(delay)

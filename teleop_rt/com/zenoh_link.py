@@ -30,7 +30,7 @@ from teleop_rt.com.playout import Receiver
 from teleop_rt.com.port import HSI, Packet
 from teleop_rt.com.wire import WireBuffer, encode_into
 from teleop_rt.com.zenoh_transport import ZenohTransport, zenoh_config
-from teleop_rt.errors import SafetyStop, TeleopError
+from teleop_rt.errors import ConfigError, SafetyStop, TeleopError
 
 if TYPE_CHECKING:
     from teleop_rt.config import SessionConfig
@@ -64,7 +64,7 @@ class ZenohLink(Link):
         """``clock_tick()``: the site's current tick (where an arrival is counted)."""
         spec = cfg.link
         if cfg.delay_ticks < 1:
-            raise TeleopError(
+            raise ConfigError(
                 "channel.delay_ms: a link between processes needs a delay of at least one tick "
                 f"({1000.0 / cfg.rate_hz:g} ms): the packets take time"
             )

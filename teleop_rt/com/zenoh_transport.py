@@ -19,6 +19,7 @@ thread.
 from __future__ import annotations
 
 import json
+import os
 import threading
 from collections.abc import Callable
 from pathlib import Path
@@ -88,6 +89,7 @@ class ZenohTransport:
         self._wake = threading.Event()
         self._running = True
         self.sent = self.replaced = self.send_errors = 0
+        self._priority: int | None = None  # SCHED_FIFO priority the sender should take
         self._thread = threading.Thread(target=self._sender, name="teleop-rt-send", daemon=True)
         self._thread.start()
 
@@ -110,10 +112,21 @@ class ZenohTransport:
             self._fresh = True
         self._wake.set()
 
+    def raise_priority(self, priority: int) -> None:
+        """Run the sender at SCHED_FIFO ``priority`` (above a real-time loop's, so that a
+        packet goes out while the loop sleeps, not after other threads of the CPU)."""
+        self._priority = priority
+
     def _sender(self) -> None:
         while self._running:
             self._wake.wait()
             self._wake.clear()
+            if self._priority is not None:  # applied by the thread to itself
+                try:
+                    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self._priority))
+                except OSError:
+                    pass  # not granted: the loop's notes say what was
+                self._priority = None
             with self._lock:
                 if not self._fresh:
                     continue

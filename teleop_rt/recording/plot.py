@@ -252,8 +252,7 @@ def plot_main(
     if not data.ticks:  # an empty figure is no plot
         why = f"; {data.cut_reason}" if data.truncated and data.cut_reason else ""
         raise LogError(
-            f"{data.path}: no ticks to plot (the log, or the window asked for, holds no "
-            f"ticks{why})"
+            f"{data.path}: no ticks to plot (the log, or the window asked for, holds no ticks{why})"
         )
     plot_log(data, target, force=force)
     if data.truncated:
