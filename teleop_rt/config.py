@@ -24,6 +24,7 @@ from pydantic import (
     model_validator,
 )
 
+from teleop_rt.com.impairment import ImpairmentSpec
 from teleop_rt.errors import ConfigError, quote
 from teleop_rt.hal.can.config import CanSpec
 
@@ -355,6 +356,9 @@ class LinkSpec(Strict):
     # the peer must appear (and agree on the session) within this, else the site refuses
     handshake_timeout_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = 10.0
     zenoh: ZenohSpec = ZenohSpec()
+    # a seeded network emulation between the sites of a one-process session (fast mode,
+    # bit-reproducible): delay, jitter, loss, bursts, duplication, reordering, traces
+    impairment: ImpairmentSpec | None = None
 
 
 class SessionConfig(Strict):
@@ -547,6 +551,10 @@ def _resolve_paths(cfg: SessionConfig, base_dir: Path) -> SessionConfig:
         tls = TlsSpec(root_ca=at(tls.root_ca), **files)
         zenoh = cfg.link.zenoh.model_copy(update={"tls": tls})
         sides["link"] = cfg.link.model_copy(update={"zenoh": zenoh})
+    if cfg.link.impairment is not None:  # a trace file, like the URDFs
+        link = sides.get("link", cfg.link)
+        impairment = cfg.link.impairment.with_paths_resolved(base_dir)
+        sides["link"] = link.model_copy(update={"impairment": impairment})
     return cfg.model_copy(update=sides)
 
 

@@ -81,6 +81,8 @@ def print_summary(summary: Summary, console: Console | None = None) -> None:
         table.add_row("torque saturated", f"{summary.saturated_ticks} ticks (URDF effort limits)")
     if summary.stopped_early:
         table.add_row("stopped early", f"[red]{summary.stopped_early}")
+    for site, figures in (summary.link or {}).items():
+        table.add_row(f"link to the {site}", _link_text({"sent": "-", "from_peer": figures}))
     console.print(table)
 
 

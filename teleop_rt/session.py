@@ -27,9 +27,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from teleop_rt.analysis.transparency import TransparencyAccumulator
-from teleop_rt.com.channel import ChannelMonitor
-from teleop_rt.com.link import InProcessLink
+from teleop_rt.analysis.transparency import TransparencyAccumulator, accumulate
+from teleop_rt.com.channel import ChannelMonitor, monitor_step
+from teleop_rt.com.link import InProcessLink, Link
 from teleop_rt.config import SessionConfig
 from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
@@ -101,6 +101,7 @@ class Summary:
     stop_signal: int | None = None  # the signal that ended the run (SIGINT, SIGTERM), if any
     safety_stop: bool = False  # the safety layer ended the run (stopped_early says why)
     saturated_ticks: int = 0  # ticks in which a commanded torque hit its effort limit
+    link: dict | None = None  # what an impaired link did (sent, lost, late, ...; per site)
 
     @property
     def t_p_total(self) -> float:
@@ -144,14 +145,27 @@ class Session:
                 "the channel couples joint to joint"
             )
         self.n = n
-        self.link = InProcessLink(n, cfg.delay_ticks)
+        impairment = cfg.link.impairment
+        if impairment is None:
+            self.link: Link = InProcessLink(n, cfg.delay_ticks)
+        else:  # the network emulated between the sites: stepped from Python, seeded
+            from teleop_rt.com.impaired_link import ImpairedLink
+
+            if cfg.delay_ticks < 1:
+                raise ConfigError(
+                    "link.impairment: an impaired link needs channel.delay_ms of at least one "
+                    "tick (the playout delay)"
+                )
+            self.link = ImpairedLink(n, cfg.delay_ticks, self.dt, impairment)
         self.monitor = ChannelMonitor(n, self.dt)
         self.metrics = TransparencyAccumulator(n, self.dt)
         self.pair = PairState(n)
         self.channel = ChannelView(self)
         self.tick = 0
-        pair = self.hsi.backend.fuse(self.to.backend) if fuse else None
+        compiled_link = isinstance(self.link, InProcessLink)
+        pair = self.hsi.backend.fuse(self.to.backend) if fuse and compiled_link else None
         self._pack(pair)
+        self.compiled_link = compiled_link
 
     @property
     def sites(self) -> tuple[Site, Site]:
@@ -161,7 +175,8 @@ class Session:
         """All blocks into one pair of buffers, for the compiled lock-step tick; backends that
         fuse follow, so that the same compiled calls reach their state."""
         hsi, to = self.hsi, self.to
-        own = [*hsi.blocks, *to.blocks, self.link, self.monitor, self.metrics, self.pair]
+        link_block = self.link if isinstance(self.link, InProcessLink) else InProcessLink(self.n, 0)
+        own = [*hsi.blocks, *to.blocks, link_block, self.monitor, self.metrics, self.pair]
         assert len(own) == SESSION_BLOCKS
         blocks = own + (pair.blocks if pair else [])
         self.packed = p = Packed(blocks)
@@ -213,6 +228,9 @@ class Session:
         safety, write. With ``fused`` the reads and writes are the backends' own compiled
         pieces inside the lock-step kernels (``Backend.fuse``)."""
         hsi, to = self.hsi, self.to
+        if not self.compiled_link:
+            self._step_over(self.link)
+            return
         f, i, o, n = self._buffers
         fused = self.fused
         pair = self._pair_plants
@@ -242,6 +260,27 @@ class Session:
             to.backend.write(to.computed_torque.tau)
         self.tick += 1
         hsi.tick = to.tick = self.tick
+
+    def _step_over(self, link: Link) -> None:
+        """One tick of both sites through a link stepped from Python (an impaired one): each
+        site's own entry points, then the two-port's monitor and the metrics."""
+        hsi, to = self.hsi, self.to
+        hsi.sense(link)
+        to.sense(link)
+        hsi.update(link)
+        to.update(link)
+        n, mon, met = self.n, self.monitor, self.metrics
+        monitor_step(mon.f, n, hsi.port.f, to.port.f)
+        if hsi.guard.saturated or to.guard.saturated:
+            self.pair.saturated_ticks += 1
+        accumulate(met.f, met.i, n, hsi.feedback.q, to.feedback.q, hsi.signals.tau, to.signals.tau)
+        self.tick += 1
+
+    def link_stats(self) -> dict | None:
+        """What an impaired link did, per receiving site (None for the plain in-process one)."""
+        if self.compiled_link:
+            return None
+        return {"hsi": self.link.stats(0), "to": self.link.stats(1)}
 
     def _stop_for(self, code: int) -> SafetyStop:
         site = self.to if self.pair.finding_site else self.hsi
@@ -318,4 +357,5 @@ class Session:
             stop_signal=outcome.stop.signum,
             safety_stop=outcome.safety_stop,
             saturated_ticks=self.saturated_ticks,
+            link=self.link_stats(),
         )

@@ -1,6 +1,2 @@
-"""The communication channel (COM): the wave-variable two-port and a direct delayed channel."""
-
-from teleop_rt.com.direct import DirectChannel
-from teleop_rt.com.wave import WaveChannel
-
-__all__ = ["DirectChannel", "WaveChannel"]
+"""The communication channel (COM): each site's port, the packets, the links between sites
+(in-process, impaired, Zenoh), and the two-port as a whole (wave-variable and direct)."""
