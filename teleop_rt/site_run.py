@@ -40,6 +40,7 @@ class SiteSummary:
     timing: dict
     realtime: bool
     link: dict
+    cpu_s: float  # this process's CPU time over the run (the loop, the link's threads)
     notes: list[str] = field(default_factory=list)
     stopped_early: str | None = None
     stop_signal: int | None = None
@@ -90,6 +91,8 @@ def run_site(
         if on_peer is not None:
             on_peer(f"the {link.peer} site answered (session {link.session_id:x}); starting")
 
+    cpu0 = [0.0]
+
     def at_start() -> None:  # both sites start their clocks at the agreed instant
         if realtime:
             link.transport.raise_priority(SENDER_PRIORITY)
@@ -97,6 +100,7 @@ def run_site(
         if delay > 0:
             time.sleep(delay)
         link.start()
+        cpu0[0] = time.process_time()
 
     def step() -> None:
         site.sense(link)
@@ -130,6 +134,7 @@ def run_site(
                 timing=out.timing(),
                 realtime=realtime,
                 link=link.stats(),
+                cpu_s=time.process_time() - cpu0[0],
                 notes=out.notes,
                 stopped_early=out.stopped_early,
                 stop_signal=out.stop.signum,

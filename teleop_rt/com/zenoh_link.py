@@ -25,6 +25,8 @@ import threading
 import time
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from teleop_rt.com.link import Link
 from teleop_rt.com.playout import Receiver
 from teleop_rt.com.port import HSI, Packet
@@ -89,6 +91,10 @@ class ZenohLink(Link):
         self.timeout_ns = round(spec.peer_timeout_ms * 1e6)
         self.last_arrival_ns = 0
         self.sent = 0
+        # one-way delay of every accepted packet, ns (sender and receiver on one host share
+        # CLOCK_MONOTONIC: across hosts this is meaningless and only ticks compare)
+        self.delays_ns = np.zeros(cfg.n_ticks + 10_000, dtype=np.int64)
+        self.n_delays = 0
         self._warm_up()
 
     def _warm_up(self) -> None:
@@ -181,7 +187,11 @@ class ZenohLink(Link):
         with self._lock:  # the playout's kernels release the GIL: one thread at a time
             status = receiver.arrive(self._tick(), data)
         if status == 0:
-            self.last_arrival_ns = time.monotonic_ns()
+            now = time.monotonic_ns()
+            self.last_arrival_ns = now
+            if self.n_delays < self.delays_ns.size:
+                self.delays_ns[self.n_delays] = now - receiver.decoder.sender_time_ns
+                self.n_delays += 1
 
     def send(self, side: int, packet: Packet) -> None:
         self._packet = packet
@@ -206,8 +216,14 @@ class ZenohLink(Link):
     def stats(self) -> dict:
         """What the link did: this site's packets sent, and the peer's as received here."""
         received = self.receiver.stats() if self.receiver is not None else {}
+        d = self.delays_ns[: self.n_delays] / 1e3
+        delay_us = (
+            {"p50": float(np.percentile(d, 50)), "p99": float(np.percentile(d, 99)),
+             "max": float(d.max())} if d.size else None
+        )  # fmt: skip
         return {
             "sent": self.sent,
+            "one_way_delay_us": delay_us,
             "send_replaced": self.transport.replaced,
             "send_errors": self.transport.send_errors,
             "from_peer": received,

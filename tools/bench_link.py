@@ -1,0 +1,137 @@
+"""The link between two sites, measured: both sites as processes over Zenoh on loopback
+(``teleop-rt run --link zenoh``), and beside them the same config in one process.
+
+    python tools/bench_link.py [CONFIG] [--seconds 60] [--delay-ms 20] [--json OUT]
+
+Prints per direction the one-way delay (sender to receiver, CLOCK_MONOTONIC on this host),
+packets lost or late beyond the playout rule, and each site's CPU per tick (its loop and its
+link's threads), beside the one-process session's CPU per tick. Goals (issue 16): one-way p50
+<= 200 us, <= 0.1 % lost or late with no impairment, each site <= 30 % of a core. This VM is
+shared: figures move with its neighbours' load (run it twice; compare within one run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from teleop_rt import config  # noqa: E402
+from teleop_rt.errors import TeleopError  # noqa: E402
+from teleop_rt.session import Session  # noqa: E402
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def two_processes(cfg_path: str, seconds: float, delay_ms: int) -> dict:
+    at = f"udp/127.0.0.1:{free_port()}"
+    cmd = [
+        sys.executable,
+        "-m",
+        "teleop_rt",
+        "run",
+        cfg_path,
+        "--link",
+        "zenoh",
+        "--realtime",
+        "--duration",
+        str(seconds),
+        "--json",
+        "--set",
+        f"channel.delay_ms={delay_ms}",
+        "--set",
+        f"link.zenoh.hsi.listen=[{at}]",
+        "--set",
+        f"link.zenoh.to.connect=[{at}]",
+    ]
+    print(f"two sites over Zenoh ({at}), {seconds:g} s in real time ...", file=sys.stderr)
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=seconds + 300)
+    if out.returncode != 0:
+        last = (out.stderr.strip().splitlines() or [f"exit {out.returncode}"])[-1]
+        raise TeleopError(f"the two-site run failed: {last}")
+    return json.loads(out.stdout)
+
+
+def one_process(cfg_path: str, seconds: float, delay_ms: int) -> dict:
+    print(f"the same in one process, {seconds:g} s in real time ...", file=sys.stderr)
+    cfg = config.load(cfg_path, [f"channel.delay_ms={delay_ms}", f"duration_s={seconds}"])
+    session = Session(cfg)
+    cpu0 = time.process_time()
+    summary = session.run(realtime=True)
+    return {"ticks": summary.ticks, "cpu_s": time.process_time() - cpu0,
+            "t_p_total": summary.t_p_total, "t_tau_total": summary.t_tau_total}  # fmt: skip
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument(
+        "config",
+        nargs="?",
+        default=str(ROOT / "configs" / "paper_experiment.yaml"),
+        help="session config (default: configs/paper_experiment.yaml)",
+    )
+    p.add_argument("--seconds", type=float, default=60.0, help="real-time run, s (default 60)")
+    p.add_argument(
+        "--delay-ms",
+        type=int,
+        default=20,
+        help="the channel's delay, the playout delay (default 20 ms)",
+    )
+    p.add_argument("--json", type=Path, help="also write the figures as JSON")
+    args = p.parse_args()
+    if not 0 < args.seconds <= 3600 or args.delay_ms < 1:
+        print("bench_link: error: --seconds in (0, 3600], --delay-ms >= 1", file=sys.stderr)
+        return 2
+    try:
+        both = two_processes(args.config, args.seconds, args.delay_ms)
+        local = one_process(args.config, args.seconds, args.delay_ms)
+    except TeleopError as err:
+        print(f"bench_link: error: {err}", file=sys.stderr)
+        return 3
+    print(f"\n{args.config}, {args.seconds:g} s at 1 kHz, channel delay {args.delay_ms} ms")
+    for name, s in both["sites"].items():
+        peer = s["link"]["from_peer"]
+        d = s["link"].get("one_way_delay_us") or {}
+        due = s["ticks"] - args.delay_ms
+        bad = peer["lost"]
+        print(
+            f"  to the {name} site: one-way delay p50 {d.get('p50', float('nan')):7.1f}  p99 "
+            f"{d.get('p99', float('nan')):8.1f}  max {d.get('max', float('nan')):9.1f} us;  "
+            f"lost or late {bad} of {due} ({100 * bad / max(due, 1):.3f} %; late "
+            f"{peer['late']}), rejected {peer['rejected']}"
+        )
+    for name, s in both["sites"].items():
+        print(
+            f"  {name} site: CPU {1e6 * s['cpu_s'] / max(s['ticks'], 1):6.1f} us per tick "
+            f"({100 * s['cpu_s'] / args.seconds:.1f} % of a core), missed deadlines "
+            f"{s['timing']['missed_deadlines']}"
+        )
+    print(
+        f"  one process (both sites, in-process link): CPU "
+        f"{1e6 * local['cpu_s'] / max(local['ticks'], 1):6.1f} us per tick "
+        f"({100 * local['cpu_s'] / args.seconds:.1f} % of a core)"
+    )
+    pair = both["pair"]
+    print(
+        f"  T_p {pair['t_p_total']:.4g} / {local['t_p_total']:.4g} rad^2 s, T_tau "
+        f"{pair['t_tau_total']:.4g} / {local['t_tau_total']:.4g} N^2 m^2 s "
+        "(two processes / one)"
+    )
+    if args.json:
+        args.json.write_text(json.dumps({"two_processes": both, "one_process": local}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
