@@ -73,19 +73,22 @@ def ints_of(i: np.ndarray, offsets: np.ndarray, block: int) -> np.ndarray:
     return i[offsets[2 * block + 1] :]
 
 
-class Vector:
-    """A block's n-vector field (declared once, as a class attribute): its index ``k`` among the
-    block's vectors is derived from the declaration order, for the compiled kernels to use
-    (``K = MyBlock.name.k``); instances see a float64 view."""
-
-    kind = "vector"
+class _Declared:
+    """What a field declaration holds: its doc, whether it is a parameter, its name (from the
+    class attribute) and its index ``k`` among the block's fields of its kind."""
 
     def __init__(self, doc: str = "", *, param: bool = False) -> None:
         self.doc, self.param = doc, param
-        self.name, self.k = "", -1
+        self.name, self.k, self.base = "", -1, 0
 
     def __set_name__(self, owner: type, name: str) -> None:
         self.name = name
+
+
+class Vector(_Declared):
+    """A block's n-vector field (declared once, as a class attribute): its index ``k`` among the
+    block's vectors is derived from the declaration order, for the compiled kernels to use
+    (``K = MyBlock.name.k``); instances see a float64 view."""
 
     @overload
     def __get__(self, obj: None, owner: type | None = None) -> Vector: ...
@@ -97,18 +100,9 @@ class Vector:
         return obj.f[self.k * obj.n : (self.k + 1) * obj.n]  # (normally shadowed by _bind)
 
 
-class Scalar:
+class Scalar(_Declared):
     """A block's float field; read and written from Python through a memoryview (a fraction
     of numpy's per-element cost). ``k``: its index among the scalars."""
-
-    kind = "scalar"
-
-    def __init__(self, doc: str = "", *, param: bool = False) -> None:
-        self.doc, self.param = doc, param
-        self.name, self.k, self.base = "", -1, 0
-
-    def __set_name__(self, owner: type, name: str) -> None:
-        self.name = name
 
     @overload
     def __get__(self, obj: None, owner: type | None = None) -> Scalar: ...
@@ -123,17 +117,8 @@ class Scalar:
         obj._f_mv[self.base * obj.n + self.k] = value
 
 
-class Int:
+class Int(_Declared):
     """A block's int64 field (flags, counters, codes). ``k``: its index in the int buffer."""
-
-    kind = "int"
-
-    def __init__(self, doc: str = "", *, param: bool = False) -> None:
-        self.doc, self.param = doc, param
-        self.name, self.k = "", -1
-
-    def __set_name__(self, owner: type, name: str) -> None:
-        self.name = name
 
     @overload
     def __get__(self, obj: None, owner: type | None = None) -> Int: ...
