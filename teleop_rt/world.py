@@ -31,7 +31,7 @@ from teleop_rt.config import (
     WallSpec,
     per_joint,
 )
-from teleop_rt.flat import Block, jit
+from teleop_rt.flat import Block, Int, Scalar, Vector, jit
 from teleop_rt.hal.base import W_CONTACTS as SNAP_CONTACTS
 from teleop_rt.hal.base import W_FORCE as SNAP_FORCE
 from teleop_rt.hal.base import W_REFERENCE as SNAP_REFERENCE
@@ -50,7 +50,7 @@ class Load(Block):
     cartesian = False
     stateful = False
     is_operator = False  # operators load the HSI; everything else is environment
-    INTS = ("load_kind",)
+    load_kind = Int("which load function applies (JOINT_DAMPER, ...)", param=True)
 
     @property
     def in_contact(self) -> bool:
@@ -91,7 +91,7 @@ class JointDamperOperator(JointLoad):
     """The paper's operator Z_o: a joint damper to the ground, tau = -Z_o v."""
 
     is_operator = True
-    VECTORS = ("damping",)
+    damping = Vector("N m s/rad per joint", param=True)
 
     def __init__(self, spec: DamperOperatorSpec, n: int) -> None:
         super().__init__(n)
@@ -104,7 +104,9 @@ class JointSpringDamper(JointLoad):
     tau_ext = -(k (q - q_rest) + c v). The displayed-impedance analysis (eq 19-32) is per joint;
     this load realises its environment exactly on a simulated joint."""
 
-    VECTORS = ("k", "c", "q_rest")
+    k = Vector("N m/rad per joint", param=True)
+    c = Vector("N m s/rad per joint", param=True)
+    q_rest = Vector("rad", param=True)
 
     def __init__(self, stiffness: list[float], damping: list[float], q_rest: list[float]) -> None:
         super().__init__(len(stiffness))
@@ -117,9 +119,12 @@ class JointMass(JointLoad):
     tau_ext = -m (v[k] - v[k-1]) / dt, held over the tick. The velocity is remembered per
     distinct evaluation time, so repeated evaluations at one time (sub-steps) agree."""
 
-    VECTORS = ("mass", "v_now", "v_before")
-    SCALARS = ("dt", "t_last")
-    INTS = ("load_kind", "started")
+    mass = Vector("kg m^2 per joint", param=True)
+    v_now = Vector()
+    v_before = Vector()
+    dt = Scalar(param=True)
+    t_last = Scalar()
+    started = Int()
 
     def __init__(self, mass: list[float], dt: float) -> None:
         super().__init__(len(mass))
@@ -161,7 +166,8 @@ def joint_load_torque(
 class Trajectory(Block):
     """A hand reference: ``pos`` (m) and ``vel`` (m/s) at the time of the last ``evaluate``."""
 
-    VECTORS = ("pos", "vel")
+    pos = Vector("the reference, m")
+    vel = Vector("its velocity, m/s")
 
     def evaluate(self, t: float) -> None:
         """Fill pos and vel at time t (s)."""
@@ -177,7 +183,10 @@ class HandTrajectory(Trajectory):
     Tail: the segment start times, then the points (3 each), with a sentinel segment at
     t = inf that holds the last point."""
 
-    INTS = ("trajectory_kind", "segment", "count")
+    trajectory_kind = Int(param=True)
+    segment = Int()
+    count = Int(param=True)
+    TAIL_IS_STATE = False  # the waypoints
 
     def __init__(self, start: list[float], times: list[float], points: list[list[float]]) -> None:
         self.times = [0.0, *times, math.inf]
@@ -197,8 +206,10 @@ class LoggedTrajectory(Trajectory):
     exactly; between ticks (sub-steps) linear interpolation; after the last sample the last
     position at rest. Tail: the positions, then the velocities (3 per sample)."""
 
-    SCALARS = ("dt",)
-    INTS = ("trajectory_kind", "last")
+    dt = Scalar(param=True)
+    trajectory_kind = Int(param=True)
+    last = Int(param=True)
+    TAIL_IS_STATE = False  # the logged samples
 
     def __init__(self, pos: np.ndarray, vel: np.ndarray, dt: float) -> None:
         pos, vel = np.asarray(pos, dtype=float), np.asarray(vel, dtype=float)
@@ -270,8 +281,9 @@ class ScriptedHand(CartesianLoad):
     script (``from_spec``: minimum-jerk waypoints) or a log (``LoggedTrajectory``, replay)."""
 
     is_operator = True
-    VECTORS = ("last_force",)
-    SCALARS = ("k", "d")
+    last_force = Vector("the force on the tool, N (world frame)")
+    k = Scalar("N/m", param=True)
+    d = Scalar("N s/m", param=True)
 
     def __init__(self, trajectory: Trajectory, stiffness: float, damping: float) -> None:
         super().__init__()
@@ -320,9 +332,17 @@ class HalfSpaceLoad(CartesianLoad):
     mass is behind it (``PushedMass``), else it stays put (s = 0). Unilateral loads never
     pull (f >= 0), so a fast retreat does not stick."""
 
-    VECTORS = ("p0", "normal", "last_force")
-    SCALARS = ("k", "c", "unilateral", "s", "s_dot", "normal_force", "mass")
-    INTS = ("load_kind", "contact")
+    p0 = Vector("a point of the plane, m", param=True)
+    normal = Vector("unit normal to free space", param=True)
+    last_force = Vector("the force on the tool, N (world frame)")
+    k = Scalar("N/m", param=True)
+    c = Scalar("N s/m", param=True)
+    unilateral = Scalar("1: pushes only (wall, foam)", param=True)
+    s = Scalar("the plane's displacement along -normal (a pushed mass), m")
+    s_dot = Scalar()
+    normal_force = Scalar("N")
+    mass = Scalar("kg (0: a fixed plane)", param=True)
+    contact = Int()
 
     def __init__(self, point: Sequence[float], normal: Sequence[float], unilateral: bool) -> None:
         super().__init__()

@@ -166,3 +166,27 @@ def test_impaired_runs_are_seeded_and_count_what_the_network_did() -> None:
     for site in ("hsi", "to"):
         lost = a.link[site]["lost"] / (3000 - 20)
         assert 0.05 - 0.012 < lost < 0.05 + 0.012, (site, lost)
+
+
+def test_a_snapshot_is_the_state_and_restoring_it_replays_the_same_ticks() -> None:
+    """Parameters apart from state: ``snapshot`` copies the state of every block (the sites',
+    the link's, the plants' when fused) and ``restore`` puts it back; the ticks after it repeat
+    bit for bit, and a parameter (a gain) is not part of it."""
+    session = Session(config.load(CONFIGS / "paper_experiment.yaml", ["channel.delay_ms=20"]))
+    assert session.fused
+    for _ in range(1500):
+        session.step()
+    snap = session.snapshot()
+    first = []
+    for _ in range(500):
+        session.step()
+        first.append(session.to.tau_cmd.copy())
+    kp = session.to.controller.kp.copy()
+    session.restore(snap)
+    for k in range(500):
+        session.step()
+        assert np.array_equal(session.to.tau_cmd, first[k]), k
+    assert np.array_equal(session.to.controller.kp, kp)
+    fs, is_ = session.packed.state_index()
+    kp_at = session.packed.index_of(session.to.controller, "kp")
+    assert kp_at not in set(fs.tolist()) and len(fs) < session.packed.f.size
