@@ -19,7 +19,7 @@ import numpy as np
 
 from teleop_rt.analysis.transparency import accumulate
 from teleop_rt.com.channel import monitor_step
-from teleop_rt.com.link import link_deliver, link_push
+from teleop_rt.com.link import link_deliver, link_offsets, link_push
 from teleop_rt.flat import Block, Int, floats_of, ints_of, jit, vec
 from teleop_rt.hal.base import FB_Q
 from teleop_rt.safety import SATURATED
@@ -52,19 +52,15 @@ class PairState(Block):
 FINDING_SITE, SATURATED_TICKS = PairState.finding_site.k, PairState.saturated_ticks.k
 
 
-@jit
-def exchange(f: np.ndarray, i: np.ndarray, o: np.ndarray, oh: np.ndarray, ot: np.ndarray, n: int):
-    link_deliver(
-        floats_of(f, o, LINK), ints_of(i, o, LINK), n,
-        floats_of(f, oh, TX), ints_of(i, oh, TX), floats_of(f, oh, RX), ints_of(i, oh, RX),
-        floats_of(f, ot, TX), ints_of(i, ot, TX), floats_of(f, ot, RX), ints_of(i, ot, RX),
-    )  # fmt: skip
+def link_at(offsets: np.ndarray) -> np.ndarray:
+    """Where the link kernels find the link and the four packets in a session's buffers."""
+    return link_offsets(offsets, LINK, HSI_SITE + TX, HSI_SITE + RX, TO_SITE + TX, TO_SITE + RX)
 
 
 @jit
-def lockstep_before(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
+def lockstep_before(f: np.ndarray, i: np.ndarray, o: np.ndarray, at: np.ndarray, n: int) -> int:
     """Both sites from their fresh feedback to their models' accelerations; a finding (the
-    pair's ``finding_site`` says whose) before anything is exchanged."""
+    pair's ``finding_site`` says whose) before anything is exchanged. ``at``: ``link_at``."""
     oh, ot = o[: 2 * SITE_BLOCKS], o[2 * SITE_BLOCKS : 4 * SITE_BLOCKS]
     pair = ints_of(i, o, PAIR)
     code = site_sense(f, i, oh, n)
@@ -75,13 +71,10 @@ def lockstep_before(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
     if code:
         pair[FINDING_SITE] = 1
         return code
-    exchange(f, i, o, oh, ot, n)
+    link_deliver(f, i, at, n)
     site_before_models(f, i, oh, n)
     site_before_models(f, i, ot, n)
-    link_push(
-        floats_of(f, o, LINK), ints_of(i, o, LINK), n,
-        floats_of(f, oh, TX), ints_of(i, oh, TX), floats_of(f, ot, TX), ints_of(i, ot, TX),
-    )  # fmt: skip
+    link_push(f, i, at, n)
     monitor_step(floats_of(f, o, MONITOR), n, floats_of(f, oh, PORT), floats_of(f, ot, PORT))
     return 0
 

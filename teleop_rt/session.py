@@ -34,7 +34,13 @@ from teleop_rt.config import SessionConfig
 from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
 from teleop_rt.hal.base import FusedPlants
-from teleop_rt.lockstep import SESSION_BLOCKS, PairState, lockstep_after, lockstep_before
+from teleop_rt.lockstep import (
+    SESSION_BLOCKS,
+    PairState,
+    link_at,
+    lockstep_after,
+    lockstep_before,
+)
 from teleop_rt.loop import TickClock
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, SensorsUnusable, Site, ToSite
@@ -166,6 +172,7 @@ class Session:
         pair = self.hsi.backend.fuse(self.to.backend) if fuse and compiled_link else None
         self._pack(pair)
         self.compiled_link = compiled_link
+        self._boxed = [s for s in self.sites if s.guard.workspace is not None and s.guard.enabled]
 
     @property
     def sites(self) -> tuple[Site, Site]:
@@ -183,11 +190,12 @@ class Session:
         hsi.bind(p, 0)
         to.bind(p, len(hsi.blocks))
         self._buffers = (p.f, p.i, p.offsets, self.n)
+        self._at = link_at(p.offsets)
         self._pin = (hsi._pin, to._pin)
         # load (or, on a fresh install, compile) the kernels now, on scratch copies of the
         # state, not at the first deadline
         f, i, o, n = self._buffers
-        lockstep_before(f.copy(), i.copy(), o, n)
+        lockstep_before(f.copy(), i.copy(), o, self._at, n)
         lockstep_after(f.copy(), i.copy(), o, n, np.zeros(n), np.zeros(n))
         self._pair_plants = pair
         if pair is not None:
@@ -239,14 +247,15 @@ class Session:
         else:
             hsi.backend.read()  # into hsi.feedback
             to.backend.read()
-            code = lockstep_before(f, i, o, n)
+            code = lockstep_before(f, i, o, self._at, n)
         if code:
             raise self._stop_for(code)
         (model_h, data_h, q_h, v_h, a_h), (model_t, data_t, q_t, v_t, a_t) = self._pin
         rnea_h = pin.rnea(model_h, data_h, q_h, v_h, a_h)
         rnea_t = pin.rnea(model_t, data_t, q_t, v_t, a_t)
-        hsi.check_workspace()
-        to.check_workspace()
+        for site in self._boxed:  # (forward kinematics: only sites with a workspace box)
+            site.tick = self.tick
+            site.check_workspace()
         if fused:  # only without a finding do the plants take the torques
             code = pair.after(rnea_h, rnea_t)
         else:
@@ -259,7 +268,6 @@ class Session:
             hsi.backend.write(hsi.computed_torque.tau)
             to.backend.write(to.computed_torque.tau)
         self.tick += 1
-        hsi.tick = to.tick = self.tick
 
     def _step_over(self, link: Link) -> None:
         """One tick of both sites through a link stepped from Python (an impaired one): each

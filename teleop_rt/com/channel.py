@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop_rt.com.link import InProcessLink, link_deliver, link_push
+from teleop_rt.com.link import InProcessLink, link_deliver, link_offsets, link_push
 from teleop_rt.com.port import (
     DIRECT,
     EFFORT,
@@ -91,6 +91,7 @@ class TwoPort:
         self.monitor = ChannelMonitor(n, dt)
         blocks = [port_h, port_t, self.tx_h, self.rx_h, self.tx_t, self.rx_t, self.link]
         self.packed = Packed([*blocks, self.monitor])
+        self._at = link_offsets(self.packed.offsets, TP_LINK, TP_TX_H, TP_RX_H, TP_TX_T, TP_RX_T)
 
     # the signals under the paper's names
     omega_c = property(lambda self: self.port_h.flow)
@@ -116,27 +117,25 @@ class TwoPort:
     def step(self, omega_c: list[float] | np.ndarray, tau_t: list[float] | np.ndarray) -> None:
         """One tick: take the HSI velocity and the TO torque, produce tau_c and omega_t."""
         p = self.packed
-        two_port_step(p.f, p.i, p.offsets, self.n, as_floats(omega_c), as_floats(tau_t))
+        two_port_step(p.f, p.i, p.offsets, self._at, self.n, as_floats(omega_c), as_floats(tau_t))
 
 
 @jit
 def two_port_step(
-    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, omega_c: np.ndarray, tau_t: np.ndarray
-) -> None:
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, at: np.ndarray, n: int, omega_c: np.ndarray,
+    tau_t: np.ndarray,
+) -> None:  # fmt: skip
     """A tick of both ports, the link and the monitor, in the order of a lock-step session."""
     ph, pih = floats_of(f, o, TP_PORT_H), ints_of(i, o, TP_PORT_H)
     pt, pit = floats_of(f, o, TP_PORT_T), ints_of(i, o, TP_PORT_T)
-    tx_h, txi_h = floats_of(f, o, TP_TX_H), ints_of(i, o, TP_TX_H)
-    rx_h, rxi_h = floats_of(f, o, TP_RX_H), ints_of(i, o, TP_RX_H)
-    tx_t, txi_t = floats_of(f, o, TP_TX_T), ints_of(i, o, TP_TX_T)
-    rx_t, rxi_t = floats_of(f, o, TP_RX_T), ints_of(i, o, TP_RX_T)
-    lf, li = floats_of(f, o, TP_LINK), ints_of(i, o, TP_LINK)
+    tx_h, rx_h = floats_of(f, o, TP_TX_H), floats_of(f, o, TP_RX_H)
+    tx_t, rx_t = floats_of(f, o, TP_TX_T), floats_of(f, o, TP_RX_T)
     port_input(ph, pih, n, omega_c, tx_h)
     port_input(pt, pit, n, tau_t, tx_t)
-    link_deliver(lf, li, n, tx_h, txi_h, rx_h, rxi_h, tx_t, txi_t, rx_t, rxi_t)
+    link_deliver(f, i, at, n)
     port_step(ph, pih, n, rx_h, tx_h)
     port_step(pt, pit, n, rx_t, tx_t)
-    link_push(lf, li, n, tx_h, txi_h, tx_t, txi_t)
+    link_push(f, i, at, n)
     monitor_step(floats_of(f, o, TP_MONITOR), n, ph, pt)
 
 

@@ -82,9 +82,16 @@ class InProcessLink(Block, Link):
     def send(self, side: int, packet: Packet) -> None:
         self._sent[side] = packet
 
+    def _slot(self, sender: int) -> np.ndarray:
+        d, e = self.delay_ticks, entry_size(self.n)
+        start = (sender * d + self.slot) * e
+        return self.f[start : start + e]
+
     def receive(self, side: int, into: Packet) -> None:
         if self.delay_ticks:
-            line_load(self.f, self.i, self.n, 1 - side, into.f, into.i)
+            entry, m = self._slot(1 - side), packet_floats(self.n)
+            into.f[:] = entry[:m]
+            into.i[:] = entry[m:]
             return
         sent = self._sent[1 - side]
         if sent is None:
@@ -96,81 +103,84 @@ class InProcessLink(Block, Link):
         if not all(self._ended):
             return  # the lines move once both sites have used this tick's slot
         if self.delay_ticks:
+            m = packet_floats(self.n)
             for sender, packet in enumerate(self._sent):
                 assert packet is not None
-                line_store(self.f, self.i, self.n, sender, packet.f, packet.i)
-            advance_slot(self.i)
+                entry = self._slot(sender)
+                entry[:m] = packet.f
+                entry[m:] = packet.i
+            slot = self.slot + 1
+            self.slot = 0 if slot == self.delay_ticks else slot
         self._sent, self._ended = [None, None], [False, False]
 
 
 SLOT, DELAY = InProcessLink.slot.k, InProcessLink.delay_ticks.k
 
+# The kernels below work on one pair of buffers (f, i) holding the link's block and the four
+# packets, reached by offsets: ``at`` = (link float, link int, then float and int start of the
+# HSI's tx, the HSI's rx, the TO's tx, the TO's rx); a slice per block would cost numba tens of
+# ns each, more than the copies themselves.
+LF, LI, TXH, RXH, TXT, RXT = 0, 1, 2, 4, 6, 8
+
 
 @jit
-def _line_start(i: np.ndarray, n: int, sender: int) -> int:
+def _line_start(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int, sender: int) -> int:
     """Float index of this tick's slot in the line of packets from ``sender`` (the block has
     no vectors or scalars: the lines are its whole float buffer, forward then backward)."""
-    d = i[DELAY]
-    return (sender * d + i[SLOT]) * entry_size(n)
+    d = i[at[LI] + DELAY]
+    return at[LF] + (sender * d + i[at[LI] + SLOT]) * entry_size(n)
 
 
 @jit
-def line_store(
-    f: np.ndarray, i: np.ndarray, n: int, sender: int, pf: np.ndarray, pi: np.ndarray
-) -> None:
-    """Put the packet (pf, pi) from ``sender`` into this tick's slot of its line."""
-    s, m = _line_start(i, n, sender), packet_floats(n)
+def line_store(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int, sender: int, p: int) -> None:
+    """Put the packet at offsets at[p], at[p + 1] from ``sender`` into this tick's slot."""
+    s, m, pf, pi = _line_start(f, i, at, n, sender), packet_floats(n), at[p], at[p + 1]
     for k in range(m):
-        f[s + k] = pf[k]
+        f[s + k] = f[pf + k]
     for k in range(N_PACKET_INTS):
-        f[s + m + k] = pi[k]
+        f[s + m + k] = i[pi + k]
 
 
 @jit
-def line_load(
-    f: np.ndarray, i: np.ndarray, n: int, sender: int, pf: np.ndarray, pi: np.ndarray
-) -> None:
-    """The packet from ``sender`` held in this tick's slot (pushed D ticks ago; zeros before)."""
-    s, m = _line_start(i, n, sender), packet_floats(n)
+def line_load(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int, sender: int, p: int) -> None:
+    """The packet from ``sender`` in this tick's slot (pushed D ticks ago; zeros before) into
+    the packet at offsets at[p], at[p + 1]."""
+    s, m, pf, pi = _line_start(f, i, at, n, sender), packet_floats(n), at[p], at[p + 1]
     for k in range(m):
-        pf[k] = f[s + k]
+        f[pf + k] = f[s + k]
     for k in range(N_PACKET_INTS):
-        pi[k] = np.int64(f[s + m + k])
+        i[pi + k] = np.int64(f[s + m + k])
 
 
 @jit
-def advance_slot(i: np.ndarray) -> None:
-    slot = i[SLOT] + 1
-    i[SLOT] = 0 if slot == i[DELAY] else slot
-
-
-@jit
-def link_deliver(
-    lf: np.ndarray, li: np.ndarray, n: int,
-    tx_h: np.ndarray, txi_h: np.ndarray, rx_h: np.ndarray, rxi_h: np.ndarray,
-    tx_t: np.ndarray, txi_t: np.ndarray, rx_t: np.ndarray, rxi_t: np.ndarray,
-) -> None:  # fmt: skip
+def link_deliver(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int) -> None:
     """Each site's packet of this tick: the peer's of this tick (D = 0), else of D ticks ago."""
-    if li[DELAY] == 0:
+    if i[at[LI] + DELAY] == 0:
         m = packet_floats(n)
         for k in range(m):
-            rx_t[k] = tx_h[k]
-            rx_h[k] = tx_t[k]
+            f[at[RXT] + k] = f[at[TXH] + k]
+            f[at[RXH] + k] = f[at[TXT] + k]
         for k in range(N_PACKET_INTS):
-            rxi_t[k] = txi_h[k]
-            rxi_h[k] = txi_t[k]
+            i[at[RXT + 1] + k] = i[at[TXH + 1] + k]
+            i[at[RXH + 1] + k] = i[at[TXT + 1] + k]
     else:
-        line_load(lf, li, n, HSI, rx_t, rxi_t)
-        line_load(lf, li, n, 1 - HSI, rx_h, rxi_h)
+        line_load(f, i, at, n, HSI, RXT)
+        line_load(f, i, at, n, 1 - HSI, RXH)
 
 
 @jit
-def link_push(
-    lf: np.ndarray, li: np.ndarray, n: int,
-    tx_h: np.ndarray, txi_h: np.ndarray, tx_t: np.ndarray, txi_t: np.ndarray,
-) -> None:  # fmt: skip
+def link_push(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int) -> None:
     """This tick's packets into the lines (after both ports have written their waves)."""
-    if li[DELAY]:
-        line_store(lf, li, n, HSI, tx_h, txi_h)
-        line_store(lf, li, n, 1 - HSI, tx_t, txi_t)
-        advance_slot(li)
+    if i[at[LI] + DELAY]:
+        line_store(f, i, at, n, HSI, TXH)
+        line_store(f, i, at, n, 1 - HSI, TXT)
+        slot = i[at[LI] + SLOT] + 1
+        i[at[LI] + SLOT] = 0 if slot == i[at[LI] + DELAY] else slot
+
+
+def link_offsets(offsets: np.ndarray, link: int, tx_h: int, rx_h: int, tx_t: int, rx_t: int):
+    """``at`` for the kernels: the blocks' float and int starts, from packed offsets."""
+    at = np.zeros(10, dtype=np.int64)
+    for k, block in enumerate((link, tx_h, rx_h, tx_t, rx_t)):
+        at[2 * k], at[2 * k + 1] = offsets[2 * block], offsets[2 * block + 1]
+    return at
