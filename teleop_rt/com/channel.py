@@ -26,7 +26,7 @@ from teleop_rt.com.port import (
     port_input,
     port_step,
 )
-from teleop_rt.flat import Block, Packed, Scalar, Vector, as_floats, floats_of, ints_of, jit, vec
+from teleop_rt.flat import Block, Packed, Scalar, Vector, as_floats, floats_of, ints_of, jit
 
 __all__ = ["DIRECT", "WAVE", "ChannelMonitor", "TwoPort", "monitor_step", "two_port_step"]
 
@@ -57,18 +57,18 @@ N_MONITOR_VECTORS = len(ChannelMonitor.VECTORS)
 @jit
 def monitor_step(f: np.ndarray, n: int, port_h: np.ndarray, port_t: np.ndarray) -> None:
     """Update power, energy (per joint), total_energy and its running minimum (a diverged
-    channel, NaN, never looks passive)."""
-    wc, tc = vec(port_h, FLOW, n), vec(port_h, EFFORT, n)
-    wt, tt = vec(port_t, FLOW, n), vec(port_t, EFFORT, n)
-    power, energy = vec(f, M_POWER, n), vec(f, M_ENERGY, n)
+    channel, NaN, never looks passive). Indexed by offset: it runs every tick."""
     s = N_MONITOR_VECTORS * n
     dt = f[s + M_DT]
     total = 0.0
     for j in range(n):
-        p = wc[j] * tc[j] - wt[j] * tt[j]
-        power[j] = p
-        energy[j] += p * dt
-        total += energy[j]
+        p = (
+            port_h[FLOW * n + j] * port_h[EFFORT * n + j]
+            - port_t[FLOW * n + j] * port_t[EFFORT * n + j]
+        )
+        f[M_POWER * n + j] = p
+        f[M_ENERGY * n + j] += p * dt
+        total += f[M_ENERGY * n + j]
     f[s + M_TOTAL] = total
     if not total >= f[s + M_MIN]:
         f[s + M_MIN] = total
