@@ -62,14 +62,14 @@ def lockstep_before(f: np.ndarray, i: np.ndarray, o: np.ndarray, at: np.ndarray,
     """Both sites from their fresh feedback to their models' accelerations; a finding (the
     pair's ``finding_site`` says whose) before anything is exchanged. ``at``: ``link_at``."""
     oh, ot = o[: 2 * SITE_BLOCKS], o[2 * SITE_BLOCKS : 4 * SITE_BLOCKS]
-    pair = ints_of(i, o, PAIR)
+    finding = o[2 * PAIR + 1] + FINDING_SITE  # (ints by offset: a slice costs more)
     code = site_sense(f, i, oh, n)
     if code:
-        pair[FINDING_SITE] = 0
+        i[finding] = 0
         return code
     code = site_sense(f, i, ot, n)
     if code:
-        pair[FINDING_SITE] = 1
+        i[finding] = 1
         return code
     link_deliver(f, i, at, n)
     site_before_models(f, i, oh, n)
@@ -85,17 +85,17 @@ def lockstep_after(
 ) -> int:
     """Both sites from their models' RNEA to checked motor torques; the finding (0: none)."""
     oh, ot = o[: 2 * SITE_BLOCKS], o[2 * SITE_BLOCKS : 4 * SITE_BLOCKS]
-    pair = ints_of(i, o, PAIR)
+    pair = o[2 * PAIR + 1]
     code = site_after_models(f, i, oh, n, rnea_h)
     if code:
-        pair[FINDING_SITE] = 0
+        i[pair + FINDING_SITE] = 0
         return code
     code = site_after_models(f, i, ot, n, rnea_t)
     if code:
-        pair[FINDING_SITE] = 1
+        i[pair + FINDING_SITE] = 1
         return code
-    if ints_of(i, oh, GUARD)[SATURATED] or ints_of(i, ot, GUARD)[SATURATED]:
-        pair[SATURATED_TICKS] += 1
+    if i[oh[2 * GUARD + 1] + SATURATED] or i[ot[2 * GUARD + 1] + SATURATED]:
+        i[pair + SATURATED_TICKS] += 1
     fb_h, fb_t = floats_of(f, oh, FB), floats_of(f, ot, FB)
     accumulate(
         floats_of(f, o, METRICS), ints_of(i, o, METRICS), n,

@@ -56,10 +56,10 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
     code = measured_fault(floats_of(f, o, GUARD), ints_of(i, o, GUARD), n, q, v, tau_ext)
     if code:
         return code
-    sig, sig_i = floats_of(f, o, SIG), ints_of(i, o, SIG)
+    sig, si = floats_of(f, o, SIG), o[2 * SIG + 1]  # (ints by offset: a slice costs more)
     port, port_i, tx = floats_of(f, o, PORT), ints_of(i, o, PORT), floats_of(f, o, TX)
     tau = vec(sig, S_TAU, n)
-    if sig_i[S_SIDE] == HSI:  # tau_h = tau_ext; the port's flow omega_c = v_h
+    if i[si + S_SIDE] == HSI:  # tau_h = tau_ext; the port's flow omega_c = v_h
         for j in range(n):
             tau[j] = tau_ext[j]
         port_input(port, port_i, n, v, tx)
@@ -67,10 +67,10 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
         for j in range(n):
             tau[j] = -tau_ext[j]
         port_input(port, port_i, n, tau, tx)
-    tx_i = ints_of(i, o, TX)
-    tx_i[P_TICK] = sig_i[S_TICK]
-    tx_i[P_SEQ] = sig_i[S_TICK]
-    tx_i[P_VALID] = 1
+    ti = o[2 * TX + 1]
+    i[ti + P_TICK] = i[si + S_TICK]
+    i[ti + P_SEQ] = i[si + S_TICK]
+    i[ti + P_VALID] = 1
     return 0
 
 
@@ -79,9 +79,9 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
     """From the received packet to the acceleration the model is evaluated at."""
     port, port_i = floats_of(f, o, PORT), ints_of(i, o, PORT)
     port_step(port, port_i, n, floats_of(f, o, RX), floats_of(f, o, TX))
-    sig, sig_i = floats_of(f, o, SIG), ints_of(i, o, SIG)
+    sig = floats_of(f, o, SIG)
     error, tau = vec(sig, S_ERROR, n), vec(sig, S_TAU, n)
-    if sig_i[S_SIDE] == HSI:  # M1 a_h = C1(tau_h - tau_c)
+    if i[o[2 * SIG + 1] + S_SIDE] == HSI:  # M1 a_h = C1(tau_h - tau_c)
         tau_c = vec(port, EFFORT, n)
         for j in range(n):
             error[j] = tau[j] - tau_c[j]
@@ -100,9 +100,9 @@ def site_after_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, rnea:
     fb, ct = floats_of(f, o, FB), floats_of(f, o, CT)
     q, v, tau_ext = vec(fb, FB_Q, n), vec(fb, FB_V, n), vec(fb, FB_TAU_EXT, n)
     ct_finish(ct, ints_of(i, o, CT), n, rnea, tau_ext, v)
-    ints_of(i, o, SIG)[S_TICK] += 1
+    i[o[2 * SIG + 1] + S_TICK] += 1
     # nothing unchecked reaches a motor (may saturate the torque in place)
     return guard_site(
-        floats_of(f, o, GUARD), ints_of(i, o, GUARD), n, q, v, ints_of(i, o, FB)[FB_AGE_TICKS],
+        floats_of(f, o, GUARD), ints_of(i, o, GUARD), n, q, v, i[o[2 * FB + 1] + FB_AGE_TICKS],
         vec(ct, TAU, n), vec(ct, A_DES, n),
     )  # fmt: skip
