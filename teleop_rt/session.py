@@ -43,7 +43,7 @@ from teleop_rt.lockstep import (
 )
 from teleop_rt.loop import TickClock
 from teleop_rt.runner import LoopOutcome, run_loop
-from teleop_rt.site import HsiSite, SensorsUnusable, Site, ToSite
+from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest
 
 if TYPE_CHECKING:
     from teleop_rt.recording.recorder import Recorder
@@ -330,23 +330,11 @@ class Session:
         return summary[0]
 
     def _bring_to_rest(self, clock: TickClock) -> str:
-        """The reaction to a safety stop, one tick at a time (paced in real time): each site
-        brings its robot to rest (``Site.rest_step``) until the TO is at rest; then both get
-        zero torque (the backends' stop). Sensors that are not usable end it at once."""
-        hsi, to = self.hsi, self.to
-        limit = self.cfg.safety.stop_max_ticks
-        try:
-            for i in range(limit):
-                clock.wait()
-                try:
-                    hsi.rest_step()
-                    if to.rest_step():
-                        return f"TO at rest after {i + 1} ticks, then zero torque"
-                except SensorsUnusable:
-                    return f"sensors unusable after {i} ticks: zero torque"
-        except SafetyStop as exc:  # a further fault while stopping: zero torque at once
-            return f"a further fault while stopping ({exc}): zero torque"
-        return f"TO not at rest after {limit} ticks; zero torque"
+        """The reaction to a safety stop: each site brings its robot to rest until the TO is
+        (``teleop_rt.site.bring_to_rest``, paced by the clock in real time); then zero torque."""
+        return bring_to_rest(
+            [self.hsi, self.to], self.to, clock.wait, self.cfg.safety.stop_max_ticks
+        )
 
     def _summary(self, outcome: LoopOutcome) -> Summary:
         return Summary(

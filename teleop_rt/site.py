@@ -12,6 +12,7 @@ as half of a one-process session, which packs both sites and steps them in lock-
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -187,6 +188,25 @@ class Site:
     def stop_for(self, code: int) -> SafetyStop:
         """The SafetyStop that words a finding of this site's compiled checks."""
         return self.guard.stop_for(self.tick, code, self.feedback.age_ticks)
+
+
+def bring_to_rest(sites: list[Site], until: Site, wait: Callable[[], object], limit: int) -> str:
+    """The staged stop after a safety finding, one tick at a time (``wait`` paces it: the
+    clock's, in real time): every site's ``rest_step`` until ``until`` is at rest, at most
+    ``limit`` ticks; what happened, for the summary's notes (zero torque follows, the backends'
+    stop). Sensors that are not usable, or a further fault, end it at once."""
+    name = until.name.upper()
+    try:
+        for k in range(limit):
+            wait()
+            resting = [site.rest_step() for site in sites]
+            if resting[sites.index(until)]:
+                return f"{name} at rest after {k + 1} ticks, then zero torque"
+    except SensorsUnusable:
+        return f"sensors unusable after {k} ticks: zero torque"
+    except SafetyStop as exc:
+        return f"a further fault while stopping ({exc}): zero torque"
+    return f"{name} not at rest after {limit} ticks; zero torque"
 
 
 class HsiSite(Site):

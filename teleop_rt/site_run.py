@@ -19,10 +19,9 @@ import numpy as np
 
 from teleop_rt.com.zenoh_link import ZenohLink
 from teleop_rt.config import SessionConfig
-from teleop_rt.errors import SafetyStop
 from teleop_rt.loop import TickClock
 from teleop_rt.runner import LoopOutcome, run_loop
-from teleop_rt.site import HsiSite, SensorsUnusable, Site, ToSite
+from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest
 
 SENDER_PRIORITY = 81  # the link's sender thread: above the loop's SCHED_FIFO 80
 
@@ -107,18 +106,8 @@ def run_site(
         site.update(link)
         ticks.add(site)
 
-    def bring_to_rest(clock: TickClock) -> str:
-        limit = cfg.safety.stop_max_ticks
-        try:
-            for i in range(limit):
-                clock.wait()
-                if site.rest_step():
-                    return f"{name} at rest after {i + 1} ticks, then zero torque"
-        except SensorsUnusable:
-            return "sensors unusable: zero torque"
-        except SafetyStop as exc:
-            return f"a further fault while stopping ({exc}): zero torque"
-        return f"{name} not at rest after {limit} ticks; zero torque"
+    def stop_safely(clock: TickClock) -> str:
+        return bring_to_rest([site], site, clock.wait, cfg.safety.stop_max_ticks)
 
     summary: list[SiteSummary] = []
 
@@ -146,7 +135,7 @@ def run_site(
 
     try:
         run_loop(
-            step, cfg.n_ticks, cfg.dt, [site.backend], bring_to_rest, realtime=realtime,
+            step, cfg.n_ticks, cfg.dt, [site.backend], stop_safely, realtime=realtime,
             overrun=overrun, max_missed=max_missed, before_start=handshake, at_start=at_start,
             finish=finish,
         )  # fmt: skip
