@@ -11,6 +11,7 @@ Output files (plots, JSON) are checked before any work and never overwritten wit
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from collections.abc import Sequence
@@ -300,7 +301,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         if args.no_log
         else _recorder(session, args.log_out, wait_for_room=lossless, metadata=metadata)
     )
-    with progress_bar(cfg.n_ticks, enabled=not (args.json or args.realtime)) as progress:
+    with (
+        _closed_on_error(recorder),
+        progress_bar(cfg.n_ticks, enabled=not (args.json or args.realtime)) as progress,
+    ):
         summary = session.run(
             realtime=args.realtime, overrun=args.overrun, progress=progress, recorder=recorder,
             max_missed=args.max_missed,
@@ -313,6 +317,19 @@ def _cmd_site(args: argparse.Namespace) -> int:
     from teleop_rt.cli_sites import cmd_site
 
     return cmd_site(args, _load_config)
+
+
+@contextlib.contextmanager
+def _closed_on_error(recorder):
+    """A signal or an error before the run's own handling starts (between starting the
+    log's writer and the loop's first tick) still ends the writer: the file is finished and
+    the process does not wait at exit for a writer nobody will close."""
+    try:
+        yield
+    except BaseException:
+        if recorder is not None and not recorder.closed:
+            recorder.close(None)
+        raise
 
 
 def _recorder(
@@ -427,7 +444,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             "the replay runs on the simulated backend (sim)"
         )
     try:
-        with progress_bar(ticks, enabled=not args.json) as progress:
+        with _closed_on_error(recorder), progress_bar(ticks, enabled=not args.json) as progress:
             summary = session.run(ticks=ticks, progress=progress, recorder=recorder)
         if args.plot:
             from teleop_rt.recording.plot import plot_log

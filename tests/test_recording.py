@@ -141,3 +141,23 @@ def test_a_hard_kill_leaves_a_readable_log(tmp_path: Path) -> None:
     assert len(ticks) > 100 and ticks == list(range(len(ticks)))
     assert summary_of(log) is None  # no summary: the log says it was cut short
     assert np.isfinite([m.q[0] for m in messages]).all()
+
+
+def test_a_signal_before_the_first_tick_leaves_no_writer_behind(monkeypatch, tmp_path) -> None:
+    """SIGINT (here: the KeyboardInterrupt it becomes) after the log's writer has started but
+    before the loop's own handler: the writer is ended and the file finished, so the process
+    does not wait at exit for a child nobody closes."""
+    import multiprocessing
+
+    from teleop_rt.cli import main
+    from teleop_rt.session import Session
+
+    def interrupted(self, *args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(Session, "run", interrupted)
+    log = tmp_path / "early.mcap"
+    cfg = str(CONFIGS / "free_space.yaml")
+    assert main(["run", cfg, "--duration", "0.5", "--log", str(log)]) == 130
+    assert not [p for p in multiprocessing.active_children() if p.is_alive()]
+    assert log.exists() and log.stat().st_size > 0
