@@ -69,6 +69,14 @@ def _build_parser() -> argparse.ArgumentParser:
     add_backend_arg(run)
     run.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     add_log_args(run)
+    run.add_argument(
+        "--live",
+        nargs="?",
+        const="127.0.0.1:8765",
+        metavar="[HOST:]PORT",
+        help="serve the session live to Foxglove (WebSocket; default 127.0.0.1:8765, port 0: "
+        "any free one), 3D included",
+    )
 
     check = sub.add_parser("check", help="validate a config (and load its robots) without running")
     add_config_args(check)
@@ -271,11 +279,24 @@ def _cmd_run(args: argparse.Namespace) -> int:
     # no deadline in fast mode with simulated robots: a full ring may wait for the writer
     lossless = not args.realtime and set(cfg.backends.values()) == {"sim"}
     metadata = {"config": str(args.config), "overrides": json.dumps([*args.overrides, *extra])}
+    live = None
+    if args.live is not None:
+        from teleop_rt.recording.live import parse_address
+
+        live = parse_address(args.live)
+        if args.no_log:
+            raise ConfigError("--live is served by the log's writer: it cannot go with --no-log")
     recorder = (
         None
         if args.no_log
-        else _recorder(session, args.log_out, wait_for_room=lossless, metadata=metadata)
+        else _recorder(session, args.log_out, wait_for_room=lossless, metadata=metadata, live=live)
     )
+    if recorder is not None and recorder.live is not None:
+        print(
+            f"live: ws://{recorder.live} (Foxglove: Open connection, Foxglove WebSocket)",
+            file=sys.stderr,
+            flush=True,
+        )
     with progress_bar(cfg.n_ticks, enabled=not (args.json or args.realtime)) as progress:
         summary = session.run(
             realtime=args.realtime, overrun=args.overrun, progress=progress, recorder=recorder,
@@ -286,12 +307,17 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _recorder(
-    session, log: str | Path | None, suffix: str = "", wait_for_room: bool = False, metadata=None
+    session,
+    log: str | Path | None,
+    suffix: str = "",
+    wait_for_room: bool = False,
+    metadata=None,
+    live=None,
 ):
     from teleop_rt.recording.recorder import Recorder, default_log_path
 
     path = Path(log) if log else default_log_path(session.cfg.name + suffix)
-    return Recorder(session, path, wait_for_room=wait_for_room, metadata=metadata)
+    return Recorder(session, path, wait_for_room=wait_for_room, metadata=metadata, live=live)
 
 
 def _print_summary(summary, as_json: bool, recorder) -> None:

@@ -1,0 +1,460 @@
+"""The session in 3D for Foxglove: both robots side by side, the environment, the hand target.
+
+Built from log rows in the writer process (``teleop_rt.recording.writer``), decimated to
+``SCENE_HZ``: nothing here runs on the tick path. Topics (beside the four of the schema):
+
+* ``/robot_description`` std_msgs/msg/String (CDR): one URDF holding both robots, their links
+  and joints prefixed ``hsi/`` and ``to/``, each robot's root fixed to ``world`` at its offset
+  (``BASES_M``: side by side), so that Foxglove's 3D panel shows both without settings. Links
+  without a visual of primitive geometry get one drawn from the kinematics (a bar to each child
+  joint, a ball at a leaf): a mesh's ``package://`` file would not resolve in Foxglove.
+* ``/tf`` foxglove.FrameTransforms: every URDF joint's transform (parent link to child link)
+  from Pinocchio's forward kinematics at the logged q, and the two mounts on ``world``.
+* ``/environment`` foxglove.SceneUpdate: walls, foam, springs, dampers as slabs behind their
+  surfaces near the TO's tool, a pushed mass as a block that moves with it; an element in
+  contact turns red. In the TO's frame (``to/<root link>``).
+* ``/hand_target`` foxglove.SceneUpdate (an operator hand only): the hand's reference as a ball
+  and the spring to the HSI's tool as a line, in the HSI's frame.
+
+Pinocchio's Data here is the writer's own (``Scene`` builds its models from the URDF text):
+nothing is shared with the control process.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from teleop_rt.recording.schema import LogLayout
+    from teleop_rt.session import Session
+
+SCENE_HZ = 50.0  # 3D messages per second of session time
+SIDES = ("hsi", "to")
+BASES_M = {"hsi": (0.0, 0.4, 0.0), "to": (0.0, -0.4, 0.0)}  # each robot's base in ``world``
+WORLD = "world"
+ROBOT_DESCRIPTION, TF, ENVIRONMENT, HAND_TARGET = (
+    "/robot_description", "/tf", "/environment", "/hand_target"
+)  # fmt: skip
+STRING_TYPE = "std_msgs/msg/String"
+STRING_DEFINITION = b"string data\n"
+COLORS = {"hsi": (0.20, 0.45, 0.85, 1.0), "to": (0.90, 0.50, 0.15, 1.0)}
+ENV_COLORS = {
+    "wall": (0.55, 0.55, 0.60, 0.9),
+    "foam": (0.95, 0.80, 0.25, 0.55),
+    "spring": (0.30, 0.75, 0.40, 0.35),
+    "damper": (0.30, 0.55, 0.90, 0.35),
+    "mass": (0.55, 0.35, 0.20, 0.95),
+}
+CONTACT_COLOR = (0.90, 0.15, 0.15, 0.9)
+SLAB_DEPTH_M = {"wall": 0.01, "foam": 0.03, "spring": 0.005, "damper": 0.005, "mass": 0.06}
+SLAB_SIZE_M = (0.30, 0.10)  # along the surface: horizontal, vertical
+MASS_SIZE_M = 0.06
+BONE_RADIUS_M = 0.012
+
+
+@dataclass(frozen=True)
+class EnvElement:
+    kind: str
+    point: tuple[float, float, float]
+    normal: tuple[float, float, float]  # unit, towards free space
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """What the writer needs to draw the session (plain data: picklable for 'spawn')."""
+
+    urdf: dict[str, str]  # side -> the robot's URDF text
+    ee_frame: dict[str, str]  # side -> the tool frame
+    tool_start: dict[str, tuple[float, float, float]]  # each tool at q0, its robot's frame
+    environment: tuple[EnvElement, ...]
+    hand: bool  # an operator hand (its reference is in /hsi)
+    every: int  # ticks between two scene messages
+
+
+def scene_spec(session: Session) -> SceneSpec | None:
+    """The scene of a session; None when a robot's URDF cannot be found (no 3D topics)."""
+    cfg = session.cfg
+    urdf, ee, start = {}, {}, {}
+    for side in SIDES:
+        text = _urdf_text(getattr(cfg, side).robot)
+        if text is None:
+            return None
+        site = getattr(session, side)
+        urdf[side] = text
+        ee[side] = site.model.ee_frame
+        q0 = np.asarray(getattr(cfg, side).robot.q0_rad or np.zeros(site.n), dtype=float)
+        start[side] = tuple(float(x) for x in site.model.ee_position(q0))
+    env = tuple(EnvElement(e.kind, _xyz(e.point_m), _unit(_xyz(e.normal))) for e in cfg.environment)
+    return SceneSpec(
+        urdf=urdf,
+        ee_frame=ee,
+        tool_start=start,
+        environment=env,
+        hand=cfg.operator.kind == "hand",
+        every=max(1, round(cfg.rate_hz / SCENE_HZ)),
+    )
+
+
+def shift_sources(session: Session) -> np.ndarray:
+    """Per environment element, where its surface's shift along -normal (a pushed mass) sits in
+    the session's packed state, -1 where there is none to show (a fixed surface, or a plant
+    outside the session's buffers: then the mass is drawn where it started)."""
+    from teleop_rt.world import PushedMass
+
+    loads = [x for x in getattr(session.to.backend, "loads", []) if not x.is_operator]
+    out = np.full(len(session.cfg.environment), -1, dtype=np.int64)
+    for e, load in enumerate(loads[: len(out)]):
+        if isinstance(load, PushedMass) and any(b is load for b in session.packed.blocks):
+            out[e] = session.packed.index_of(load, "s")
+    return out
+
+
+def _urdf_text(robot) -> str | None:
+    if robot.urdf is not None:
+        return Path(robot.urdf).read_text()
+    try:  # example-robot-data: its loader knows the file
+        from example_robot_data.robots_loader import ROBOTS
+
+        return Path(ROBOTS[robot.example_robot]().df_path).read_text()
+    except (ImportError, KeyError, AttributeError, OSError, TypeError):
+        return None
+
+
+def _xyz(v) -> tuple[float, float, float]:
+    out = [0.0, 0.0, 0.0]
+    out[: len(v)] = [float(x) for x in v]
+    return (out[0], out[1], out[2])
+
+
+def _unit(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    norm = math.sqrt(sum(x * x for x in v))
+    return (v[0] / norm, v[1] / norm, v[2] / norm)
+
+
+# --- the combined URDF --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class UrdfJoint:
+    name: str
+    parent: str
+    child: str
+
+
+def robot_tree(urdf: str) -> tuple[str, list[UrdfJoint]]:
+    """A URDF's root link and its joints (parent link, child link), in file order."""
+    root = ET.fromstring(urdf)
+    joints = [
+        UrdfJoint(j.get("name"), j.find("parent").get("link"), j.find("child").get("link"))
+        for j in root.findall("joint")
+    ]
+    children = {j.child for j in joints}
+    links = [link.get("name") for link in root.findall("link")]
+    roots = [name for name in links if name not in children]
+    return (roots[0] if roots else links[0]), joints
+
+
+def combined_urdf(spec: SceneSpec) -> str:
+    """One URDF of both robots (names prefixed ``hsi/``, ``to/``) mounted on ``world``."""
+    out = ET.Element("robot", name="teleop_rt")
+    ET.SubElement(out, "link", name=WORLD)
+    for side in SIDES:
+        robot = ET.fromstring(spec.urdf[side])
+        prefix = f"{side}/"
+        root, _ = robot_tree(spec.urdf[side])
+        material = ET.SubElement(out, "material", name=f"{prefix}color")
+        ET.SubElement(material, "color", rgba=" ".join(f"{c:g}" for c in COLORS[side]))
+        offsets = _child_offsets(robot)
+        for link in robot.findall("link"):
+            name = link.get("name")
+            link.set("name", prefix + name)
+            for el in link.findall("collision"):  # meshes would not resolve; visuals suffice
+                link.remove(el)
+            visuals = [v for v in link.findall("visual") if _primitive(v)]
+            for v in link.findall("visual"):
+                link.remove(v)
+            for v in visuals or _bones(offsets.get(name, []), leaf=not offsets.get(name)):
+                for mat in v.findall("material"):
+                    v.remove(mat)
+                ET.SubElement(v, "material", name=f"{prefix}color")
+                link.append(v)
+            out.append(link)
+        for joint in robot.findall("joint"):
+            joint.set("name", prefix + joint.get("name"))
+            for end in ("parent", "child"):
+                el = joint.find(end)
+                el.set("link", prefix + el.get("link"))
+            for tag in ("mimic", "transmission"):
+                for el in joint.findall(tag):
+                    joint.remove(el)
+            out.append(joint)
+        mount = ET.SubElement(out, "joint", name=f"{prefix}mount", type="fixed")
+        ET.SubElement(mount, "parent", link=WORLD)
+        ET.SubElement(mount, "child", link=prefix + root)
+        ET.SubElement(mount, "origin", xyz=" ".join(f"{x:g}" for x in BASES_M[side]))
+    ET.indent(out)
+    return ET.tostring(out, encoding="unicode") + "\n"
+
+
+def _primitive(visual: ET.Element) -> bool:
+    geometry = visual.find("geometry")
+    return geometry is not None and any(
+        geometry.find(kind) is not None for kind in ("box", "cylinder", "sphere")
+    )
+
+
+def _child_offsets(robot: ET.Element) -> dict[str, list[tuple[float, ...]]]:
+    """Per link, the origins of its child joints in its frame."""
+    out: dict[str, list[tuple[float, ...]]] = {}
+    for joint in robot.findall("joint"):
+        origin = joint.find("origin")
+        xyz = origin.get("xyz", "0 0 0") if origin is not None else "0 0 0"
+        out.setdefault(joint.find("parent").get("link"), []).append(
+            tuple(float(x) for x in xyz.split())
+        )
+    return out
+
+
+def _bones(offsets: list[tuple[float, ...]], leaf: bool) -> list[ET.Element]:
+    """Visuals drawn from the kinematics: a bar from the link's origin to each child joint, a
+    ball at the origin of a leaf (a tool)."""
+    out = []
+    for x, y, z in offsets:
+        length = math.sqrt(x * x + y * y + z * z)
+        if length < 1e-6:
+            continue
+        pitch, yaw = math.atan2(math.hypot(x, y), z), math.atan2(y, x)  # z axis onto the bar
+        v = ET.Element("visual")
+        ET.SubElement(v, "origin", xyz=f"{x / 2:g} {y / 2:g} {z / 2:g}", rpy=f"0 {pitch:g} {yaw:g}")
+        geometry = ET.SubElement(v, "geometry")
+        ET.SubElement(geometry, "cylinder", radius=f"{BONE_RADIUS_M:g}", length=f"{length:g}")
+        out.append(v)
+    if leaf:
+        v = ET.Element("visual")
+        geometry = ET.SubElement(v, "geometry")
+        ET.SubElement(geometry, "sphere", radius=f"{1.5 * BONE_RADIUS_M:g}")
+        out.append(v)
+    return out
+
+
+def string_message(text: str) -> bytes:
+    """A std_msgs/msg/String in CDR (little endian): length with the NUL, bytes, NUL."""
+    data = text.encode()
+    return b"\x00\x01\x00\x00" + (len(data) + 1).to_bytes(4, "little") + data + b"\x00"
+
+
+# --- the scene from rows (writer process) -------------------------------------------------------
+class Scene:
+    """Pinocchio models of both robots (the writer's own) and the scene's foxglove messages."""
+
+    def __init__(self, spec: SceneSpec) -> None:
+        import pinocchio as pin
+
+        self.spec = spec
+        self._pin = pin
+        self.robots = {}
+        for side in SIDES:
+            model = pin.buildModelFromXML(spec.urdf[side])
+            root, joints = robot_tree(spec.urdf[side])
+            body = {f.name: i for i, f in enumerate(model.frames) if f.type == pin.FrameType.BODY}
+            pairs = [
+                (f"{side}/{j.parent}", f"{side}/{j.child}", body[j.parent], body[j.child])
+                for j in joints
+                if j.parent in body and j.child in body
+            ]
+            ee = model.getFrameId(spec.ee_frame[side])
+            self.robots[side] = (model, model.createData(), pairs, ee, f"{side}/{root}")
+        self.frames = {side: self.robots[side][4] for side in SIDES}
+
+    def transforms(self, q: dict[str, np.ndarray], stamp_ns: int):
+        """foxglove.FrameTransforms of both robots at joint angles q (side -> angles)."""
+        from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Vector3
+
+        pin, stamp = self._pin, _timestamp(stamp_ns)
+        out = []
+        for side in SIDES:
+            model, data, pairs, _, root = self.robots[side]
+            x, y, z = BASES_M[side]
+            out.append(
+                FrameTransform(
+                    timestamp=stamp,
+                    parent_frame_id=WORLD,
+                    child_frame_id=root,
+                    translation=Vector3(x=x, y=y, z=z),
+                    rotation=Quaternion(w=1.0),
+                )  # fmt: skip
+            )
+            pin.framesForwardKinematics(model, data, q[side])
+            for parent, child, i, j in pairs:
+                rel = data.oMf[i].actInv(data.oMf[j])
+                t = rel.translation
+                qx, qy, qz, qw = pin.Quaternion(rel.rotation).coeffs()
+                out.append(
+                    FrameTransform(
+                        timestamp=stamp,
+                        parent_frame_id=parent,
+                        child_frame_id=child,
+                        translation=Vector3(x=t[0], y=t[1], z=t[2]),
+                        rotation=Quaternion(x=qx, y=qy, z=qz, w=qw),
+                    )  # fmt: skip
+                )
+        return FrameTransforms(transforms=out)
+
+    def tool(self, side: str) -> np.ndarray:
+        """The tool's position at the last ``transforms`` (its robot's frame)."""
+        _, data, _, ee, _ = self.robots[side]
+        return data.oMf[ee].translation.copy()
+
+    def environment(self, shifts: np.ndarray, contacts: np.ndarray, stamp_ns: int):
+        """foxglove.SceneUpdate of the environment: each element's slab (or the mass block,
+        moved by its shift along -normal), red while in contact."""
+        from foxglove.messages import CubePrimitive, SceneEntity, SceneUpdate
+
+        stamp, entities = _timestamp(stamp_ns), []
+        for e, el in enumerate(self.spec.environment):
+            n = np.array(el.normal)
+            p0 = np.array(el.point) - n * float(shifts[e])
+            x0 = np.array(self.spec.tool_start["to"])
+            surface = x0 - ((x0 - p0) @ n) * n  # the tool's start, onto the surface
+            depth = SLAB_DEPTH_M[el.kind]
+            size = (depth, MASS_SIZE_M, MASS_SIZE_M) if el.kind == "mass" else (depth, *SLAB_SIZE_M)
+            centre = surface - n * depth / 2
+            color = CONTACT_COLOR if contacts[e] else ENV_COLORS[el.kind]
+            cube = CubePrimitive(
+                pose=_pose(centre, _x_onto(n)), size=_vector(size), color=_color(color)
+            )
+            entities.append(
+                SceneEntity(
+                    timestamp=stamp,
+                    frame_id=self.frames["to"],
+                    id=f"environment/{e}",
+                    frame_locked=True,
+                    cubes=[cube],
+                )  # fmt: skip
+            )
+        return SceneUpdate(entities=entities)
+
+    def hand(self, target: np.ndarray, stamp_ns: int):
+        """foxglove.SceneUpdate of the hand's reference and its spring to the HSI's tool (after
+        ``transforms``, which placed the tool)."""
+        from foxglove.messages import (
+            LinePrimitive,
+            LinePrimitiveLineType,
+            Point3,
+            SceneEntity,
+            SceneUpdate,
+            SpherePrimitive,
+        )
+
+        tool = self.tool("hsi")
+        ball = SpherePrimitive(
+            pose=_pose(target, (0.0, 0.0, 0.0, 1.0)),
+            size=_vector((0.025, 0.025, 0.025)),
+            color=_color((0.20, 0.80, 0.30, 0.9)),
+        )
+        spring = LinePrimitive(
+            type=LinePrimitiveLineType.LineStrip,
+            thickness=0.004,
+            points=[Point3(x=p[0], y=p[1], z=p[2]) for p in (tool, target)],
+            color=_color((0.20, 0.80, 0.30, 0.9)),
+        )
+        entity = SceneEntity(
+            timestamp=_timestamp(stamp_ns), frame_id=self.frames["hsi"], id="hand_target",
+            frame_locked=True, spheres=[ball], lines=[spring],
+        )  # fmt: skip
+        return SceneUpdate(entities=[entity])
+
+
+def _timestamp(ns: int):
+    from foxglove.messages import Timestamp
+
+    sec, nsec = divmod(int(ns), 1_000_000_000)
+    return Timestamp(sec, nsec)
+
+
+def _vector(v):
+    from foxglove.messages import Vector3
+
+    return Vector3(x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+
+def _color(c):
+    from foxglove.messages import Color
+
+    return Color(r=c[0], g=c[1], b=c[2], a=c[3])
+
+
+def _pose(p, quat):
+    from foxglove.messages import Pose, Quaternion
+
+    x, y, z, w = quat
+    return Pose(position=_vector(p), orientation=Quaternion(x=x, y=y, z=z, w=w))
+
+
+def _x_onto(n: np.ndarray) -> tuple[float, float, float, float]:
+    """The quaternion (x, y, z, w) of the shortest rotation taking the x axis onto unit n."""
+    axis = np.cross((1.0, 0.0, 0.0), n)
+    s, c = float(np.linalg.norm(axis)), float(n[0])
+    if s < 1e-12:
+        return (0.0, 0.0, 0.0, 1.0) if c > 0 else (0.0, 0.0, 1.0, 0.0)  # pi about z
+    half = math.atan2(s, c) / 2
+    ax = axis / s * math.sin(half)
+    return (float(ax[0]), float(ax[1]), float(ax[2]), math.cos(half))
+
+
+def scene_columns(layout: LogLayout) -> dict[str, slice]:
+    """Where the scene reads a ring row: both robots' q, the hand reference, the contacts, and
+    the shifts (the columns after the log's own, ``LogLayout.ring_width``)."""
+    out = {}
+    for topic, fields in (("/hsi", ("q", "operator_reference_m")), ("/to", ("q", "in_contact"))):
+        for name in fields:
+            found = layout.field_columns(topic, name)
+            if found is not None:
+                out[f"{topic[1:]}.{name}"] = found
+    out["shift"] = slice(layout.row_width, layout.ring_width)
+    return out
+
+
+class SceneChannels:
+    """The scene's channels on the writer's foxglove context (the log file and, with a live
+    view, the server), and what goes on them from a batch of ring rows."""
+
+    def __init__(self, spec: SceneSpec, layout: LogLayout, context) -> None:
+        import foxglove
+        from foxglove.channels import FrameTransformsChannel, SceneUpdateChannel
+
+        self.scene = Scene(spec)
+        self.every = spec.every
+        self.cols = scene_columns(layout)
+        schema = foxglove.Schema(name=STRING_TYPE, encoding="ros2msg", data=STRING_DEFINITION)
+        self.description = foxglove.Channel(
+            ROBOT_DESCRIPTION, message_encoding="cdr", schema=schema, context=context
+        )
+        self.urdf = string_message(combined_urdf(spec))
+        self.tf = FrameTransformsChannel(TF, context=context)
+        self.env = SceneUpdateChannel(ENVIRONMENT, context=context) if spec.environment else None
+        self.hand = SceneUpdateChannel(HAND_TARGET, context=context) if spec.hand else None
+
+    def describe(self, stamp_ns: int) -> None:
+        """/robot_description (once at the start, and for a live client that subscribes)."""
+        self.description.log(self.urdf, log_time=stamp_ns)
+
+    def emit(self, rows: np.ndarray, start_ns: int, period_ns: int) -> None:
+        """The scene at every ``every``-th tick of the batch."""
+        ticks = rows[:, 0].astype(np.int64)
+        cols, scene = self.cols, self.scene
+        for i in np.flatnonzero(ticks % self.every == 0).tolist():
+            row = rows[i]
+            stamp = start_ns + int(ticks[i]) * period_ns
+            q = {"hsi": row[cols["hsi.q"]], "to": row[cols["to.q"]]}
+            self.tf.log(scene.transforms(q, stamp), log_time=stamp)
+            if self.env is not None:
+                contacts = row[cols["to.in_contact"]]
+                self.env.log(scene.environment(row[cols["shift"]], contacts, stamp), log_time=stamp)
+            if self.hand is not None:
+                target = row[cols["hsi.operator_reference_m"]]
+                self.hand.log(scene.hand(target, stamp), log_time=stamp)
