@@ -116,3 +116,30 @@ def test_can_log_without_a_can_backend_says_so(tmp_path, capsys):
     assert main(["run", CONFIG, "--duration", "0.01", "--no-log", "--can-log", str(log)]) == 2
     assert "no robot runs on the can backend" in capsys.readouterr().err
     assert not log.exists()
+
+
+def test_a_can_log_that_cannot_be_written_is_incomplete_exit_4(tmp_path):
+    """RLIMIT_FSIZE makes the writer's writes past 3 MB fail (EFBIG): the session runs on, the
+    CAN log is reported incomplete in one line, exit code 4."""
+    import resource
+    import signal
+
+    def limit() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a failed write, not a killed process
+        resource.setrlimit(resource.RLIMIT_FSIZE, (3_000_000, resource.RLIM_INFINITY))
+
+    log = tmp_path / "bus.txt"  # python-can's Printer: about 150 bytes a frame
+    proc = subprocess.run(
+        [sys.executable, "-m", "teleop_rt", "run", CONFIG, *EMULATED, "--duration", "1.5",
+         "--no-log", "--json", "--can-log", str(log)],
+        cwd=ROOT, capture_output=True, text=True, timeout=300, preexec_fn=limit,
+    )  # fmt: skip
+    assert proc.returncode == 4, proc.stderr
+    summary = json.loads(proc.stdout)
+    assert summary["ticks"] == 1500
+    status = summary["can_log"]
+    assert not status["complete"] and "File too large" in status["failure"]
+    lines = [x for x in proc.stderr.splitlines() if "CAN log" in x]
+    assert lines == [f"teleop-rt: CAN log {log} is incomplete: {status['failure']} "
+                     "(frames dropped: 0)"]  # fmt: skip
+    assert 2_000_000 < log.stat().st_size <= 3_000_000
