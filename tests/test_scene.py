@@ -46,9 +46,10 @@ def decoded(path, topic: str) -> list[tuple[int, dict]]:
     return out
 
 
-def chain(transforms: list[dict], child: str) -> pin.SE3:
-    """world -> child, composed from the parent -> child transforms of one /tf message."""
-    by_child = {t["child_frame_id"]: t for t in transforms}
+def chain(transforms: list[dict], child: str, static: list[dict] = ()) -> pin.SE3:
+    """world -> child, composed from the parent -> child transforms of one /tf message and the
+    static ones (the first /tf message: mounts and fixed joints)."""
+    by_child = {t["child_frame_id"]: t for t in (*static, *transforms)}
     pose = pin.SE3.Identity()
     while child != "world":
         t = by_child[child]
@@ -71,16 +72,20 @@ def test_tf_places_both_tools_where_the_logged_q_puts_them(paper_log):
     period = round(cfg.dt * 1e9)
     start = data.start_ns
     models = {side: RobotModel.from_spec(getattr(cfg, side).robot, side) for side in ("hsi", "to")}
-    tf = decoded(path, "/tf")
+    (t0, static), *tf = decoded(path, "/tf")
+    assert t0 == start and {t["child_frame_id"] for t in static["transforms"]} == {
+        "hsi/base_link", "hsi/tool", "to/base_link", "to/tool"
+    }  # fmt: skip
     every = round(cfg.rate_hz / SCENE_HZ)
     assert len(tf) == len(range(0, data.ticks, every))  # decimated to SCENE_HZ
     for log_time, msg in tf[::10]:
         k = (log_time - start) // period
         assert k % every == 0
+        assert len(msg["transforms"]) == 4  # the moving joints only
         for side in ("hsi", "to"):
             q = data.topics[f"/{side}"]["q"][k]
             expected = np.add(BASES_M[side], models[side].ee_position(q))
-            got = chain(msg["transforms"], f"{side}/tool").translation
+            got = chain(msg["transforms"], f"{side}/tool", static["transforms"]).translation
             np.testing.assert_allclose(got, expected, atol=1e-12)
 
 
@@ -93,23 +98,32 @@ def test_robot_description_is_one_urdf_of_both_robots_matching_tf(paper_log):
     names = list(model.names)[1:]
     assert names == ["hsi/shoulder", "hsi/elbow", "to/shoulder", "to/elbow"]
     data = read_log(path)
-    log_time, tf = decoded(path, "/tf")[7]
+    (_, static), *moving = decoded(path, "/tf")
+    log_time, tf = moving[7]
     k = (log_time - data.start_ns) // round(cfg.dt * 1e9)
     q = np.concatenate([data.topics["/hsi"]["q"][k], data.topics["/to"]["q"][k]])
     d = model.createData()
     pin.framesForwardKinematics(model, d, q)
     for link in ("hsi/link1", "hsi/tool", "to/link2", "to/tool"):
         frame = d.oMf[model.getFrameId(link, pin.FrameType.BODY)]
-        np.testing.assert_allclose(chain(tf["transforms"], link).homogeneous, frame.homogeneous,
-                                   atol=1e-12)  # fmt: skip
+        pose = chain(tf["transforms"], link, static["transforms"])
+        np.testing.assert_allclose(pose.homogeneous, frame.homogeneous, atol=1e-12)
 
 
 def test_environment_slabs_sit_behind_their_surfaces_and_show_contact(paper_log):
     cfg, path = paper_log
     data = read_log(path)
     env = decoded(path, "/environment")
-    assert len(env) == len(decoded(path, "/tf"))
     period = round(cfg.dt * 1e9)
+    sent = [(log_time - data.start_ns) // period for log_time, _ in env]
+    # sent at the start, at every scene frame whose contacts changed, and once a second
+    every = round(cfg.rate_hz / SCENE_HZ)
+    contacts = data.topics["/to"]["in_contact"][::every]
+    changed = [0] + [
+        k * every for k in range(1, len(contacts)) if (contacts[k] != contacts[k - 1]).any()
+    ]
+    assert set(changed) <= set(sent) and len(changed) >= 2
+    assert np.diff(sent).max() <= cfg.rate_hz
     seen_contact = False
     for log_time, msg in env:
         k = (log_time - data.start_ns) // period
@@ -158,6 +172,9 @@ def test_a_pushed_mass_moves_in_the_scene(tmp_path):
         moved.append((k, x))
     k0, x0 = moved[0]
     assert shifts[k0] == 0.0
+    # once pushed, the frictionless mass never stops: sent at every scene frame from then on
+    pushed = [k for k, _ in moved if shifts[k] > 0.0]
+    assert len(pushed) > 50 and set(np.diff(pushed)) == {round(cfg.rate_hz / SCENE_HZ)}
     for k, x in moved:
         # normal -x: a shift s moves the surface, and the block, by +s along x
         assert x - x0 == pytest.approx(shifts[k], abs=1e-12)

@@ -7,8 +7,9 @@ the writer either: a message is put on each subscribed client's queue (``BACKLOG
 and sent by the SDK's own threads; a client that reads too slowly loses the oldest messages
 of its queue, never stalls the writer (``tests/test_live.py`` runs a client that never reads).
 
-A client that subscribes to ``/robot_description`` gets it at once (the writer logs it again:
-it is otherwise written once, at the start).
+A client that subscribes to ``/robot_description``, ``/tf`` or ``/environment`` gets what is
+otherwise sent once or on change (the URDF, the transforms that never move, the environment)
+at once: the writer sends it again.
 """
 
 from __future__ import annotations

@@ -29,6 +29,23 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import pinocchio as pin
+from foxglove.messages import (
+    Color,
+    CubePrimitive,
+    FrameTransform,
+    FrameTransforms,
+    LinePrimitive,
+    LinePrimitiveLineType,
+    Point3,
+    Pose,
+    Quaternion,
+    SceneEntity,
+    SceneUpdate,
+    SpherePrimitive,
+    Timestamp,
+    Vector3,
+)
 
 if TYPE_CHECKING:
     from teleop_rt.recording.schema import LogLayout
@@ -52,6 +69,7 @@ ENV_COLORS = {
     "mass": (0.55, 0.35, 0.20, 0.95),
 }
 CONTACT_COLOR = (0.90, 0.15, 0.15, 0.9)
+HAND_COLOR = (0.20, 0.80, 0.30, 0.9)
 SLAB_DEPTH_M = {"wall": 0.01, "foam": 0.03, "spring": 0.005, "damper": 0.005, "mass": 0.06}
 SLAB_SIZE_M = (0.30, 0.10)  # along the surface: horizontal, vertical
 MASS_SIZE_M = 0.06
@@ -143,13 +161,19 @@ class UrdfJoint:
     name: str
     parent: str
     child: str
+    fixed: bool
 
 
 def robot_tree(urdf: str) -> tuple[str, list[UrdfJoint]]:
     """A URDF's root link and its joints (parent link, child link), in file order."""
     root = ET.fromstring(urdf)
     joints = [
-        UrdfJoint(j.get("name"), j.find("parent").get("link"), j.find("child").get("link"))
+        UrdfJoint(
+            j.get("name"),
+            j.find("parent").get("link"),
+            j.find("child").get("link"),
+            j.get("type") == "fixed",
+        )  # fmt: skip
         for j in root.findall("joint")
     ]
     children = {j.child for j in joints}
@@ -252,57 +276,52 @@ class Scene:
     """Pinocchio models of both robots (the writer's own) and the scene's foxglove messages."""
 
     def __init__(self, spec: SceneSpec) -> None:
-        import pinocchio as pin
-
         self.spec = spec
-        self._pin = pin
         self.robots = {}
         for side in SIDES:
             model = pin.buildModelFromXML(spec.urdf[side])
             root, joints = robot_tree(spec.urdf[side])
             body = {f.name: i for i, f in enumerate(model.frames) if f.type == pin.FrameType.BODY}
             pairs = [
-                (f"{side}/{j.parent}", f"{side}/{j.child}", body[j.parent], body[j.child])
+                (f"{side}/{j.parent}", f"{side}/{j.child}", body[j.parent], body[j.child], j.fixed)
                 for j in joints
                 if j.parent in body and j.child in body
             ]
             ee = model.getFrameId(spec.ee_frame[side])
             self.robots[side] = (model, model.createData(), pairs, ee, f"{side}/{root}")
         self.frames = {side: self.robots[side][4] for side in SIDES}
+        self._environment = [_Slab(el, spec.tool_start["to"]) for el in spec.environment]
 
-    def transforms(self, q: dict[str, np.ndarray], stamp_ns: int):
-        """foxglove.FrameTransforms of both robots at joint angles q (side -> angles)."""
-        from foxglove.messages import FrameTransform, FrameTransforms, Quaternion, Vector3
+    def static_transforms(self, stamp_ns: int):
+        """foxglove.FrameTransforms of what never moves: the mounts on ``world`` and the
+        fixed joints (sent once, as ROS sends /tf_static, and to a live client that
+        subscribes)."""
 
-        pin, stamp = self._pin, _timestamp(stamp_ns)
         out = []
         for side in SIDES:
             model, data, pairs, _, root = self.robots[side]
-            x, y, z = BASES_M[side]
-            out.append(
-                FrameTransform(
-                    timestamp=stamp,
-                    parent_frame_id=WORLD,
-                    child_frame_id=root,
-                    translation=Vector3(x=x, y=y, z=z),
-                    rotation=Quaternion(w=1.0),
-                )  # fmt: skip
-            )
-            pin.framesForwardKinematics(model, data, q[side])
-            for parent, child, i, j in pairs:
-                rel = data.oMf[i].actInv(data.oMf[j])
-                t = rel.translation
-                qx, qy, qz, qw = pin.Quaternion(rel.rotation).coeffs()
-                out.append(
-                    FrameTransform(
-                        timestamp=stamp,
-                        parent_frame_id=parent,
-                        child_frame_id=child,
-                        translation=Vector3(x=t[0], y=t[1], z=t[2]),
-                        rotation=Quaternion(x=qx, y=qy, z=qz, w=qw),
-                    )  # fmt: skip
-                )
+            pin.framesForwardKinematics(model, data, pin.neutral(model))
+            out.append(_transform(WORLD, root, np.array(BASES_M[side]), (0, 0, 0, 1), stamp_ns))
+            out += [self._relative(data, p, stamp_ns) for p in pairs if p[4]]
         return FrameTransforms(transforms=out)
+
+    def transforms(self, q: dict[str, np.ndarray], stamp_ns: int):
+        """foxglove.FrameTransforms of the moving joints of both robots at joint angles q
+        (side -> angles)."""
+
+        out = []
+        for side in SIDES:
+            model, data, pairs, _, _ = self.robots[side]
+            pin.framesForwardKinematics(model, data, q[side])
+            out += [self._relative(data, p, stamp_ns) for p in pairs if not p[4]]
+        return FrameTransforms(transforms=out)
+
+    def _relative(self, data, pair, stamp_ns: int):
+        parent, child, i, j, _ = pair
+        rel = data.oMf[i].actInv(data.oMf[j])
+        return _transform(
+            parent, child, rel.translation, pin.Quaternion(rel.rotation).coeffs(), stamp_ns
+        )
 
     def tool(self, side: str) -> np.ndarray:
         """The tool's position at the last ``transforms`` (its robot's frame)."""
@@ -312,55 +331,35 @@ class Scene:
     def environment(self, shifts: np.ndarray, contacts: np.ndarray, stamp_ns: int):
         """foxglove.SceneUpdate of the environment: each element's slab (or the mass block,
         moved by its shift along -normal), red while in contact."""
-        from foxglove.messages import CubePrimitive, SceneEntity, SceneUpdate
 
-        stamp, entities = _timestamp(stamp_ns), []
-        for e, el in enumerate(self.spec.environment):
-            n = np.array(el.normal)
-            p0 = np.array(el.point) - n * float(shifts[e])
-            x0 = np.array(self.spec.tool_start["to"])
-            surface = x0 - ((x0 - p0) @ n) * n  # the tool's start, onto the surface
-            depth = SLAB_DEPTH_M[el.kind]
-            size = (depth, MASS_SIZE_M, MASS_SIZE_M) if el.kind == "mass" else (depth, *SLAB_SIZE_M)
-            centre = surface - n * depth / 2
-            color = CONTACT_COLOR if contacts[e] else ENV_COLORS[el.kind]
-            cube = CubePrimitive(
-                pose=_pose(centre, _x_onto(n)), size=_vector(size), color=_color(color)
-            )
-            entities.append(
-                SceneEntity(
-                    timestamp=stamp,
-                    frame_id=self.frames["to"],
-                    id=f"environment/{e}",
-                    frame_locked=True,
-                    cubes=[cube],
-                )  # fmt: skip
-            )
+        stamp, frame = _timestamp(stamp_ns), self.frames["to"]
+        entities = [
+            SceneEntity(
+                timestamp=stamp,
+                frame_id=frame,
+                id=f"environment/{e}",
+                frame_locked=True,
+                cubes=[slab.cube(float(shifts[e]), bool(contacts[e]))],
+            )  # fmt: skip
+            for e, slab in enumerate(self._environment)
+        ]
         return SceneUpdate(entities=entities)
 
     def hand(self, target: np.ndarray, stamp_ns: int):
         """foxglove.SceneUpdate of the hand's reference and its spring to the HSI's tool (after
         ``transforms``, which placed the tool)."""
-        from foxglove.messages import (
-            LinePrimitive,
-            LinePrimitiveLineType,
-            Point3,
-            SceneEntity,
-            SceneUpdate,
-            SpherePrimitive,
-        )
 
         tool = self.tool("hsi")
         ball = SpherePrimitive(
             pose=_pose(target, (0.0, 0.0, 0.0, 1.0)),
             size=_vector((0.025, 0.025, 0.025)),
-            color=_color((0.20, 0.80, 0.30, 0.9)),
+            color=_color(HAND_COLOR),
         )
         spring = LinePrimitive(
             type=LinePrimitiveLineType.LineStrip,
             thickness=0.004,
             points=[Point3(x=p[0], y=p[1], z=p[2]) for p in (tool, target)],
-            color=_color((0.20, 0.80, 0.30, 0.9)),
+            color=_color(HAND_COLOR),
         )
         entity = SceneEntity(
             timestamp=_timestamp(stamp_ns), frame_id=self.frames["hsi"], id="hand_target",
@@ -369,27 +368,58 @@ class Scene:
         return SceneUpdate(entities=[entity])
 
 
+class _Slab:
+    """One environment element as a cube behind its surface, near the TO tool's start: what
+    does not change is made once."""
+
+    def __init__(self, el: EnvElement, tool_start: tuple[float, float, float]) -> None:
+
+        n = np.array(el.normal)
+        x0, p0 = np.array(tool_start), np.array(el.point)
+        depth = SLAB_DEPTH_M[el.kind]
+        self.normal = n
+        self.centre = x0 - ((x0 - p0) @ n) * n - n * depth / 2  # the tool's start, onto it
+        x, y, z, w = _x_onto(n)
+        self.orientation = Quaternion(x=x, y=y, z=z, w=w)
+        size = (depth, MASS_SIZE_M, MASS_SIZE_M) if el.kind == "mass" else (depth, *SLAB_SIZE_M)
+        self.size = _vector(size)
+        self.colors = (_color(ENV_COLORS[el.kind]), _color(CONTACT_COLOR))
+
+    def cube(self, shift: float, contact: bool):
+
+        pose = Pose(
+            position=_vector(self.centre - self.normal * shift), orientation=self.orientation
+        )
+        return CubePrimitive(pose=pose, size=self.size, color=self.colors[contact])
+
+
+def _transform(parent: str, child: str, t, quat, stamp_ns: int):
+
+    x, y, z, w = (float(c) for c in quat)
+    return FrameTransform(
+        timestamp=_timestamp(stamp_ns), parent_frame_id=parent, child_frame_id=child,
+        translation=Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+        rotation=Quaternion(x=x, y=y, z=z, w=w),
+    )  # fmt: skip
+
+
 def _timestamp(ns: int):
-    from foxglove.messages import Timestamp
 
     sec, nsec = divmod(int(ns), 1_000_000_000)
     return Timestamp(sec, nsec)
 
 
 def _vector(v):
-    from foxglove.messages import Vector3
 
     return Vector3(x=float(v[0]), y=float(v[1]), z=float(v[2]))
 
 
 def _color(c):
-    from foxglove.messages import Color
 
     return Color(r=c[0], g=c[1], b=c[2], a=c[3])
 
 
 def _pose(p, quat):
-    from foxglove.messages import Pose, Quaternion
 
     x, y, z, w = quat
     return Pose(position=_vector(p), orientation=Quaternion(x=x, y=y, z=z, w=w))
@@ -421,7 +451,8 @@ def scene_columns(layout: LogLayout) -> dict[str, slice]:
 
 class SceneChannels:
     """The scene's channels on the writer's foxglove context (the log file and, with a live
-    view, the server), and what goes on them from a batch of ring rows."""
+    view, the server), and what goes on them from a batch of ring rows. The environment is
+    sent when it changes (a contact, a moving mass) and once a second besides."""
 
     def __init__(self, spec: SceneSpec, layout: LogLayout, context) -> None:
         import foxglove
@@ -438,23 +469,32 @@ class SceneChannels:
         self.tf = FrameTransformsChannel(TF, context=context)
         self.env = SceneUpdateChannel(ENVIRONMENT, context=context) if spec.environment else None
         self.hand = SceneUpdateChannel(HAND_TARGET, context=context) if spec.hand else None
+        self._env_shown: bytes | None = None  # the environment's state when last sent
+        self._env_due = 0  # the tick by which it is sent again regardless
+        self._env_period = max(1, round(SCENE_HZ)) * self.every
 
     def describe(self, stamp_ns: int) -> None:
-        """/robot_description (once at the start, and for a live client that subscribes)."""
+        """What is sent once (at the start, and again for a live client that subscribes): the
+        URDF and the transforms that never move; the environment is sent at the next frame."""
         self.description.log(self.urdf, log_time=stamp_ns)
+        self.tf.log(self.scene.static_transforms(stamp_ns), log_time=stamp_ns)
+        self._env_shown = None
 
     def emit(self, rows: np.ndarray, start_ns: int, period_ns: int) -> None:
         """The scene at every ``every``-th tick of the batch."""
         ticks = rows[:, 0].astype(np.int64)
         cols, scene = self.cols, self.scene
         for i in np.flatnonzero(ticks % self.every == 0).tolist():
-            row = rows[i]
-            stamp = start_ns + int(ticks[i]) * period_ns
+            row, k = rows[i], int(ticks[i])
+            stamp = start_ns + k * period_ns
             q = {"hsi": row[cols["hsi.q"]], "to": row[cols["to.q"]]}
             self.tf.log(scene.transforms(q, stamp), log_time=stamp)
             if self.env is not None:
-                contacts = row[cols["to.in_contact"]]
-                self.env.log(scene.environment(row[cols["shift"]], contacts, stamp), log_time=stamp)
+                shifts, contacts = row[cols["shift"]], row[cols["to.in_contact"]]
+                state = shifts.tobytes() + contacts.tobytes()
+                if state != self._env_shown or k >= self._env_due:
+                    self.env.log(scene.environment(shifts, contacts, stamp), log_time=stamp)
+                    self._env_shown, self._env_due = state, k + self._env_period
             if self.hand is not None:
                 target = row[cols["hsi.operator_reference_m"]]
                 self.hand.log(scene.hand(target, stamp), log_time=stamp)

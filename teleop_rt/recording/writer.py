@@ -107,10 +107,10 @@ def writer_main(
 
 def _serve(live: LiveAddress, context, conn) -> LiveServer | None:
     from teleop_rt.recording.live import LiveServer
-    from teleop_rt.recording.scene import ROBOT_DESCRIPTION
+    from teleop_rt.recording.scene import ENVIRONMENT, ROBOT_DESCRIPTION, TF
 
-    try:
-        server = LiveServer(live, context, {ROBOT_DESCRIPTION})
+    try:  # a client that subscribes to these is sent what they carry only now and then
+        server = LiveServer(live, context, {ROBOT_DESCRIPTION, TF, ENVIRONMENT})
     except Exception as err:  # the SDK's error for an address that cannot be bound
         conn.send(("failed", str(err) or type(err).__name__))
         return None
