@@ -108,14 +108,23 @@ def scene_spec(session: Session) -> SceneSpec | None:
         ee[side] = site.model.ee_frame
         q0 = np.asarray(getattr(cfg, side).robot.q0_rad or np.zeros(site.n), dtype=float)
         start[side] = tuple(float(x) for x in site.model.ee_position(q0))
+    # the config's operator and environment exist where a simulated world has them (a plant or
+    # the drives' emulator); real hardware logs neither
     env = tuple(EnvElement(e.kind, _xyz(e.point_m), _unit(_xyz(e.normal))) for e in cfg.environment)
     return SceneSpec(
         urdf=urdf,
         ee_frame=ee,
         tool_start=start,
-        environment=env,
-        hand=cfg.operator.kind == "hand",
+        environment=env if _simulated(session.to) else (),
+        hand=cfg.operator.kind == "hand" and _simulated(session.hsi),
         every=max(1, round(cfg.rate_hz / SCENE_HZ)),
+    )
+
+
+def _simulated(site) -> bool:
+    cfg = site.cfg
+    return site.backend_name == "sim" or (
+        site.backend_name == "can" and cfg.can is not None and cfg.can.emulate
     )
 
 
