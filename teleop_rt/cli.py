@@ -76,6 +76,20 @@ def _build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     add_log_args(run)
+    run.add_argument(
+        "--live",
+        nargs="?",
+        const="127.0.0.1:8765",
+        metavar="[HOST:]PORT",
+        help="serve the session live to Foxglove (WebSocket; default 127.0.0.1:8765, port 0: "
+        "any free one), 3D included",
+    )
+    run.add_argument(
+        "--can-log",
+        metavar="PATH",
+        help="record every frame of every CAN bus (python-can's writers, format by extension: "
+        ".asc, .blf, .log, .csv, .trc, .txt; never overwrites)",
+    )
 
     site = sub.add_parser("site", help="run one site (hsi or to) against its peer over Zenoh")
     site.add_argument("site", choices=["hsi", "to"], help="which site this process runs")
@@ -280,6 +294,12 @@ def _cmd_run(args: argparse.Namespace) -> int:
         extra.append(f"duration_s={args.duration}")
     if args.max_missed is not None and not args.realtime:
         raise ConfigError("--max-missed counts missed deadlines: it needs --realtime")
+    live = _live_arg(args)
+    can_path = None
+    if args.can_log is not None:
+        from teleop_rt.hal.can.canlog import check_can_log_path
+
+        can_path = check_can_log_path(args.can_log)
     cfg = _load_config(args, extra)
     if (args.link or cfg.link.kind) == "zenoh":
         from teleop_rt.cli_sites import run_two_sites
@@ -296,21 +316,59 @@ def _cmd_run(args: argparse.Namespace) -> int:
     # no deadline in fast mode with simulated robots: a full ring may wait for the writer
     lossless = not args.realtime and set(cfg.backends.values()) == {"sim"}
     metadata = {"config": str(args.config), "overrides": json.dumps([*args.overrides, *extra])}
-    recorder = (
-        None
-        if args.no_log
-        else _recorder(session, args.log_out, wait_for_room=lossless, metadata=metadata)
-    )
-    with (
-        _closed_on_error(recorder),
-        progress_bar(cfg.n_ticks, enabled=not (args.json or args.realtime)) as progress,
-    ):
-        summary = session.run(
-            realtime=args.realtime, overrun=args.overrun, progress=progress, recorder=recorder,
-            max_missed=args.max_missed,
-        )  # fmt: skip
-    _print_summary(summary, args.json, recorder)
-    return exit_code(summary, recorder)
+    can_log = None
+    if can_path is not None:
+        from teleop_rt.hal.can.canlog import open_can_log
+
+        emulated = cfg.can is not None and cfg.can.emulate  # nothing real waits in fast mode
+        can_log = open_can_log(session, can_path, wait_for_room=emulated and not args.realtime)
+    try:
+        recorder = (
+            None
+            if args.no_log
+            else _recorder(
+                session, args.log_out, wait_for_room=lossless, metadata=metadata, live=live
+            )
+        )
+    except BaseException:
+        if can_log is not None:  # no session ran: no CAN log either
+            can_log.close()
+            can_log.path.unlink()
+        raise
+    if recorder is not None and recorder.live is not None:
+        print(
+            f"live: ws://{recorder.live} (Foxglove: Open connection, Foxglove WebSocket)",
+            file=sys.stderr,
+            flush=True,
+        )
+    try:
+        with (
+            _closed_on_error(recorder),
+            progress_bar(cfg.n_ticks, enabled=not (args.json or args.realtime)) as progress,
+        ):
+            summary = session.run(
+                realtime=args.realtime, overrun=args.overrun, progress=progress,
+                recorder=recorder, max_missed=args.max_missed,
+            )  # fmt: skip
+    finally:
+        can_status = can_log.close() if can_log is not None else None
+    _print_summary(summary, args.json, recorder, can_status)
+    code = exit_code(summary, recorder)
+    if can_status is not None and not can_status["complete"] and code != SafetyStop.exit_code:
+        return RecordingFailure.exit_code  # as for the session's log: before 130 / 143
+    return code
+
+
+def _live_arg(args: argparse.Namespace):
+    """--live's address (None without it), checked before any work."""
+    if args.live is None:
+        return None
+    from teleop_rt.recording.live import parse_address
+
+    live = parse_address(args.live)
+    if args.no_log:
+        raise ConfigError("--live is served by the log's writer: it cannot go with --no-log")
+    return live
 
 
 def _cmd_site(args: argparse.Namespace) -> int:
@@ -333,15 +391,20 @@ def _closed_on_error(recorder):
 
 
 def _recorder(
-    session, log: str | Path | None, suffix: str = "", wait_for_room: bool = False, metadata=None
+    session,
+    log: str | Path | None,
+    suffix: str = "",
+    wait_for_room: bool = False,
+    metadata=None,
+    live=None,
 ):
     from teleop_rt.recording.recorder import Recorder, default_log_path
 
     path = Path(log) if log else default_log_path(session.cfg.name + suffix)
-    return Recorder(session, path, wait_for_room=wait_for_room, metadata=metadata)
+    return Recorder(session, path, wait_for_room=wait_for_room, metadata=metadata, live=live)
 
 
-def _print_summary(summary, as_json: bool, recorder) -> None:
+def _print_summary(summary, as_json: bool, recorder, can_status: dict | None = None) -> None:
     from teleop_rt.report import print_summary
 
     status = recorder.status() if recorder else None
@@ -349,13 +412,24 @@ def _print_summary(summary, as_json: bool, recorder) -> None:
         out = summary.to_dict()
         out["log"] = str(recorder.path) if recorder else None
         out["recording"] = status
+        if can_status is not None:
+            out["can_log"] = can_status
         json.dump(out, sys.stdout, indent=2)
         print()
     else:
         print_summary(summary)
         if recorder is not None:
             print(f"log: {recorder.path}" + ("" if status["complete"] else " (INCOMPLETE)"))
+        if can_status is not None:
+            whole = "" if can_status["complete"] else ", INCOMPLETE"
+            print(f"CAN log: {can_status['path']} ({can_status['frames']} frames{whole})")
     _say_if_incomplete(recorder)
+    if can_status is not None:
+        from teleop_rt.hal.can.canlog import status_line
+
+        line = status_line(can_status)
+        if line:
+            print(line, file=sys.stderr)
 
 
 def _say_if_incomplete(recorder) -> None:

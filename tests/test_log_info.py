@@ -42,6 +42,11 @@ def test_a_run_log(tmp_path: Path, capsys) -> None:
         ("/to", 250),
         ("/channel", 250),
         ("/timing", 250),
+        # the 3D scene, at 50 Hz (teleop_rt.recording.scene), in the order first written
+        ("/robot_description", 1),
+        ("/tf", 13),
+        ("/environment", 13),
+        ("/hand_target", 13),
     ]
     headline = info["summary"]
     assert headline["t_p_total"] == summary["t_p_total"]

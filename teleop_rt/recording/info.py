@@ -39,6 +39,10 @@ def log_info(data: LogData) -> dict:
         "topics": [
             {"topic": t.name, "type": t.type_name, "messages": data.message_counts.get(t.name, 0)}
             for t in data.layout.topics
+        ]
+        + [
+            {"topic": name, "type": kind, "messages": count}
+            for name, (kind, count) in data.other_topics.items()
         ],
         "name": meta.get("name"),
         "config": meta.get("config"),
@@ -153,7 +157,7 @@ def format_info(info: dict) -> str:
     rows.append(("operator", str(info["operator"])))
     rows.append(("environment", ", ".join(info["environment"]) or "free space"))
     for i, t in enumerate(info["topics"]):
-        line = f"{t['topic']:<10} {t['messages']:>9} msgs  {t['type']}"
+        line = f"{t['topic']:<19} {t['messages']:>9} msgs  {t['type']}"
         rows.append(("topics" if i == 0 else "", line))
     s = info["summary"]
     if s is None:

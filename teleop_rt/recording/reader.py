@@ -64,6 +64,8 @@ class LogData:
     # messages read per topic, before topics cut at different ticks are trimmed to their common
     # ticks (in the window, if one was asked for)
     message_counts: dict[str, int] = field(default_factory=dict)
+    # the other topics of the file (the 3D scene's): topic -> (schema name, messages indexed)
+    other_topics: dict[str, tuple[str, int]] = field(default_factory=dict)
     profile: str = ""  # the MCAP header's profile and library
     library: str = ""
     footer: bool = False  # the file ends with its footer and closing magic
@@ -306,6 +308,7 @@ class _Reader:
         if t_from is not None or t_to is not None:
             arrays = {n: a[(a["tick"] >= first) & (a["tick"] < stop)] for n, a in arrays.items()}
         counts = {n: len(a) for n, a in arrays.items()}
+        others = self._other_topics(set(wanted))
         arrays = self._common_ticks(arrays)
         summary = self._summary()
         truncated = self.cut is not None or summary is None
@@ -335,10 +338,25 @@ class _Reader:
             damaged=self.damaged,
             gaps=_gaps(arrays, first, stop, summary),
             message_counts=counts,
+            other_topics=others,
             profile=self.profile,
             library=self.library,
             footer=self.footer,
         )
+
+    def _other_topics(self, known: set[str]) -> dict[str, tuple[str, int]]:
+        """Topics beyond the log's own, counted from the chunks' message indexes."""
+        out: dict[str, tuple[str, int]] = {}
+        for cid, channel in sorted(self.channels.items()):
+            if channel.topic in known:
+                continue
+            count = sum(len(c.index.get(cid, ())) for c in self.chunks)
+            schema = self.schemas.get(channel.schema_id)
+            out[channel.topic] = (
+                schema.name if schema else "",
+                count + len(self.loose.get(cid, [])),
+            )
+        return out
 
     def _messages(self, chunk: _Chunk, names: set[str], lo: int, hi: int, parts) -> None:
         data = _decompress(chunk.body)

@@ -40,6 +40,7 @@ import yaml
 from teleop_rt.errors import RecordingFailure, TeleopError
 from teleop_rt.flat import jit
 from teleop_rt.loop import StopSignals
+from teleop_rt.recording.scene import scene_spec, shift_sources
 from teleop_rt.recording.schema import SCHEMA_VERSION, LogLayout
 from teleop_rt.recording.writer import (
     CLOSED,
@@ -56,6 +57,7 @@ from teleop_rt.recording.writer import (
 from teleop_rt.version import software_version
 
 if TYPE_CHECKING:
+    from teleop_rt.recording.live import LiveAddress
     from teleop_rt.session import Session
 
 DEFAULT_LOG_DIR = Path("logs")
@@ -64,6 +66,13 @@ MIN_RING_ROWS = 16
 MAX_GAPS = 1024  # dropped tick ranges kept one by one; more are merged into the last
 STALL_S = 2.0  # a full ring in fast mode: a writer without progress this long has failed
 CLOSE_STALL_S = 3.0  # closing: a writer without progress this long is killed
+LIVE_START_TIMEOUT_S = 10.0  # the live view's server: listening within this, or no session
+
+
+class LiveError(TeleopError):
+    """The live view cannot listen where it was asked (an address in use, not this host's)."""
+
+    exit_code = 2
 
 
 class LogPathError(TeleopError):
@@ -111,12 +120,13 @@ class Recorder:
         capacity: int | None = None,
         wait_for_room: bool = False,
         metadata: dict[str, str] | None = None,
+        live: LiveAddress | None = None,
     ) -> None:
         cfg = session.cfg
         self.path = create_log_file(Path(path))
         self.layout = LogLayout(session.n, len(cfg.environment))
         self.session = session
-        width = self.layout.row_width
+        width = self.layout.ring_width
         if capacity is None:
             capacity = max(MIN_RING_ROWS, math.ceil(cfg.recording.ring_s * cfg.rate_hz))
         self.capacity = capacity
@@ -141,7 +151,10 @@ class Recorder:
         self.ring = np.ndarray((capacity, width), np.float64, self.shm.buf, CONTROL_BYTES)
         self.ring.fill(0.0)  # its pages now, not as page faults on the tick path
         self.gather = row_sources(session, self.layout)
-        fill_row(np.zeros(width), session.packed.f, self.gather, 0, 0.0, 0, 0, False)  # load
+        self.shifts = shift_sources(session)  # for the 3D scene only (ring_width)
+        fill_row(
+            np.zeros(width), session.packed.f, self.gather, self.shifts, 0, 0.0, 0, 0, False
+        )  # load (or compile) the kernel now
         self.published = 0
         self._consumed_known = 0
         # what did not reach the log: rows dropped, their tick ranges (preallocated: the
@@ -160,6 +173,7 @@ class Recorder:
         method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
         ctx = multiprocessing.get_context(method)
         self._summary_rx, self._summary_tx = ctx.Pipe(duplex=False)
+        live_rx, live_tx = ctx.Pipe(duplex=False) if live is not None else (None, None)
         self.process = ctx.Process(
             target=writer_main,
             args=(
@@ -171,12 +185,46 @@ class Recorder:
                 {**_metadata(session), **(metadata or {})},
                 _attachments(session),
                 self._summary_rx,
+                scene_spec(session),
+                live,
+                live_tx,
             ),
             name="teleop-rt-log-writer",
             daemon=False,
         )
         self.process.start()
+        if live_tx is not None:
+            live_tx.close()  # the writer's end: a writer that dies unheard is an EOF here
         self.closed = False
+        self.live: LiveAddress | None = None  # where the live view listens
+        if live is not None:
+            self._await_live(live, live_rx)
+
+    def _await_live(self, asked: LiveAddress, conn) -> None:
+        """Wait (before the session starts) for the writer's server to listen; one line and
+        no log file when it cannot."""
+        why = f"the log writer {_ended(self.process.exitcode)}"
+        if conn.poll(LIVE_START_TIMEOUT_S):
+            try:
+                state, what = conn.recv()
+            except (EOFError, OSError):
+                state, what = "failed", why
+            if state == "listening":
+                self.live = what
+                return
+            why = what
+        else:
+            why = f"the server did not start within {LIVE_START_TIMEOUT_S:g} s"
+        self.closed = True
+        self.process.join(CLOSE_STALL_S)
+        if self.process.exitcode is None:
+            self.process.kill()
+            self.process.join()
+        self.buf = self.ring = self.ctrl = None
+        self.shm.close()
+        self.shm.unlink()
+        self.path.unlink()  # created empty by this recorder; nothing was written
+        raise LiveError(f"--live {asked}: cannot serve the session there ({why})")
 
     def record(self, compute_ns: int, lateness_ns: int, missed: bool) -> None:
         """Copy the tick the session just ran (its tick - 1) into the ring and publish it, or
@@ -196,7 +244,7 @@ class Recorder:
                 raise RecordingFailure(self.failure)
             return
         fill_row(
-            self.ring[i % self.capacity], s.packed.f, self.gather, k, k * s.dt,
+            self.ring[i % self.capacity], s.packed.f, self.gather, self.shifts, k, k * s.dt,
             compute_ns, lateness_ns, missed,
         )  # fmt: skip
         self.published = i + 1
@@ -385,14 +433,16 @@ def fill_row(
     row: np.ndarray,
     f: np.ndarray,
     gather: np.ndarray,
+    shifts: np.ndarray,
     tick: int,
     t: float,
     compute_ns: int,
     lateness_ns: int,
     missed: bool,
 ) -> None:
-    """One log row (``teleop_rt.recording.schema``): tick, time, the signals at the packed
-    positions ``gather``, then the timing columns."""
+    """One ring row (``LogLayout.ring_width``): tick, time, the signals at the packed
+    positions ``gather``, the timing columns, then the environment's shifts at the positions
+    ``shifts`` (0 where the position is -1)."""
     row[0] = tick
     row[1] = t
     for c in range(gather.size):
@@ -401,6 +451,8 @@ def fill_row(
     row[m] = compute_ns
     row[m + 1] = lateness_ns
     row[m + 2] = 1.0 if missed else 0.0
+    for e in range(shifts.size):
+        row[m + 3 + e] = f[shifts[e]] if shifts[e] >= 0 else 0.0
 
 
 def _metadata(session: Session) -> dict[str, str]:

@@ -167,6 +167,22 @@ class LogLayout:
         """float64 columns per tick: the tick and time once, then every topic's own fields."""
         return 2 + sum(t.width - 2 for t in self.topics)
 
+    @property
+    def ring_width(self) -> int:
+        """float64 columns per tick in the recorder's ring: a log row, then per environment
+        element its surface's shift along -normal (a pushed mass), which only the 3D scene
+        shows (``teleop_rt.recording.scene``)."""
+        return self.row_width + self.n_env
+
+    def field_columns(self, topic: str, name: str) -> slice | None:
+        """Row columns of one field of a topic (None if the topic has no such field)."""
+        start = self.columns()[topic].start
+        for f in next(t for t in self.topics if t.name == topic).fields[2:]:
+            if f.name == name:
+                return slice(start, start + f.count)
+            start += f.count
+        return None
+
     def columns(self) -> dict[str, slice]:
         """Row slice of every topic's own fields (after the shared tick and time)."""
         out, start = {}, 2

@@ -39,13 +39,17 @@ import os
 import signal
 import time
 from multiprocessing.shared_memory import SharedMemory
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import foxglove
 import numpy as np
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
 from teleop_rt.recording.schema import CDR_HEADER, LogLayout
+
+if TYPE_CHECKING:
+    from teleop_rt.recording.live import LiveAddress, LiveServer
+    from teleop_rt.recording.scene import SceneSpec
 
 CONTROL_BYTES = 64
 PUBLISHED, CLOSED, CONSUMED, HEARTBEAT, STATUS, ERRNO, START_NS = range(7)
@@ -68,8 +72,13 @@ def writer_main(
     metadata: dict[str, str],
     attachments: dict[str, bytes],
     summary_conn: Any,
+    scene: SceneSpec | None = None,
+    live: LiveAddress | None = None,
+    live_conn: Any = None,
 ) -> None:
-    """Process entry point (must stay importable and picklable for 'spawn')."""
+    """Process entry point (must stay importable and picklable for 'spawn'). ``scene``: the 3D
+    topics (``teleop_rt.recording.scene``); ``live``: serve the session there too, saying on
+    ``live_conn`` ("listening", address) or ("failed", why) before the first row."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _set_process_name(PROCESS_NAME)
@@ -78,15 +87,41 @@ def writer_main(
     try:
         ctrl = np.ndarray((CONTROL_BYTES // 8,), dtype=np.int64, buffer=shm.buf)
         ring = np.ndarray(
-            (capacity, log_layout.row_width), dtype=np.float64, buffer=shm.buf, offset=CONTROL_BYTES
+            (capacity, log_layout.ring_width), np.float64, buffer=shm.buf, offset=CONTROL_BYTES
         )
-        _write(path, ctrl, ring, log_layout, period_ns, metadata, attachments, summary_conn)
+        context = foxglove.Context()  # private: no other channel of this process is logged
+        server = _serve(live, context, live_conn) if live is not None else None
+        if live is not None and server is None:
+            return  # the recorder reports why and removes the (empty) file
+        try:
+            _write(
+                path, ctrl, ring, log_layout, period_ns, metadata, attachments, summary_conn,
+                context, scene, server,
+            )  # fmt: skip
+        finally:
+            if server is not None:
+                server.stop()
     finally:
         shm.close()
 
 
-def _write(path, ctrl, ring, layout, period_ns, metadata, attachments, summary_conn) -> None:
-    context = foxglove.Context()  # private: no other channel of this process lands in the file
+def _serve(live: LiveAddress, context, conn) -> LiveServer | None:
+    from teleop_rt.recording.live import LiveServer
+    from teleop_rt.recording.scene import ENVIRONMENT, ROBOT_DESCRIPTION, TF
+
+    try:  # a client that subscribes to these is sent what they carry only now and then
+        server = LiveServer(live, context, {ROBOT_DESCRIPTION, TF, ENVIRONMENT})
+    except Exception as err:  # the SDK's error for an address that cannot be bound
+        conn.send(("failed", str(err) or type(err).__name__))
+        return None
+    conn.send(("listening", server.address))
+    return server
+
+
+def _write(
+    path, ctrl, ring, layout, period_ns, metadata, attachments, summary_conn, context,
+    scene_spec, server,
+) -> None:  # fmt: skip
     # LZ4, not Zstd: half the writer's CPU per tick (about 10 against 20 us for the four
     # messages), for files about 18 % larger (330 against 280 bytes per tick of the paper
     # experiment); on a 2-core machine the writer's CPU is taken from the control loop
@@ -108,10 +143,18 @@ def _write(path, ctrl, ring, layout, period_ns, metadata, attachments, summary_c
     encoders = [
         (ch, topic, columns[topic.name]) for ch, topic in zip(channels, layout.topics, strict=True)
     ]
+    scene = None
+    if scene_spec is not None:
+        from teleop_rt.recording.scene import SceneChannels
+
+        scene = SceneChannels(scene_spec, layout, context)
     parent = multiprocessing.parent_process()
     capacity = len(ring)
-    # a small ring (tests, ring_s) is emptied before it fills
-    min_batch, max_batch = min(MIN_BATCH_ROWS, max(1, capacity // 4)), min(BATCH_ROWS, capacity)
+    # a small ring (tests, ring_s) is emptied before it fills; a live view is sent at the
+    # scene's rate, not in quarter seconds
+    wanted = scene_spec.every if server is not None and scene_spec is not None else MIN_BATCH_ROWS
+    min_batch = min(wanted, MIN_BATCH_ROWS, max(1, capacity // 4))
+    max_batch = min(BATCH_ROWS, capacity)
     consumed = 0
     start_ns: int | None = None  # known once the first row (or the end) has come
     while not sink.failed:
@@ -128,7 +171,14 @@ def _write(path, ctrl, ring, layout, period_ns, metadata, attachments, summary_c
             ctrl[CONSUMED] = end  # the slots are copied: the producer may reuse them
             if start_ns is None:
                 start_ns = _describe(writer, int(ctrl[START_NS]), metadata, attachments)
+                if scene is not None:
+                    scene.describe(start_ns)
             _emit(rows, encoders, layout, period_ns, start_ns)
+            if scene is not None:
+                scene.emit(rows, start_ns, period_ns)
+                if server is not None and server.resend.is_set():  # a client subscribed
+                    server.resend.clear()
+                    scene.describe(start_ns + int(rows[-1, 0]) * period_ns)
             consumed = end
             continue
         if closed or (parent is not None and not parent.is_alive()):

@@ -109,6 +109,7 @@ class CanBackend(Backend):
         self.node_ids = [d.node_id for d in side_spec.drives]
         self.emulator = None  # the in-process emulator when can.emulate is on
         self.bus: can.BusABC | None = None
+        self.can_tap = None  # every frame to this (--can-log: canlog.CanLog.tap) if set
         self.drive_info: list = []
         self.period_ns = round(cfg.dt * 1e9)
         self.window_ns = 0 if spec.emulate else spec.feedback_window_us * 1000
@@ -268,15 +269,21 @@ class CanBackend(Backend):
 
             self.bus = emulated_bus(self.cfg, self.side, self.operator)
             self.emulator = self.bus.emulator
-            return
-        import can
+        else:
+            import can
 
-        kwargs = self.side_spec.bus.kwargs()
-        try:
-            self.bus = can.Bus(**kwargs)
-        except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
-            described = ", ".join(f"{k}={v}" for k, v in kwargs.items())
-            raise BackendError(f"can: {self.side} bus ({described}): cannot open: {exc}") from None
+            kwargs = self.side_spec.bus.kwargs()
+            try:
+                self.bus = can.Bus(**kwargs)
+            except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
+                described = ", ".join(f"{k}={v}" for k, v in kwargs.items())
+                raise BackendError(
+                    f"can: {self.side} bus ({described}): cannot open: {exc}"
+                ) from None
+        if self.can_tap is not None:  # from here on, start-up included, every frame is logged
+            from teleop_rt.hal.can.canlog import TappedBus
+
+            self.bus = TappedBus(self.bus, self.can_tap)
 
     def _bus_label(self) -> str:
         """The bus as the user knows it: interface and channel (the emulator's own name)."""

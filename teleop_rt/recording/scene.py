@@ -1,0 +1,509 @@
+"""The session in 3D for Foxglove: both robots side by side, the environment, the hand target.
+
+Built from log rows in the writer process (``teleop_rt.recording.writer``), decimated to
+``SCENE_HZ``: nothing here runs on the tick path. Topics (beside the four of the schema):
+
+* ``/robot_description`` std_msgs/msg/String (CDR): one URDF holding both robots, their links
+  and joints prefixed ``hsi/`` and ``to/``, each robot's root fixed to ``world`` at its offset
+  (``BASES_M``: side by side), so that Foxglove's 3D panel shows both without settings. Links
+  without a visual of primitive geometry get one drawn from the kinematics (a bar to each child
+  joint, a ball at a leaf): a mesh's ``package://`` file would not resolve in Foxglove.
+* ``/tf`` foxglove.FrameTransforms: every URDF joint's transform (parent link to child link)
+  from Pinocchio's forward kinematics at the logged q, and the two mounts on ``world``.
+* ``/environment`` foxglove.SceneUpdate: walls, foam, springs, dampers as slabs behind their
+  surfaces near the TO's tool, a pushed mass as a block that moves with it; an element in
+  contact turns red. In the TO's frame (``to/<root link>``).
+* ``/hand_target`` foxglove.SceneUpdate (an operator hand only): the hand's reference as a ball
+  and the spring to the HSI's tool as a line, in the HSI's frame.
+
+Pinocchio's Data here is the writer's own (``Scene`` builds its models from the URDF text):
+nothing is shared with the control process.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pinocchio as pin
+from foxglove.messages import (
+    Color,
+    CubePrimitive,
+    FrameTransform,
+    FrameTransforms,
+    LinePrimitive,
+    LinePrimitiveLineType,
+    Point3,
+    Pose,
+    Quaternion,
+    SceneEntity,
+    SceneUpdate,
+    SpherePrimitive,
+    Timestamp,
+    Vector3,
+)
+
+if TYPE_CHECKING:
+    from teleop_rt.recording.schema import LogLayout
+    from teleop_rt.session import Session
+
+SCENE_HZ = 50.0  # 3D messages per second of session time
+SIDES = ("hsi", "to")
+BASES_M = {"hsi": (0.0, 0.4, 0.0), "to": (0.0, -0.4, 0.0)}  # each robot's base in ``world``
+WORLD = "world"
+ROBOT_DESCRIPTION, TF, ENVIRONMENT, HAND_TARGET = (
+    "/robot_description", "/tf", "/environment", "/hand_target"
+)  # fmt: skip
+STRING_TYPE = "std_msgs/msg/String"
+STRING_DEFINITION = b"string data\n"
+COLORS = {"hsi": (0.20, 0.45, 0.85, 1.0), "to": (0.90, 0.50, 0.15, 1.0)}
+ENV_COLORS = {
+    "wall": (0.55, 0.55, 0.60, 0.9),
+    "foam": (0.95, 0.80, 0.25, 0.55),
+    "spring": (0.30, 0.75, 0.40, 0.35),
+    "damper": (0.30, 0.55, 0.90, 0.35),
+    "mass": (0.55, 0.35, 0.20, 0.95),
+}
+CONTACT_COLOR = (0.90, 0.15, 0.15, 0.9)
+HAND_COLOR = (0.20, 0.80, 0.30, 0.9)
+SLAB_DEPTH_M = {"wall": 0.01, "foam": 0.03, "spring": 0.005, "damper": 0.005, "mass": 0.06}
+SLAB_SIZE_M = (0.30, 0.10)  # along the surface: horizontal, vertical
+MASS_SIZE_M = 0.06
+BONE_RADIUS_M = 0.012
+
+
+@dataclass(frozen=True)
+class EnvElement:
+    kind: str
+    point: tuple[float, float, float]
+    normal: tuple[float, float, float]  # unit, towards free space
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """What the writer needs to draw the session (plain data: picklable for 'spawn')."""
+
+    urdf: dict[str, str]  # side -> the robot's URDF text
+    ee_frame: dict[str, str]  # side -> the tool frame
+    tool_start: dict[str, tuple[float, float, float]]  # each tool at q0, its robot's frame
+    environment: tuple[EnvElement, ...]
+    hand: bool  # an operator hand (its reference is in /hsi)
+    every: int  # ticks between two scene messages
+
+
+def scene_spec(session: Session) -> SceneSpec | None:
+    """The scene of a session; None when a robot's URDF cannot be found (no 3D topics)."""
+    cfg = session.cfg
+    urdf, ee, start = {}, {}, {}
+    for side in SIDES:
+        text = _urdf_text(getattr(cfg, side).robot)
+        if text is None:
+            return None
+        site = getattr(session, side)
+        urdf[side] = text
+        ee[side] = site.model.ee_frame
+        q0 = np.asarray(getattr(cfg, side).robot.q0_rad or np.zeros(site.n), dtype=float)
+        start[side] = tuple(float(x) for x in site.model.ee_position(q0))
+    # the config's operator and environment exist where a simulated world has them (a plant or
+    # the drives' emulator); real hardware logs neither
+    env = tuple(EnvElement(e.kind, _xyz(e.point_m), _unit(_xyz(e.normal))) for e in cfg.environment)
+    return SceneSpec(
+        urdf=urdf,
+        ee_frame=ee,
+        tool_start=start,
+        environment=env if _simulated(session.to) else (),
+        hand=cfg.operator.kind == "hand" and _simulated(session.hsi),
+        every=max(1, round(cfg.rate_hz / SCENE_HZ)),
+    )
+
+
+def _simulated(site) -> bool:
+    cfg = site.cfg
+    return site.backend_name == "sim" or (
+        site.backend_name == "can" and cfg.can is not None and cfg.can.emulate
+    )
+
+
+def shift_sources(session: Session) -> np.ndarray:
+    """Per environment element, where its surface's shift along -normal (a pushed mass) sits in
+    the session's packed state, -1 where there is none to show (a fixed surface, or a plant
+    outside the session's buffers: then the mass is drawn where it started)."""
+    from teleop_rt.world import PushedMass
+
+    loads = [x for x in getattr(session.to.backend, "loads", []) if not x.is_operator]
+    out = np.full(len(session.cfg.environment), -1, dtype=np.int64)
+    for e, load in enumerate(loads[: len(out)]):
+        if isinstance(load, PushedMass) and any(b is load for b in session.packed.blocks):
+            out[e] = session.packed.index_of(load, "s")
+    return out
+
+
+def _urdf_text(robot) -> str | None:
+    if robot.urdf is not None:
+        return Path(robot.urdf).read_text()
+    try:  # example-robot-data: its loader knows the file
+        from example_robot_data.robots_loader import ROBOTS
+
+        return Path(ROBOTS[robot.example_robot]().df_path).read_text()
+    except (ImportError, KeyError, AttributeError, OSError, TypeError):
+        return None
+
+
+def _xyz(v) -> tuple[float, float, float]:
+    out = [0.0, 0.0, 0.0]
+    out[: len(v)] = [float(x) for x in v]
+    return (out[0], out[1], out[2])
+
+
+def _unit(v: tuple[float, float, float]) -> tuple[float, float, float]:
+    norm = math.sqrt(sum(x * x for x in v))
+    return (v[0] / norm, v[1] / norm, v[2] / norm)
+
+
+# --- the combined URDF --------------------------------------------------------------------------
+@dataclass(frozen=True)
+class UrdfJoint:
+    name: str
+    parent: str
+    child: str
+    fixed: bool
+
+
+def robot_tree(urdf: str) -> tuple[str, list[UrdfJoint]]:
+    """A URDF's root link and its joints (parent link, child link), in file order."""
+    root = ET.fromstring(urdf)
+    joints = [
+        UrdfJoint(
+            j.get("name"),
+            j.find("parent").get("link"),
+            j.find("child").get("link"),
+            j.get("type") == "fixed",
+        )  # fmt: skip
+        for j in root.findall("joint")
+    ]
+    children = {j.child for j in joints}
+    links = [link.get("name") for link in root.findall("link")]
+    roots = [name for name in links if name not in children]
+    return (roots[0] if roots else links[0]), joints
+
+
+def combined_urdf(spec: SceneSpec) -> str:
+    """One URDF of both robots (names prefixed ``hsi/``, ``to/``) mounted on ``world``."""
+    out = ET.Element("robot", name="teleop_rt")
+    ET.SubElement(out, "link", name=WORLD)
+    for side in SIDES:
+        robot = ET.fromstring(spec.urdf[side])
+        prefix = f"{side}/"
+        root, _ = robot_tree(spec.urdf[side])
+        material = ET.SubElement(out, "material", name=f"{prefix}color")
+        ET.SubElement(material, "color", rgba=" ".join(f"{c:g}" for c in COLORS[side]))
+        offsets = _child_offsets(robot)
+        for link in robot.findall("link"):
+            name = link.get("name")
+            link.set("name", prefix + name)
+            for el in link.findall("collision"):  # meshes would not resolve; visuals suffice
+                link.remove(el)
+            visuals = [v for v in link.findall("visual") if _primitive(v)]
+            for v in link.findall("visual"):
+                link.remove(v)
+            for v in visuals or _bones(offsets.get(name, []), leaf=not offsets.get(name)):
+                for mat in v.findall("material"):
+                    v.remove(mat)
+                ET.SubElement(v, "material", name=f"{prefix}color")
+                link.append(v)
+            out.append(link)
+        for joint in robot.findall("joint"):
+            joint.set("name", prefix + joint.get("name"))
+            for end in ("parent", "child"):
+                el = joint.find(end)
+                el.set("link", prefix + el.get("link"))
+            for tag in ("mimic", "transmission"):
+                for el in joint.findall(tag):
+                    joint.remove(el)
+            out.append(joint)
+        mount = ET.SubElement(out, "joint", name=f"{prefix}mount", type="fixed")
+        ET.SubElement(mount, "parent", link=WORLD)
+        ET.SubElement(mount, "child", link=prefix + root)
+        ET.SubElement(mount, "origin", xyz=" ".join(f"{x:g}" for x in BASES_M[side]))
+    ET.indent(out)
+    return ET.tostring(out, encoding="unicode") + "\n"
+
+
+def _primitive(visual: ET.Element) -> bool:
+    geometry = visual.find("geometry")
+    return geometry is not None and any(
+        geometry.find(kind) is not None for kind in ("box", "cylinder", "sphere")
+    )
+
+
+def _child_offsets(robot: ET.Element) -> dict[str, list[tuple[float, ...]]]:
+    """Per link, the origins of its child joints in its frame."""
+    out: dict[str, list[tuple[float, ...]]] = {}
+    for joint in robot.findall("joint"):
+        origin = joint.find("origin")
+        xyz = origin.get("xyz", "0 0 0") if origin is not None else "0 0 0"
+        out.setdefault(joint.find("parent").get("link"), []).append(
+            tuple(float(x) for x in xyz.split())
+        )
+    return out
+
+
+def _bones(offsets: list[tuple[float, ...]], leaf: bool) -> list[ET.Element]:
+    """Visuals drawn from the kinematics: a bar from the link's origin to each child joint, a
+    ball at the origin of a leaf (a tool)."""
+    out = []
+    for x, y, z in offsets:
+        length = math.sqrt(x * x + y * y + z * z)
+        if length < 1e-6:
+            continue
+        pitch, yaw = math.atan2(math.hypot(x, y), z), math.atan2(y, x)  # z axis onto the bar
+        v = ET.Element("visual")
+        ET.SubElement(v, "origin", xyz=f"{x / 2:g} {y / 2:g} {z / 2:g}", rpy=f"0 {pitch:g} {yaw:g}")
+        geometry = ET.SubElement(v, "geometry")
+        ET.SubElement(geometry, "cylinder", radius=f"{BONE_RADIUS_M:g}", length=f"{length:g}")
+        out.append(v)
+    if leaf:
+        v = ET.Element("visual")
+        geometry = ET.SubElement(v, "geometry")
+        ET.SubElement(geometry, "sphere", radius=f"{1.5 * BONE_RADIUS_M:g}")
+        out.append(v)
+    return out
+
+
+def string_message(text: str) -> bytes:
+    """A std_msgs/msg/String in CDR (little endian): length with the NUL, bytes, NUL."""
+    data = text.encode()
+    return b"\x00\x01\x00\x00" + (len(data) + 1).to_bytes(4, "little") + data + b"\x00"
+
+
+# --- the scene from rows (writer process) -------------------------------------------------------
+class Scene:
+    """Pinocchio models of both robots (the writer's own) and the scene's foxglove messages."""
+
+    def __init__(self, spec: SceneSpec) -> None:
+        self.spec = spec
+        self.robots = {}
+        for side in SIDES:
+            model = pin.buildModelFromXML(spec.urdf[side])
+            root, joints = robot_tree(spec.urdf[side])
+            body = {f.name: i for i, f in enumerate(model.frames) if f.type == pin.FrameType.BODY}
+            pairs = [
+                (f"{side}/{j.parent}", f"{side}/{j.child}", body[j.parent], body[j.child], j.fixed)
+                for j in joints
+                if j.parent in body and j.child in body
+            ]
+            ee = model.getFrameId(spec.ee_frame[side])
+            self.robots[side] = (model, model.createData(), pairs, ee, f"{side}/{root}")
+        self.frames = {side: self.robots[side][4] for side in SIDES}
+        self._environment = [_Slab(el, spec.tool_start["to"]) for el in spec.environment]
+
+    def static_transforms(self, stamp_ns: int):
+        """foxglove.FrameTransforms of what never moves: the mounts on ``world`` and the
+        fixed joints (sent once, as ROS sends /tf_static, and to a live client that
+        subscribes)."""
+
+        out = []
+        for side in SIDES:
+            model, data, pairs, _, root = self.robots[side]
+            pin.framesForwardKinematics(model, data, pin.neutral(model))
+            out.append(_transform(WORLD, root, np.array(BASES_M[side]), (0, 0, 0, 1), stamp_ns))
+            out += [self._relative(data, p, stamp_ns) for p in pairs if p[4]]
+        return FrameTransforms(transforms=out)
+
+    def transforms(self, q: dict[str, np.ndarray], stamp_ns: int):
+        """foxglove.FrameTransforms of the moving joints of both robots at joint angles q
+        (side -> angles)."""
+
+        out = []
+        for side in SIDES:
+            model, data, pairs, _, _ = self.robots[side]
+            pin.framesForwardKinematics(model, data, q[side])
+            out += [self._relative(data, p, stamp_ns) for p in pairs if not p[4]]
+        return FrameTransforms(transforms=out)
+
+    def _relative(self, data, pair, stamp_ns: int):
+        parent, child, i, j, _ = pair
+        rel = data.oMf[i].actInv(data.oMf[j])
+        return _transform(
+            parent, child, rel.translation, pin.Quaternion(rel.rotation).coeffs(), stamp_ns
+        )
+
+    def tool(self, side: str) -> np.ndarray:
+        """The tool's position at the last ``transforms`` (its robot's frame)."""
+        _, data, _, ee, _ = self.robots[side]
+        return data.oMf[ee].translation.copy()
+
+    def environment(self, shifts: np.ndarray, contacts: np.ndarray, stamp_ns: int):
+        """foxglove.SceneUpdate of the environment: each element's slab (or the mass block,
+        moved by its shift along -normal), red while in contact."""
+
+        stamp, frame = _timestamp(stamp_ns), self.frames["to"]
+        entities = [
+            SceneEntity(
+                timestamp=stamp,
+                frame_id=frame,
+                id=f"environment/{e}",
+                frame_locked=True,
+                cubes=[slab.cube(float(shifts[e]), bool(contacts[e]))],
+            )  # fmt: skip
+            for e, slab in enumerate(self._environment)
+        ]
+        return SceneUpdate(entities=entities)
+
+    def hand(self, target: np.ndarray, stamp_ns: int):
+        """foxglove.SceneUpdate of the hand's reference and its spring to the HSI's tool (after
+        ``transforms``, which placed the tool)."""
+
+        tool = self.tool("hsi")
+        ball = SpherePrimitive(
+            pose=_pose(target, (0.0, 0.0, 0.0, 1.0)),
+            size=_vector((0.025, 0.025, 0.025)),
+            color=_color(HAND_COLOR),
+        )
+        spring = LinePrimitive(
+            type=LinePrimitiveLineType.LineStrip,
+            thickness=0.004,
+            points=[Point3(x=p[0], y=p[1], z=p[2]) for p in (tool, target)],
+            color=_color(HAND_COLOR),
+        )
+        entity = SceneEntity(
+            timestamp=_timestamp(stamp_ns), frame_id=self.frames["hsi"], id="hand_target",
+            frame_locked=True, spheres=[ball], lines=[spring],
+        )  # fmt: skip
+        return SceneUpdate(entities=[entity])
+
+
+class _Slab:
+    """One environment element as a cube behind its surface, near the TO tool's start: what
+    does not change is made once."""
+
+    def __init__(self, el: EnvElement, tool_start: tuple[float, float, float]) -> None:
+
+        n = np.array(el.normal)
+        x0, p0 = np.array(tool_start), np.array(el.point)
+        depth = SLAB_DEPTH_M[el.kind]
+        self.normal = n
+        self.centre = x0 - ((x0 - p0) @ n) * n - n * depth / 2  # the tool's start, onto it
+        x, y, z, w = _x_onto(n)
+        self.orientation = Quaternion(x=x, y=y, z=z, w=w)
+        size = (depth, MASS_SIZE_M, MASS_SIZE_M) if el.kind == "mass" else (depth, *SLAB_SIZE_M)
+        self.size = _vector(size)
+        self.colors = (_color(ENV_COLORS[el.kind]), _color(CONTACT_COLOR))
+
+    def cube(self, shift: float, contact: bool):
+
+        pose = Pose(
+            position=_vector(self.centre - self.normal * shift), orientation=self.orientation
+        )
+        return CubePrimitive(pose=pose, size=self.size, color=self.colors[contact])
+
+
+def _transform(parent: str, child: str, t, quat, stamp_ns: int):
+
+    x, y, z, w = (float(c) for c in quat)
+    return FrameTransform(
+        timestamp=_timestamp(stamp_ns), parent_frame_id=parent, child_frame_id=child,
+        translation=Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2])),
+        rotation=Quaternion(x=x, y=y, z=z, w=w),
+    )  # fmt: skip
+
+
+def _timestamp(ns: int):
+
+    sec, nsec = divmod(int(ns), 1_000_000_000)
+    return Timestamp(sec, nsec)
+
+
+def _vector(v):
+
+    return Vector3(x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+
+def _color(c):
+
+    return Color(r=c[0], g=c[1], b=c[2], a=c[3])
+
+
+def _pose(p, quat):
+
+    x, y, z, w = quat
+    return Pose(position=_vector(p), orientation=Quaternion(x=x, y=y, z=z, w=w))
+
+
+def _x_onto(n: np.ndarray) -> tuple[float, float, float, float]:
+    """The quaternion (x, y, z, w) of the shortest rotation taking the x axis onto unit n."""
+    axis = np.cross((1.0, 0.0, 0.0), n)
+    s, c = float(np.linalg.norm(axis)), float(n[0])
+    if s < 1e-12:
+        return (0.0, 0.0, 0.0, 1.0) if c > 0 else (0.0, 0.0, 1.0, 0.0)  # pi about z
+    half = math.atan2(s, c) / 2
+    ax = axis / s * math.sin(half)
+    return (float(ax[0]), float(ax[1]), float(ax[2]), math.cos(half))
+
+
+def scene_columns(layout: LogLayout) -> dict[str, slice]:
+    """Where the scene reads a ring row: both robots' q, the hand reference, the contacts, and
+    the shifts (the columns after the log's own, ``LogLayout.ring_width``)."""
+    out = {}
+    for topic, fields in (("/hsi", ("q", "operator_reference_m")), ("/to", ("q", "in_contact"))):
+        for name in fields:
+            found = layout.field_columns(topic, name)
+            if found is not None:
+                out[f"{topic[1:]}.{name}"] = found
+    out["shift"] = slice(layout.row_width, layout.ring_width)
+    return out
+
+
+class SceneChannels:
+    """The scene's channels on the writer's foxglove context (the log file and, with a live
+    view, the server), and what goes on them from a batch of ring rows. The environment is
+    sent when it changes (a contact, a moving mass) and once a second besides."""
+
+    def __init__(self, spec: SceneSpec, layout: LogLayout, context) -> None:
+        import foxglove
+        from foxglove.channels import FrameTransformsChannel, SceneUpdateChannel
+
+        self.scene = Scene(spec)
+        self.every = spec.every
+        self.cols = scene_columns(layout)
+        schema = foxglove.Schema(name=STRING_TYPE, encoding="ros2msg", data=STRING_DEFINITION)
+        self.description = foxglove.Channel(
+            ROBOT_DESCRIPTION, message_encoding="cdr", schema=schema, context=context
+        )
+        self.urdf = string_message(combined_urdf(spec))
+        self.tf = FrameTransformsChannel(TF, context=context)
+        self.env = SceneUpdateChannel(ENVIRONMENT, context=context) if spec.environment else None
+        self.hand = SceneUpdateChannel(HAND_TARGET, context=context) if spec.hand else None
+        self._env_shown: bytes | None = None  # the environment's state when last sent
+        self._env_due = 0  # the tick by which it is sent again regardless
+        self._env_period = max(1, round(SCENE_HZ)) * self.every
+
+    def describe(self, stamp_ns: int) -> None:
+        """What is sent once (at the start, and again for a live client that subscribes): the
+        URDF and the transforms that never move; the environment is sent at the next frame."""
+        self.description.log(self.urdf, log_time=stamp_ns)
+        self.tf.log(self.scene.static_transforms(stamp_ns), log_time=stamp_ns)
+        self._env_shown = None
+
+    def emit(self, rows: np.ndarray, start_ns: int, period_ns: int) -> None:
+        """The scene at every ``every``-th tick of the batch."""
+        ticks = rows[:, 0].astype(np.int64)
+        cols, scene = self.cols, self.scene
+        for i in np.flatnonzero(ticks % self.every == 0).tolist():
+            row, k = rows[i], int(ticks[i])
+            stamp = start_ns + k * period_ns
+            q = {"hsi": row[cols["hsi.q"]], "to": row[cols["to.q"]]}
+            self.tf.log(scene.transforms(q, stamp), log_time=stamp)
+            if self.env is not None:
+                shifts, contacts = row[cols["shift"]], row[cols["to.in_contact"]]
+                state = shifts.tobytes() + contacts.tobytes()
+                if state != self._env_shown or k >= self._env_due:
+                    self.env.log(scene.environment(shifts, contacts, stamp), log_time=stamp)
+                    self._env_shown, self._env_due = state, k + self._env_period
+            if self.hand is not None:
+                target = row[cols["hsi.operator_reference_m"]]
+                self.hand.log(scene.hand(target, stamp), log_time=stamp)
