@@ -22,6 +22,12 @@ Shared memory: ``CONTROL_BYTES`` of int64 control words, then ``capacity`` rows 
     ctrl[6] UTC of the session start, ns since the epoch (the recorder's creation until its
           first row, then the time tick 0 ran)
 
+Beside the four topics of the schema it writes the 3D scene (``teleop_rt.recording.scene``:
+robots, transforms, environment, hand target) from the same rows, and with ``--live`` serves
+everything it writes over Foxglove's WebSocket protocol from the same foxglove context
+(``teleop_rt.recording.live``); the ring's rows carry the scene's few extra columns
+(``LogLayout.ring_width``).
+
 Log times are wall-clock: the start time plus the tick's time (``start_time_ns + k *
 period_ns``), so a log lines up with the world in Foxglove and beside other recordings. The
 ``teleop_rt`` metadata and the attachments are written once the first row (or the end) has
