@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from teleop_rt.com.channel import make_ports
+from teleop_rt.com.channel import make_port
 from teleop_rt.com.link import Link
 from teleop_rt.com.port import HSI, TO, Packet, Port
 from teleop_rt.config import SessionConfig, per_joint
@@ -70,7 +70,7 @@ class Site:
             Pid(spec.controller, n, cfg.dt, f"{name}.controller"),
             ComputedTorque(model, self.virtual_mass, spec.compensate_friction),
             RobotGuard(cfg.safety, model, name, cfg.dt),
-            port_for(cfg, n)[SIDES[name]],
+            port_for(cfg, n, SIDES[name]),
             cfg.dt,
         )
         self.stop_damping = cfg.safety.stop_damping_nm_s_per_rad
@@ -231,8 +231,8 @@ class ToSite(Site):
         return self.signals.tau
 
 
-def port_for(cfg: SessionConfig, n: int) -> tuple[Port, Port]:
-    """Both ports of the config's channel (a site keeps its own)."""
+def port_for(cfg: SessionConfig, n: int, side: int) -> Port:
+    """Site ``side``'s port of the config's channel."""
     ch = cfg.channel
     b = per_joint(ch.wave_impedance, n, "channel.wave_impedance")
-    return make_ports(ch.mode, b, cfg.delay_ticks, cfg.dt, ch.wave_filter_hz)
+    return make_port(side, ch.mode, b, cfg.delay_ticks, cfg.dt, ch.wave_filter_hz)

@@ -139,12 +139,20 @@ def two_port_step(
     monitor_step(floats_of(f, o, TP_MONITOR), n, ph, pt)
 
 
+def make_port(
+    side: int, mode: str, wave_impedance: list[float], delay_ticks: int, dt: float,
+    filter_hz: float | None,
+) -> Port:  # fmt: skip
+    """Site ``side``'s port of a channel of ``mode`` ('wave' or 'direct')."""
+    code = WAVE if mode == "wave" else DIRECT
+    return Port(side, wave_impedance, delay_ticks, dt, code, filter_hz)
+
+
 def make_ports(
     mode: str, wave_impedance: list[float], delay_ticks: int, dt: float, filter_hz: float | None
 ) -> tuple[Port, Port]:
-    """The HSI's and the TO's port of a channel of ``mode`` ('wave' or 'direct')."""
-    code = WAVE if mode == "wave" else DIRECT
+    """The HSI's and the TO's port of a channel of ``mode`` (a two-port in one object)."""
     return (
-        Port(HSI, wave_impedance, delay_ticks, dt, code, filter_hz),
-        Port(TO, wave_impedance, delay_ticks, dt, code, filter_hz),
+        make_port(HSI, mode, wave_impedance, delay_ticks, dt, filter_hz),
+        make_port(TO, mode, wave_impedance, delay_ticks, dt, filter_hz),
     )
