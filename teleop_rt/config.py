@@ -121,15 +121,21 @@ class SideSpec(Strict):
 
 
 class ChannelSpec(Strict):
-    """The COM: a wave-variable (scattering) channel with a constant one-way delay, or, for
-    comparison, a plain delayed force-feedback channel (mode: direct, not passive)."""
+    """The COM (teleop_rt.com.port): a wave-variable (scattering) channel, the time-domain
+    passivity approach (tdpa: delayed velocity forward, torque back, with passivity observers
+    and controllers), or, for comparison, plain delayed force feedback (direct, not passive)."""
 
-    mode: Literal["wave", "direct"] = "wave"
+    mode: Literal["wave", "tdpa", "direct"] = "wave"
     delay_ms: Annotated[float, NoBool, Field(ge=0, le=MAX_DELAY_MS, allow_inf_nan=False)] = 0.0
     wave_impedance: PerJointPositive = 2.0  # b, N m s/rad per joint
     # First-order low-pass on each received wave (keeps the channel passive; damps the
     # ringing of the discrete terminations against stiff contact). None switches it off.
     wave_filter_hz: PositiveFloat | None = 30.0
+    # What a wave channel does with a packet that did not arrive: bounded (the wave integral
+    # within the energy bound: passive, and it catches up lost samples), zero (a zero wave:
+    # passive), and, unprotected, for comparison: hold (the last wave held) or integral (the
+    # wave integral without the bound). With no loss all four compute the same.
+    wave_reconstruction: Literal["bounded", "zero", "hold", "integral"] = "bounded"
 
 
 class FaultSpec(Strict):
@@ -359,6 +365,10 @@ class LinkSpec(Strict):
     # a seeded network emulation between the sites of a one-process session (fast mode,
     # bit-reproducible): delay, jitter, loss, bursts, duplication, reordering, traces
     impairment: ImpairmentSpec | None = None
+    # which packet a site uses at its tick k (teleop_rt.com.playout): fixed, the one sent at
+    # k - D (jitter within D becomes the constant delay D); newest, the newest one sent by
+    # k - D that it has not used (lower latency; the delay varies with the network's)
+    playout: Literal["fixed", "newest"] = "fixed"
 
 
 class SessionConfig(Strict):

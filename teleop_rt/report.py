@@ -83,7 +83,26 @@ def print_summary(summary: Summary, console: Console | None = None) -> None:
         table.add_row("stopped early", f"[red]{summary.stopped_early}")
     for site, figures in (summary.link or {}).items():
         table.add_row(f"link to the {site}", _link_text({"sent": "-", "from_peer": figures}))
+    if summary.channel and summary.delay_ticks:
+        table.add_row("channel", channel_kind(summary.channel))
+        for site in ("hsi", "to"):
+            table.add_row(f"protection at the {site}", protection_text(summary.channel[site]))
     console.print(table)
+
+
+def channel_kind(channel: dict) -> str:
+    how = f", {channel['reconstruction']} reconstruction" if "reconstruction" in channel else ""
+    return f"{channel['mode']}{how}, {channel['playout']} playout"
+
+
+def protection_text(figures: dict) -> str:
+    """A port's protection figures (``Port.protection``) in words."""
+    low = figures["min_balance_j"]
+    verdict = "passive" if low >= -1e-9 else "[red]ACTIVE: made energy[/red]"
+    return (
+        f"balance min {low:.3g} J ({verdict}); acted in {figures['acted_ticks']} ticks, "
+        f"removed {figures['removed_j']:.3g} J"
+    )
 
 
 def print_comparison(

@@ -30,6 +30,7 @@ import pinocchio as pin
 from teleop_rt.analysis.transparency import TransparencyAccumulator, accumulate
 from teleop_rt.com.channel import ChannelMonitor, monitor_step
 from teleop_rt.com.link import InProcessLink, Link
+from teleop_rt.com.port import WAVE, Port
 from teleop_rt.config import SessionConfig
 from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
@@ -62,6 +63,8 @@ class ChannelView:
         "power": ("monitor", "power"), "energy": ("monitor", "energy"),
         "total_energy": ("monitor", "total_energy"),
         "min_total_energy": ("monitor", "min_total_energy"),
+        "balance_hsi": ("hsi", "balance"), "balance_to": ("to", "balance"),
+        "removed_hsi": ("hsi", "limited"), "removed_to": ("to", "limited"),
     }  # fmt: skip
 
     def __init__(self, session: Session) -> None:
@@ -82,8 +85,8 @@ class ChannelView:
         return getattr(block, attr)
 
     def stored_energy(self) -> float:
-        """Wave energy in flight on the link (0 for a direct channel)."""
-        if self._owners["hsi"].mode == 0:
+        """Wave energy in flight on the link (0 for a channel of no waves)."""
+        if self._owners["hsi"].mode != WAVE:
             return 0.0
         return self.link.stored_wave_energy(self.dt)
 
@@ -108,6 +111,7 @@ class Summary:
     safety_stop: bool = False  # the safety layer ended the run (stopped_early says why)
     saturated_ticks: int = 0  # ticks in which a commanded torque hit its effort limit
     link: dict | None = None  # what an impaired link did (sent, lost, late, ...; per site)
+    channel: dict | None = None  # the channel kind and its protection's activity per port
 
     @property
     def t_p_total(self) -> float:
@@ -122,6 +126,15 @@ class Summary:
         d["t_p_total"] = self.t_p_total
         d["t_tau_total"] = self.t_tau_total
         return d
+
+
+def channel_figures(cfg: SessionConfig, ports: dict[str, Port]) -> dict:
+    """The channel's kind and what its protection did at each port given (a summary's)."""
+    ch = cfg.channel
+    kind = {"mode": ch.mode, "playout": cfg.link.playout}
+    if ch.mode == "wave":
+        kind["reconstruction"] = ch.wave_reconstruction
+    return {**kind, **{name: port.protection() for name, port in ports.items()}}
 
 
 class Session:
@@ -162,7 +175,8 @@ class Session:
                     "link.impairment: an impaired link needs channel.delay_ms of at least one "
                     "tick (the playout delay)"
                 )
-            self.link = ImpairedLink(n, cfg.delay_ticks, self.dt, impairment)
+            self.link = ImpairedLink(n, cfg.delay_ticks, self.dt, impairment,
+                                     playout=cfg.link.playout)  # fmt: skip
         self.monitor = ChannelMonitor(n, self.dt)
         self.metrics = TransparencyAccumulator(n, self.dt)
         self.pair = PairState(n)
@@ -354,4 +368,5 @@ class Session:
             safety_stop=outcome.safety_stop,
             saturated_ticks=self.saturated_ticks,
             link=self.link_stats(),
+            channel=channel_figures(self.cfg, {"hsi": self.hsi.port, "to": self.to.port}),
         )

@@ -235,4 +235,5 @@ def port_for(cfg: SessionConfig, n: int, side: int) -> Port:
     """Site ``side``'s port of the config's channel."""
     ch = cfg.channel
     b = per_joint(ch.wave_impedance, n, "channel.wave_impedance")
-    return make_port(side, ch.mode, b, cfg.delay_ticks, cfg.dt, ch.wave_filter_hz)
+    return make_port(side, ch.mode, b, cfg.delay_ticks, cfg.dt, ch.wave_filter_hz,
+                     ch.wave_reconstruction)  # fmt: skip

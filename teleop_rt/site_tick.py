@@ -78,7 +78,7 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
 def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> None:
     """From the received packet to the acceleration the model is evaluated at."""
     port, port_i = floats_of(f, o, PORT), ints_of(i, o, PORT)
-    port_step(port, port_i, n, floats_of(f, o, RX), floats_of(f, o, TX))
+    port_step(port, port_i, n, floats_of(f, o, RX), ints_of(i, o, RX), floats_of(f, o, TX))
     sig = floats_of(f, o, SIG)
     error, tau = vec(sig, S_ERROR, n), vec(sig, S_TAU, n)
     if i[o[2 * SIG + 1] + S_SIDE] == HSI:  # M1 a_h = C1(tau_h - tau_c)

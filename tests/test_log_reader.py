@@ -16,7 +16,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from teleop_rt.errors import TeleopError
 from teleop_rt.recording.reader import LogData, LogError, read_log
-from teleop_rt.recording.schema import CDR_HEADER
+from teleop_rt.recording.schema import CDR_HEADER, SCHEMA_VERSION
 
 TOPICS = ("/hsi", "/to", "/channel", "/timing")
 
@@ -233,7 +233,7 @@ def test_mcap_from_another_program(tmp_path):
         ({"schema_names": {"/hsi": "other/msg/Foo"}}, "not a teleop_rt log: /hsi has schema"),
         ({"skip": ("/timing",)}, "required topic /timing is missing"),
         ({"pad": {"/to": 8}}, "/to payloads are"),
-        ({"meta": {"schema_version": "2"}}, "newer than this software reads"),
+        ({"meta": {"schema_version": str(SCHEMA_VERSION + 1)}}, "newer than this software reads"),
         ({"meta": {"joints": None}}, "lacks 'joints'"),
         ({"meta": {"joints": "x"}}, "is not an integer"),
         ({"meta": {"joints": "3"}}, "schema of /hsi does not match"),

@@ -28,7 +28,6 @@ from teleop_rt.com.wire import (
     Decoder,
     WireBounds,
     WireBuffer,
-    WireEnergies,
     encode_into,
     wire_size,
 )
@@ -45,23 +44,18 @@ def packet(n: int, tick: int = 5, values: np.ndarray | None = None) -> Packet:
     return p
 
 
-def energies(n: int, values: np.ndarray | None = None) -> WireEnergies:
-    e = WireEnergies(n)
-    e.f[:] = np.arange(1, e.f.size + 1) * 0.5 if values is None else values
-    return e
+def encoded(p: Packet, session: int = SESSION_ID) -> bytes:
+    return bytes(encode_into(WireBuffer(p.n), p, session, 123_456_789))
 
 
-def encoded(p: Packet, e: WireEnergies | None = None, session: int = SESSION_ID) -> bytes:
-    return bytes(encode_into(WireBuffer(p.n), p, session, 123_456_789, e))
-
-
-def struct_layout(p: Packet, e: WireEnergies, session: int, time_ns: int) -> bytes:
+def struct_layout(p: Packet, session: int, time_ns: int) -> bytes:
     """The layout of the module's docstring, written field by field with struct and zlib."""
     n = p.n
-    head = struct.pack("<4sHHQQqq", b"TRWV", 1, n, session, p.seq, p.tick, time_ns)
-    x, w, energy = p.f[:n], p.f[n : 2 * n], p.f[2 * n]
-    e_in, e_out, e_wave = e.f[:n], e.f[n : 2 * n], e.f[2 * n]
-    body = head + struct.pack(f"<{n}d{n}dd{n}d{n}dd", *x, *w, energy, *e_in, *e_out, e_wave)
+    head = struct.pack("<4sHHQQqq", b"TRWV", 2, n, session, p.seq, p.tick, time_ns)
+    x, w, w_sum, w_energy = p.x, p.wave, p.wave_sum, p.wave_energy
+    body = head + struct.pack(
+        f"<{n}d{n}d{n}d{n}d{n}d{n}dd", *x, *w, *w_sum, *w_energy, *p.e_in, *p.e_out, p.energy
+    )
     return body + struct.pack("<II", zlib.crc32(body), 0)
 
 
@@ -83,15 +77,10 @@ def sentinel(n: int) -> Packet:
 
 def test_the_layout_is_the_documented_one() -> None:
     for n in (1, 2, 7):
-        p, e = packet(n, tick=2**40 + 3), energies(n)
-        raw = bytes(encode_into(WireBuffer(n), p, SESSION_ID, -5, e))
-        assert len(raw) == wire_size(n) == 64 + 32 * n
-        assert raw == struct_layout(p, e, SESSION_ID, -5)
-
-
-def test_without_energies_the_energy_fields_are_zero() -> None:
-    p = packet(2)
-    assert encoded(p) == struct_layout(p, WireEnergies(2), SESSION_ID, 123_456_789)
+        p = packet(n, tick=2**40 + 3)
+        raw = bytes(encode_into(WireBuffer(n), p, SESSION_ID, -5))
+        assert len(raw) == wire_size(n) == 56 + 48 * n
+        assert raw == struct_layout(p, SESSION_ID, -5)
 
 
 finite = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e6, max_value=1e6)
@@ -107,15 +96,15 @@ non_negative = st.floats(allow_nan=False, allow_infinity=False, min_value=0.0, m
     time_ns=st.integers(-(2**63), 2**63 - 1),
 )
 def test_valid_packets_round_trip_bit_for_bit(n, data, tick, session, time_ns) -> None:
-    values = np.array(data.draw(st.lists(finite, min_size=2 * n + 1, max_size=2 * n + 1)))
-    extra = np.array(data.draw(st.lists(non_negative, min_size=2 * n + 1, max_size=2 * n + 1)))
-    p, e = packet(n, tick, values), energies(n, extra)
-    raw = bytes(encode_into(WireBuffer(n), p, session, time_ns, e))
+    signed = data.draw(st.lists(finite, min_size=3 * n, max_size=3 * n))  # x, wave, integral
+    cumulative = data.draw(st.lists(non_negative, min_size=3 * n, max_size=3 * n))
+    values = np.array([*signed, *cumulative, data.draw(finite)])
+    p = packet(n, tick, values)
+    raw = bytes(encode_into(WireBuffer(n), p, session, time_ns))
     decoder, into = Decoder(n), sentinel(n)
     assert decoder.decode(raw, session, into) == OK
     assert np.array_equal(into.f.view(np.int64), p.f.view(np.int64))  # -0.0 and all
     assert np.array_equal(into.i, p.i)
-    assert np.array_equal(decoder.energies.f.view(np.int64), e.f.view(np.int64))
     assert decoder.sender_time_ns == time_ns and decoder.seen_tick == tick
 
 
@@ -133,7 +122,7 @@ def test_random_bytes_are_rejected_counted_and_never_written(raw) -> None:
 def test_random_bytes_of_the_right_size_with_a_valid_crc_never_raise(body) -> None:
     """Past the CRC: the header and values of random bytes are still checked."""
     decoder, into = Decoder(2), sentinel(2)
-    raw = b"TRWV\x01\x00\x02\x00" + body[8:]
+    raw = b"TRWV\x02\x00\x02\x00" + body[8:]
     status = decoder.decode(reseal(raw + bytes(8)), SESSION_ID, into)
     assert status in (SESSION, NON_FINITE, IMPLAUSIBLE, OK)
     assert status == OK or untouched(into)
@@ -153,7 +142,7 @@ def test_truncated_or_extended_packets_are_the_wrong_size(cut, extra) -> None:
 @given(data=st.data())
 def test_any_one_to_three_bit_flips_are_caught(data) -> None:
     """CRC-32 detects every error of up to three bits in a packet this short."""
-    raw = bytearray(encoded(packet(2), energies(2)))
+    raw = bytearray(encoded(packet(2)))
     bits = data.draw(st.sets(st.integers(0, 8 * len(raw) - 1), min_size=1, max_size=3))
     for b in bits:
         raw[b // 8] ^= 1 << (b % 8)
@@ -165,49 +154,47 @@ def test_any_one_to_three_bit_flips_are_caught(data) -> None:
 def test_each_reason_is_counted_under_its_own_name() -> None:
     n = 2
     decoder, into = Decoder(n, WireBounds(x=[1.0, 2.0], wave=3.0, energy=10.0)), sentinel(n)
-    p = packet(n, values=np.array([0.5, 1.5, 2.0, -2.0, 1.0]))
-    e = energies(n, np.array([1.0, 2.0, 3.0, 4.0, 5.0]))
+    # x, wave, wave integral, wave energy, E_in, E_out (per joint), energy crossed
+    good_values = np.array([0.5, 1.5, 2.0, -2.0, -9.0, 9.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, -1.0])
+    p = packet(n, values=good_values)
 
     def case(raw: bytes, status: int) -> None:
         assert decoder.decode(raw, SESSION_ID, into) == status, wire.REASONS[status]
         assert untouched(into)
 
-    good = encoded(p, e)
+    def with_value(k: int, value: float) -> bytes:
+        q = packet(n, values=good_values.copy())
+        q.f[k] = value
+        return encoded(q)
+
+    good = encoded(p)
     case(good[:-1], SIZE)
     case(b"XRWV" + good[4:], MAGIC_VERSION)
-    case(reseal(good[:4] + struct.pack("<H", 2) + good[6:]), MAGIC_VERSION)  # version 2
+    case(reseal(good[:4] + struct.pack("<H", 1) + good[6:]), MAGIC_VERSION)  # version 1
     case(good[:-8] + bytes([good[-8] ^ 1]) + good[-7:], CHECKSUM)
     case(reseal(good[:6] + struct.pack("<H", 3) + good[8:]), JOINTS)
-    case(encoded(p, e, session=SESSION_ID - 1), SESSION)
-    for k, bad in ((0, np.nan), (3, np.inf), (4, -np.inf)):
-        q = packet(n, values=p.f.copy())
-        q.f[k] = bad
-        case(encoded(q, e), NON_FINITE)
-    f = energies(n, e.f.copy())
-    f.f[4] = np.nan
-    case(encoded(p, f), NON_FINITE)
-    for k, big in ((0, 1.01), (1, -2.01), (2, 3.5), (4, 10.5)):  # x per joint, wave, energy
-        q = packet(n, values=p.f.copy())
-        q.f[k] = big
-        case(encoded(q, e), IMPLAUSIBLE)
-    for k, bad in ((0, -1e-9), (3, 11.0), (4, -1.0)):  # E_in, E_out >= 0; bounded
-        f = energies(n, e.f.copy())
-        f.f[k] = bad
-        case(encoded(p, f), IMPLAUSIBLE)
-    q = packet(n, values=p.f.copy())
+    case(encoded(p, session=SESSION_ID - 1), SESSION)
+    for k, bad in ((0, np.nan), (3, np.inf), (5, np.nan), (8, -np.inf), (12, np.nan)):
+        case(with_value(k, bad), NON_FINITE)
+    # x per joint, wave, wave integral, energy crossed: against their bounds
+    for k, big in ((0, 1.01), (1, -2.01), (2, 3.5), (4, -10.5), (12, 10.5)):
+        case(with_value(k, big), IMPLAUSIBLE)
+    for k, bad in ((6, -1e-9), (9, 11.0), (11, -1.0)):  # cumulative energies >= 0; bounded
+        case(with_value(k, bad), IMPLAUSIBLE)
+    q = packet(n, values=good_values.copy())
     q.seq = -1  # 2**64 - 1 on the wire
-    case(encoded(q, e), IMPLAUSIBLE)
+    case(encoded(q), IMPLAUSIBLE)
     decoder.used_seq = p.seq
     case(good, STALE)
-    older = packet(n, tick=p.seq - 1, values=p.f.copy())
-    case(encoded(older, e), STALE)
-    newer = packet(n, tick=p.seq + 1, values=p.f.copy())
-    assert decoder.decode(encoded(newer, e), SESSION_ID, into) == OK
+    older = packet(n, tick=p.seq - 1, values=good_values.copy())
+    case(encoded(older), STALE)
+    newer = packet(n, tick=p.seq + 1, values=good_values.copy())
+    assert decoder.decode(encoded(newer), SESSION_ID, into) == OK
     assert decoder.counts_by_reason() == {
         "ok": 1, "size": 1, "magic_version": 2, "checksum": 1, "joints": 1, "session": 1,
-        "non_finite": 4, "implausible": 8, "stale": 2,
+        "non_finite": 5, "implausible": 9, "stale": 2,
     }  # fmt: skip
-    assert decoder.rejected == 20
+    assert decoder.rejected == 22
 
 
 def test_the_bounds_must_be_positive_and_finite() -> None:
@@ -218,12 +205,12 @@ def test_the_bounds_must_be_positive_and_finite() -> None:
 
 def test_encode_and_decode_allocate_nothing_they_keep() -> None:
     n = 2
-    buffer, p, e = WireBuffer(n), packet(n), energies(n)
+    buffer, p = WireBuffer(n), packet(n)
     decoder, into = Decoder(n), Packet(n)
 
     def one() -> None:
         p.seq += 1
-        encode_into(buffer, p, SESSION_ID, 1, e)
+        encode_into(buffer, p, SESSION_ID, 1)
         decoder.decode(buffer.data, SESSION_ID, into)
 
     for _ in range(100):

@@ -19,6 +19,11 @@ from teleop_rt.com.port import (
     EFFORT,
     FLOW,
     HSI,
+    MODES,
+    P_SEQ,
+    P_TICK,
+    P_VALID,
+    RECONSTRUCTIONS,
     TO,
     WAVE,
     Packet,
@@ -109,8 +114,8 @@ class TwoPort:
     b = property(lambda self: self.port_h.b)
 
     def stored_energy(self) -> float:
-        """Wave energy held in the link's lines (0 for a direct channel: no such notion)."""
-        if self.port_h.mode == DIRECT:
+        """Wave energy held in the link's lines (0 for a channel of no waves)."""
+        if self.port_h.mode != WAVE:
             return 0.0
         return self.link.stored_wave_energy(self.dt)
 
@@ -132,27 +137,35 @@ def two_port_step(
     tx_t, rx_t = floats_of(f, o, TP_TX_T), floats_of(f, o, TP_RX_T)
     port_input(ph, pih, n, omega_c, tx_h)
     port_input(pt, pit, n, tau_t, tx_t)
+    for tx in (TP_TX_H, TP_TX_T):  # tick and sequence number count from 0, as a site's do
+        ints_of(i, o, tx)[P_VALID] = 1
     link_deliver(f, i, at, n)
-    port_step(ph, pih, n, rx_h, tx_h)
-    port_step(pt, pit, n, rx_t, tx_t)
+    port_step(ph, pih, n, rx_h, ints_of(i, o, TP_RX_H), tx_h)
+    port_step(pt, pit, n, rx_t, ints_of(i, o, TP_RX_T), tx_t)
     link_push(f, i, at, n)
+    for tx in (TP_TX_H, TP_TX_T):
+        tx_i = ints_of(i, o, tx)
+        tx_i[P_TICK] += 1
+        tx_i[P_SEQ] += 1
     monitor_step(floats_of(f, o, TP_MONITOR), n, ph, pt)
 
 
 def make_port(
     side: int, mode: str, wave_impedance: list[float], delay_ticks: int, dt: float,
-    filter_hz: float | None,
+    filter_hz: float | None, reconstruction: str = "bounded",
 ) -> Port:  # fmt: skip
-    """Site ``side``'s port of a channel of ``mode`` ('wave' or 'direct')."""
-    code = WAVE if mode == "wave" else DIRECT
-    return Port(side, wave_impedance, delay_ticks, dt, code, filter_hz)
+    """Site ``side``'s port of a channel of ``mode`` ('wave', 'tdpa' or 'direct'; a wave
+    channel's ``reconstruction`` of missing waves: 'bounded', 'zero', 'hold' or 'integral')."""
+    return Port(side, wave_impedance, delay_ticks, dt, MODES[mode], filter_hz,
+                RECONSTRUCTIONS[reconstruction])  # fmt: skip
 
 
 def make_ports(
-    mode: str, wave_impedance: list[float], delay_ticks: int, dt: float, filter_hz: float | None
-) -> tuple[Port, Port]:
+    mode: str, wave_impedance: list[float], delay_ticks: int, dt: float,
+    filter_hz: float | None, reconstruction: str = "bounded",
+) -> tuple[Port, Port]:  # fmt: skip
     """The HSI's and the TO's port of a channel of ``mode`` (a two-port in one object)."""
     return (
-        make_port(HSI, mode, wave_impedance, delay_ticks, dt, filter_hz),
-        make_port(TO, mode, wave_impedance, delay_ticks, dt, filter_hz),
+        make_port(HSI, mode, wave_impedance, delay_ticks, dt, filter_hz, reconstruction),
+        make_port(TO, mode, wave_impedance, delay_ticks, dt, filter_hz, reconstruction),
     )

@@ -81,9 +81,11 @@ class ImpairedLink(Link):
         session_id: int = 1,
         bounds: WireBounds | None = None,
         early_ticks: int | None = None,
+        playout: str = "fixed",
     ) -> None:
         """``delay_ticks``: the playout delay D (>= 1); ``impairment``: what the network does
-        (None: nothing); ``bounds``: the decoders' (both directions; generous by default)."""
+        (None: nothing); ``bounds``: the decoders' (both directions; generous by default);
+        ``playout``: the receivers' policy (``teleop_rt.com.playout``)."""
         if delay_ticks < 1:
             raise ValueError("an impaired link needs a playout delay of at least one tick")
         spec = impairment or ImpairmentSpec()
@@ -95,7 +97,7 @@ class ImpairedLink(Link):
         self.impairments = [Impairment(spec, dt, stream=side) for side in (HSI, TO)]
         self._flight = [InFlight(self._wire[0].size, imp.max_delay_ticks)
                         for imp in self.impairments]  # fmt: skip
-        self.receivers = [Receiver(n, delay_ticks, session_id, bounds, early_ticks)
+        self.receivers = [Receiver(n, delay_ticks, session_id, bounds, early_ticks, playout)
                           for _ in (HSI, TO)]  # fmt: skip
         self._sent: list[Packet | None] = [None, None]
         self._ticks = [0, 0]  # ticks each side has ended

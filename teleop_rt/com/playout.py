@@ -5,16 +5,22 @@ then, else a zero packet (``valid = 0``: a zero wave is passive, holding the las
 D is the playout delay in ticks (the channel's nominal one-way delay, >= 1 over a network), and
 ``offset`` how far the receiver's tick count runs ahead of the sender's (0 in one process;
 ``retarget`` moves it by whole ticks when the clocks have drifted, which the caller decides).
-So jitter up to D becomes the constant delay D (Kosuge et al., 1996), and an arrival is:
+So jitter up to D becomes the constant delay D (Kosuge et al., 1996): the ``fixed`` policy.
+The ``newest`` policy uses instead the newest packet sent by k - D - offset that has arrived
+and is newer than the last one used (zeros if there is none): less latency when the network is
+faster than D, and the delay the channel sees varies with the network's (a delay that drops
+skips packets; one that grows leaves ticks with none); the ports keep the channel passive
+(``teleop_rt.com.port``). An arrival is:
 
 - on time (stored, used at its tick; ``reordered`` too if a later-sent packet came first);
-- ``late``: after its playout tick, or after its tick's packet was taken (also a copy of a
-  packet already used): dropped;
+- ``late``: after its playout tick (``fixed``), or not newer than the packet last used (also a
+  copy of a packet already used): dropped;
 - ``duplicated``: a second copy before its playout tick: dropped;
 - ``early``: more than ``early_ticks`` ticks before its playout tick: dropped (bounds memory
   and what a peer with a wrong clock can queue).
 
-``lost`` counts playout ticks whose packet was not there (never arrived, or late). Every
+``lost`` counts playout ticks whose packet was not there (never arrived, or late; ``newest``:
+ticks with no packet newer than the last used), ``skipped`` sender ticks passed over unused. Every
 arrival's one-way delay in ticks, k - s - offset, goes into a preallocated histogram (p50, p99;
 delays beyond it count in its last bin, the max is exact). Packets sit in a ring indexed by
 sender tick (``early_ticks + 1`` slots): nothing is allocated per packet.
@@ -36,13 +42,15 @@ EARLY_SLACK_TICKS = 50  # default early horizon beyond D: room for the clocks' o
 NONE = -(1 << 62)  # an empty slot's sender tick
 
 # the state's entries: parameters, then counters (COUNTERS, in order)
-DELAY, EARLY_TICKS, SLOTS, OFFSET, NEWEST, LAST_TAKEN, MAX_DELAY = range(7)
+DELAY, EARLY_TICKS, SLOTS, OFFSET, NEWEST, LAST_TAKEN, MAX_DELAY, POLICY = range(8)
+FIXED, NEWEST_POLICY = 0, 1
+POLICIES = {"fixed": FIXED, "newest": NEWEST_POLICY}
 COUNTERS = ("received", "used", "lost", "late", "duplicated", "reordered", "early", "skipped",
             "repeated")  # fmt: skip
 RECEIVED, USED, LOST, LATE, DUPLICATED, REORDERED, EARLY, SKIPPED, REPEATED = range(
-    7, 7 + len(COUNTERS)
+    8, 8 + len(COUNTERS)
 )
-HISTOGRAM = 7 + len(COUNTERS)  # the delay histogram's first bin
+HISTOGRAM = 8 + len(COUNTERS)  # the delay histogram's first bin
 # what arrive() did with a packet
 STORED, DROPPED_LATE, DROPPED_DUPLICATE, DROPPED_EARLY = range(4)
 
@@ -58,7 +66,10 @@ class Playout:
         delay_ticks: int,
         early_ticks: int | None = None,
         histogram_ticks: int | None = None,
+        policy: str = "fixed",
     ) -> None:
+        if policy not in POLICIES:
+            raise ValueError(f"playout policy {policy!r}: one of {', '.join(POLICIES)}")
         if delay_ticks < 1:
             raise ValueError("a playout delay needs at least one tick")
         early = delay_ticks + EARLY_SLACK_TICKS if early_ticks is None else early_ticks
@@ -72,6 +83,7 @@ class Playout:
         self.st = np.zeros(HISTOGRAM + bins, dtype=np.int64)
         self.st[[DELAY, EARLY_TICKS, SLOTS]] = delay_ticks, early, slots
         self.st[[NEWEST, LAST_TAKEN]] = NONE
+        self.st[POLICY] = POLICIES[policy]
         self.histogram = self.st[HISTOGRAM:]
         probe = Packet(n)
         self.ring_f = np.zeros((slots, probe.f.size))
@@ -146,9 +158,9 @@ def _arrive(
     s = pi[P_TICK]
     _record_delay(st, k, s)
     target = s + st[DELAY] + st[OFFSET]  # the tick this packet plays at
-    # late: its tick has passed, or has been played (an arrival after this tick's take, as
-    # from a transport's own thread)
-    if target < k or (st[LAST_TAKEN] != NONE and s <= st[LAST_TAKEN]):
+    # late: its tick has passed (fixed), or it is not newer than the packet last played (an
+    # arrival after this tick's take, as from a transport's own thread)
+    if (target < k and st[POLICY] == FIXED) or (st[LAST_TAKEN] != NONE and s <= st[LAST_TAKEN]):
         st[LATE] += 1
         return DROPPED_LATE
     slot = s % st[SLOTS]
@@ -180,18 +192,32 @@ def _take(
     s = k - st[DELAY] - st[OFFSET]
     last = st[LAST_TAKEN]
     if last == NONE or s > last:
-        if last != NONE:
-            st[SKIPPED] += s - last - 1
-        st[LAST_TAKEN] = s
-        slot = s % st[SLOTS]
-        if ring_i[slot, R_TICK] == s and ring_i[slot, R_USED] == 0:
-            for j in range(pf.size):
-                pf[j] = ring_f[slot, j]
-            for j in range(N_INTS):
-                pi[j] = ring_i[slot, j]
-            ring_i[slot, R_USED] = 1
-            st[USED] += 1
-            return 1
+        found = s
+        if st[POLICY] == NEWEST_POLICY:  # the newest stored since the last used, if any
+            oldest = s - st[SLOTS] + 1 if last == NONE else max(last + 1, s - st[SLOTS] + 1)
+            found = NONE
+            for t in range(s, oldest - 1, -1):
+                slot = t % st[SLOTS]
+                if ring_i[slot, R_TICK] == t and ring_i[slot, R_USED] == 0:
+                    found = t
+                    break
+        if found != NONE:
+            slot = found % st[SLOTS]
+            if ring_i[slot, R_TICK] == found and ring_i[slot, R_USED] == 0:
+                if last != NONE:
+                    st[SKIPPED] += found - last - 1
+                st[LAST_TAKEN] = found
+                for j in range(pf.size):
+                    pf[j] = ring_f[slot, j]
+                for j in range(N_INTS):
+                    pi[j] = ring_i[slot, j]
+                ring_i[slot, R_USED] = 1
+                st[USED] += 1
+                return 1
+        if st[POLICY] == FIXED:  # the tick's packet is missing: it is passed over for good
+            if last != NONE:
+                st[SKIPPED] += s - last - 1
+            st[LAST_TAKEN] = s
         if s >= 0:  # before the sender's first tick nothing is missing
             st[LOST] += 1
     else:
@@ -211,10 +237,11 @@ class Receiver:
         session_id: int,
         bounds: WireBounds | None = None,
         early_ticks: int | None = None,
+        policy: str = "fixed",
     ) -> None:
         self.session_id = session_id
         self.decoder = Decoder(n, bounds)
-        self.playout = Playout(n, delay_ticks, early_ticks)
+        self.playout = Playout(n, delay_ticks, early_ticks, policy=policy)
         self._scratch = Packet(n)
 
     def arrive(self, k: int, data: bytes | bytearray | memoryview) -> int:

@@ -18,6 +18,34 @@ a zero packet (a zero wave is passive; holding the last one is not).
 
 Each port also integrates the power into the channel at its side (eq 8): ``omega_c tau_c`` at
 the HSI, ``-omega_t tau_t`` at the TO; their sum is the channel's energy (eq 7).
+
+Beyond the paper (issue 17): what a site does with a packet that did not arrive, and how it
+stays passive when the network varies its delay, loses, duplicates or reorders packets:
+
+- ``wave`` with ``reconstruction``:
+  ``zero``     a missing packet is a zero wave (passive; each loss shifts the TO for good);
+  ``hold``     the last wave is held through a loss: the plain channel, NOT passive (a held wave
+               is energy the peer never sent) -- kept to show what goes wrong unprotected;
+  ``integral`` Niemeyer & Slotine's wave integral without its bound: packets carry the sender's
+               integral of its wave (which also carries position), and a site that missed up
+               to ``CATCH_UP`` samples catches the integral up in one tick; NOT passive (a jump
+               forward after a delay step down replays the skipped samples in one tick, faster
+               than they were sent);
+  ``bounded``  the wave integral with the energy bound (Niemeyer & Slotine, IJRR 2004): packets
+               also carry the sender's cumulative wave energy (monotone: robust to loss and
+               reordering), and the wave a site emits is clipped so that the wave energy it has
+               emitted never exceeds what the peer has sent, per joint. With consecutive packets
+               and the integral in step it uses the received wave as it is, so with no loss it
+               computes exactly what ``zero`` computes, bit for bit (the bound compares the same
+               sums in the same order, and never acts).
+- ``tdpa``: the time-domain passivity approach (Ryu, Artigas & Preusche, Mechatronics 2010):
+  velocity forward, torque back (the paper's force-feedback coupling), the last value held
+  through a loss; at each port a passivity observer of the energy that entered (E_in) and left
+  (E_out) it, per joint (monotone), each site sending its E_in. A site whose E_out would exceed
+  the peer's E_in it has received dissipates the difference in that tick: an impedance-type
+  passivity controller at the HSI (tau_c += beta omega_c: its output is a torque), an
+  admittance-type one at the TO (omega_t -= alpha tau_t: its output is a velocity). With no
+  delay the coupling is direct and lossless and no controller runs.
 """
 
 from __future__ import annotations
@@ -29,7 +57,11 @@ import numpy as np
 from teleop_rt.flat import Block, Int, Scalar, Vector, jit, vec
 
 HSI, TO = 0, 1  # a port's side
-DIRECT, WAVE = 0, 1  # channel modes
+DIRECT, WAVE, TDPA = 0, 1, 2  # channel modes
+ZERO, HOLD, INTEGRAL, BOUNDED = 0, 1, 2, 3  # a wave channel's reconstruction of missing waves
+MODES = {"direct": DIRECT, "wave": WAVE, "tdpa": TDPA}
+CATCH_UP = 10  # the most missed packets the wave integral catches up in one tick
+RECONSTRUCTIONS = {"zero": ZERO, "hold": HOLD, "integral": INTEGRAL, "bounded": BOUNDED}
 
 
 class Packet(Block):
@@ -37,6 +69,10 @@ class Packet(Block):
 
     x = Vector("the sender's port input: omega_c from the HSI, tau_t from the TO")
     wave = Vector("the sender's outgoing wave: u_l from the HSI, v_r from the TO")
+    wave_sum = Vector("dt times the sum of the waves sent (the wave integral)")
+    wave_energy = Vector("dt / 2 times the sum of the squared waves sent, J (monotone)")
+    e_in = Vector("energy that entered the sender's port, J (monotone; TDPA)")
+    e_out = Vector("energy that left it, J (monotone)")
     energy = Scalar("energy that has crossed the sender's port, J (cumulative)")
     tick = Int("the sender's tick")
     seq = Int("sequence number")
@@ -55,13 +91,29 @@ class Port(Block):
     wave_in = Vector("the wave received, after the optional filter: v_l (HSI), u_r (TO)")
     power = Vector("power into the channel at this port, W")
     energy = Vector("its integral per joint, J")
+    e_in = Vector("energy that entered the channel here, J (monotone; TDPA's observer)")
+    e_out = Vector("energy that left the channel here, J (monotone)")
+    wave_sum = Vector("dt times the sum of the waves sent (the wave integral)")
+    wave_energy = Vector("dt / 2 times the sum of the squared waves sent, J")
+    held = Vector("the last received value (wave, or TDPA's peer input), held through a loss")
+    peer_sum = Vector("the peer's wave integral, as of its newest packet")
+    peer_energy = Vector("the peer's wave energy sent, J, as of its newest packet")
+    used_sum = Vector("dt times the sum of the waves used here (before the filter)")
+    used_energy = Vector("dt / 2 times the sum of their squares, J")
+    peer_e_in = Vector("the peer's E_in, J, as of its newest packet (TDPA)")
+    limited = Vector("energy the protection removed: the bound's, or TDPA's dissipation, J")
     total_energy = Scalar("sum over joints, J")
+    balance = Scalar("energy received minus emitted, as the method accounts it, J (joints: min)")
+    min_balance = Scalar("its running minimum, J")
     alpha = Scalar("received-wave low-pass coefficient", param=True)
     dt = Scalar(param=True)
     side = Int("HSI or TO", param=True)
-    mode = Int("DIRECT or WAVE", param=True)
+    mode = Int("DIRECT, WAVE or TDPA", param=True)
     delay_ticks = Int("nominal one-way delay; 0 couples directly", param=True)
     filtered = Int("1: received waves are low-passed", param=True)
+    reconstruction = Int("a wave channel's: ZERO, HOLD, INTEGRAL or BOUNDED", param=True)
+    last_seq = Int("sequence number of the newest packet used (-1: none)")
+    acted = Int("ticks in which the protection acted (bound or passivity controller)")
 
     def __init__(
         self,
@@ -71,6 +123,7 @@ class Port(Block):
         dt: float,
         mode: int = WAVE,
         filter_hz: float | None = None,
+        reconstruction: int = BOUNDED,
     ) -> None:
         b = [float(x) for x in wave_impedance]
         if mode == WAVE and any(not x > 0 for x in b):
@@ -79,6 +132,8 @@ class Port(Block):
             raise ValueError("delay_ticks must be >= 0")
         super().__init__(len(b))
         self.side, self.mode, self.delay_ticks, self.dt = side, mode, delay_ticks, dt
+        self.reconstruction = reconstruction
+        self.last_seq = -1
         if mode == WAVE:
             self.b[:] = b
             self.sqrt_2b[:] = [math.sqrt(2.0 * x) for x in b]
@@ -90,9 +145,22 @@ class Port(Block):
         if self.filter_hz:
             self.alpha = 1.0 - math.exp(-2.0 * math.pi * self.filter_hz * dt)
 
+    def protection(self) -> dict:
+        """What the channel's protection did at this port: its balance's minimum (J; < 0: the
+        channel made energy, as the method accounts it), the ticks it acted in and the energy
+        it removed (the bound's cut, or TDPA's dissipation, J)."""
+        return {
+            "min_balance_j": float(self.min_balance),
+            "acted_ticks": int(self.acted),
+            "removed_j": float(self.limited.sum()),
+        }
+
 
 # indices for the kernels, derived from the declarations above
 P_X, P_WAVE = Packet.x.k, Packet.wave.k
+P_SUM, P_WAVE_ENERGY, P_E_IN, P_E_OUT = (
+    Packet.wave_sum.k, Packet.wave_energy.k, Packet.e_in.k, Packet.e_out.k
+)  # fmt: skip
 P_ENERGY = Packet.energy.k  # scalar, after the vectors
 P_TICK, P_SEQ, P_VALID = Packet.tick.k, Packet.seq.k, Packet.valid.k
 N_PACKET_VECTORS = len(Packet.VECTORS)
@@ -100,7 +168,16 @@ B, SQRT_2B, SQRT_2_OVER_B = Port.b.k, Port.sqrt_2b.k, Port.sqrt_2_over_b.k
 FLOW, EFFORT, WAVE_OUT, WAVE_IN = Port.flow.k, Port.effort.k, Port.wave_out.k, Port.wave_in.k
 POWER, ENERGY = Port.power.k, Port.energy.k
 TOTAL_ENERGY, ALPHA, DT = Port.total_energy.k, Port.alpha.k, Port.dt.k
+BALANCE, MIN_BALANCE = Port.balance.k, Port.min_balance.k
 SIDE, MODE, DELAY, FILTERED = Port.side.k, Port.mode.k, Port.delay_ticks.k, Port.filtered.k
+E_IN, E_OUT, WAVE_SUM, WAVE_ENERGY, HELD = (
+    Port.e_in.k, Port.e_out.k, Port.wave_sum.k, Port.wave_energy.k, Port.held.k
+)  # fmt: skip
+PEER_SUM, PEER_ENERGY, USED_SUM, USED_ENERGY = (
+    Port.peer_sum.k, Port.peer_energy.k, Port.used_sum.k, Port.used_energy.k
+)  # fmt: skip
+PEER_E_IN, LIMITED = Port.peer_e_in.k, Port.limited.k
+RECONSTRUCTION, LAST_SEQ, ACTED = Port.reconstruction.k, Port.last_seq.k, Port.acted.k
 N_PORT_VECTORS = len(Port.VECTORS)
 
 
@@ -116,44 +193,158 @@ def port_input(f: np.ndarray, i: np.ndarray, n: int, x: np.ndarray, tx: np.ndarr
 
 
 @jit
-def port_step(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, tx: np.ndarray) -> None:
-    """The port's output from the received packet rx; the outgoing wave into tx; the power
-    and energy that crossed the port."""
-    flow, effort = vec(f, FLOW, n), vec(f, EFFORT, n)
-    hsi = i[SIDE] == HSI
-    peer_x = vec(rx, P_X, n)
+def port_step(
+    f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.ndarray, tx: np.ndarray
+) -> None:
+    """The port's output from the received packet (rx, rx_i); the outgoing wave into tx; the
+    power and energy that crossed the port."""
+    valid = rx_i[P_VALID] != 0
+    if valid:  # the peer's E_in: monotone, so the newest packet's is the largest
+        for j in range(n):
+            f[PEER_E_IN * n + j] = max(f[PEER_E_IN * n + j], rx[P_E_IN * n + j])
     if i[DELAY] == 0 or i[MODE] == DIRECT:
         # direct coupling (no delay) or plain delayed force feedback: the peer's port input
-        out = effort if hsi else flow
+        out = vec(f, EFFORT, n) if i[SIDE] == HSI else vec(f, FLOW, n)
+        peer_x = vec(rx, P_X, n)
         for j in range(n):
             out[j] = peer_x[j]
+    elif i[MODE] == TDPA:
+        tdpa_step(f, i, n, rx, rx_i)
     else:
-        s = N_PORT_VECTORS * n
-        alpha, filtered = f[s + ALPHA], i[FILTERED] != 0
-        b, s2b, s2ob = vec(f, B, n), vec(f, SQRT_2B, n), vec(f, SQRT_2_OVER_B, n)
-        w_in, w_out, received = vec(f, WAVE_IN, n), vec(f, WAVE_OUT, n), vec(rx, P_WAVE, n)
-        sent = vec(tx, P_WAVE, n)
-        for j in range(n):
-            if filtered:
-                w_in[j] += alpha * (received[j] - w_in[j])
-            else:
-                w_in[j] = received[j]
-            if hsi:  # tau_c = b omega_c - sqrt(2b) v_l ; u_l = sqrt(2b) omega_c - v_l
-                effort[j] = b[j] * flow[j] - s2b[j] * w_in[j]
-                w_out[j] = s2b[j] * flow[j] - w_in[j]
-            else:  # omega_t = (sqrt(2b) u_r - tau_t) / b ; v_r = u_r - sqrt(2/b) tau_t
-                flow[j] = (s2b[j] * w_in[j] - effort[j]) / b[j]
-                w_out[j] = w_in[j] - s2ob[j] * effort[j]
-            sent[j] = w_out[j]
+        wave_step(f, i, n, rx, rx_i, tx)
+    if valid:
+        i[LAST_SEQ] = rx_i[P_SEQ]
     account_port_power(f, i, n, tx)
+    if i[DELAY] > 0:
+        account_balance(f, i, n)
+
+
+@jit
+def account_balance(f: np.ndarray, i: np.ndarray, n: int) -> None:
+    """This port's energy balance as its method accounts it, the smallest over joints: a wave
+    channel's wave energy received minus emitted; TDPA's (and, for comparison, the direct
+    channel's) peer E_in received minus this port's E_out. Negative: the channel made energy."""
+    s = N_PORT_VECTORS * n
+    if i[MODE] == WAVE:
+        got, spent = PEER_ENERGY, USED_ENERGY
+    else:
+        got, spent = PEER_E_IN, E_OUT
+    low = math.inf
+    for j in range(n):
+        low = min(low, f[got * n + j] - f[spent * n + j])
+    f[s + BALANCE] = low
+    if not low >= f[s + MIN_BALANCE]:  # NaN counts as a new minimum
+        f[s + MIN_BALANCE] = low
+
+
+@jit
+def wave_step(
+    f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.ndarray, tx: np.ndarray
+) -> None:
+    """Eq 9 on the received wave, reconstructed as the port's ``reconstruction`` says; the
+    wave energy received and emitted, for every reconstruction (the balance)."""
+    s = N_PORT_VECTORS * n
+    alpha, filtered, dt = f[s + ALPHA], i[FILTERED] != 0, f[s + DT]
+    half_dt = 0.5 * dt
+    flow, effort = vec(f, FLOW, n), vec(f, EFFORT, n)
+    b, s2b, s2ob = vec(f, B, n), vec(f, SQRT_2B, n), vec(f, SQRT_2_OVER_B, n)
+    w_in, w_out, received = vec(f, WAVE_IN, n), vec(f, WAVE_OUT, n), vec(rx, P_WAVE, n)
+    held = vec(f, HELD, n)
+    hsi, how, valid = i[SIDE] == HSI, i[RECONSTRUCTION], rx_i[P_VALID] != 0
+    missed = rx_i[P_SEQ] - i[LAST_SEQ] - 1  # packets missed since the last one used
+    acted = synced = False
+    for j in range(n):
+        used_sum = f[USED_SUM * n + j]
+        if valid:
+            # in step: nothing missed and the integral as the peer's; after a long gap the
+            # integral is not caught up (a jolt), only taken as it is
+            synced = (missed == 0 and used_sum == f[PEER_SUM * n + j]) or missed > CATCH_UP
+
+            f[PEER_SUM * n + j] = rx[P_SUM * n + j]
+            f[PEER_ENERGY * n + j] = rx[P_WAVE_ENERGY * n + j]
+        if how == ZERO:
+            w = received[j]
+        elif how == HOLD or not valid:
+            w = received[j] if valid else held[j]
+        elif synced:
+            w = received[j]  # the integral is in step: the wave as it was sent
+        else:  # catch the integral up in this tick: the samples missed and this one
+            w = (f[PEER_SUM * n + j] - used_sum) / dt
+        e = w * w * half_dt
+        # emit no more wave energy than was sent (compared as the sums themselves: with the
+        # same waves in the same order they are equal, bit for bit)
+        if how == BOUNDED and f[USED_ENERGY * n + j] + e > f[PEER_ENERGY * n + j]:
+            room = max(f[PEER_ENERGY * n + j] - f[USED_ENERGY * n + j], 0.0)
+            clipped = math.copysign(math.sqrt(room / half_dt), w)
+            f[LIMITED * n + j] += e - clipped * clipped * half_dt
+            w, e, acted = clipped, room, True
+        f[USED_ENERGY * n + j] += e
+        # in step with the peer's integral after a packet (what the bound cut is not caught
+        # up later: that would need energy the peer did not send)
+        f[USED_SUM * n + j] = f[PEER_SUM * n + j] if valid else used_sum + w * dt
+        held[j] = w
+        if filtered:
+            w_in[j] += alpha * (w - w_in[j])
+        else:
+            w_in[j] = w
+        if hsi:  # tau_c = b omega_c - sqrt(2b) v_l ; u_l = sqrt(2b) omega_c - v_l
+            effort[j] = b[j] * flow[j] - s2b[j] * w_in[j]
+            w_out[j] = s2b[j] * flow[j] - w_in[j]
+        else:  # omega_t = (sqrt(2b) u_r - tau_t) / b ; v_r = u_r - sqrt(2/b) tau_t
+            flow[j] = (s2b[j] * w_in[j] - effort[j]) / b[j]
+            w_out[j] = w_in[j] - s2ob[j] * effort[j]
+        sent = w_out[j]
+        tx[P_WAVE * n + j] = sent
+        f[WAVE_SUM * n + j] += sent * dt
+        f[WAVE_ENERGY * n + j] += sent * sent * half_dt
+        tx[P_SUM * n + j] = f[WAVE_SUM * n + j]
+        tx[P_WAVE_ENERGY * n + j] = f[WAVE_ENERGY * n + j]
+    if acted:
+        i[ACTED] += 1
+
+
+@jit
+def tdpa_step(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.ndarray) -> None:
+    """The peer's delayed port input (held through a loss), then the passivity controller:
+    this port's E_out may not exceed the peer's E_in received so far."""
+    s = N_PORT_VECTORS * n
+    dt = f[s + DT]
+    flow, effort, held = vec(f, FLOW, n), vec(f, EFFORT, n), vec(f, HELD, n)
+    e_out, peer_e_in, limited = vec(f, E_OUT, n), vec(f, PEER_E_IN, n), vec(f, LIMITED, n)
+    hsi, valid = i[SIDE] == HSI, rx_i[P_VALID] != 0
+    acted = False
+    for j in range(n):
+        if valid:
+            held[j] = rx[P_X * n + j]
+        if hsi:
+            omega, tau = flow[j], held[j]
+            out = -omega * tau * dt  # energy this tick's output takes out of the channel
+        else:
+            omega, tau = held[j], effort[j]
+            out = omega * tau * dt
+        excess = min(e_out[j] + out - peer_e_in[j], out)
+        if out > 0.0 and excess > 0.0:
+            if hsi:  # impedance type: a damper on the HSI's velocity, tau_c += beta omega_c
+                tau += excess / (omega * dt)
+            else:  # admittance type: omega_t -= alpha tau_t
+                omega -= excess / (tau * dt)
+            limited[j] += excess
+            acted = True
+        if hsi:
+            effort[j] = tau
+        else:
+            flow[j] = omega
+    if acted:
+        i[ACTED] += 1
 
 
 @jit
 def account_port_power(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray) -> None:
     """Power into the channel at this port (omega_c tau_c, or -omega_t tau_t), its integral,
-    and the energy in the outgoing packet."""
+    the energy that entered and left (E_in, E_out), and the energies in the outgoing packet."""
     flow, effort = vec(f, FLOW, n), vec(f, EFFORT, n)
     power, energy = vec(f, POWER, n), vec(f, ENERGY, n)
+    e_in, e_out = vec(f, E_IN, n), vec(f, E_OUT, n)
     s = N_PORT_VECTORS * n
     dt, sign = f[s + DT], 1.0 if i[SIDE] == HSI else -1.0
     total = 0.0
@@ -162,5 +353,11 @@ def account_port_power(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray) -> 
         power[j] = p
         energy[j] += p * dt
         total += energy[j]
+        if p > 0.0:
+            e_in[j] += p * dt
+        else:
+            e_out[j] -= p * dt
+        tx[P_E_IN * n + j] = e_in[j]
+        tx[P_E_OUT * n + j] = e_out[j]
     f[s + TOTAL_ENERGY] = total
     tx[N_PACKET_VECTORS * n + P_ENERGY] = total

@@ -1,11 +1,11 @@
 """The packet on the network: one fixed little-endian layout, encoded without allocation and
 decoded defensively.
 
-Layout (n joints; 64 + 32 n bytes, every field 8-byte aligned)::
+Layout (n joints; 56 + 48 n bytes, every field 8-byte aligned)::
 
     offset      type     field
     0           u32      magic b"TRWV"
-    4           u16      version (1)
+    4           u16      version (2)
     6           u16      n, the joint count
     8           u64      session id (both sites' handshake agrees on it)
     16          u64      sequence number
@@ -14,20 +14,22 @@ Layout (n joints; 64 + 32 n bytes, every field 8-byte aligned)::
                          same clock in every process of one host, so a receiver on the same
                          host measures the one-way delay; across hosts only ticks compare
     40          f64[n]   x, the sender's port input            \\
-                f64[n]   wave, the sender's outgoing wave       |  ``Packet``
+                f64[n]   wave, the sender's outgoing wave       |
+                f64[n]   its wave integral (dt sum of waves)    |
+                f64[n]   its wave energy sent, J (monotone)     |  ``Packet``'s floats,
+                f64[n]   E_in per joint, J (monotone)           |  in its order
+                f64[n]   E_out per joint, J (monotone)          |
                 f64      energy crossed the sender's port, J    /
-                f64[n]   E_in per joint, J (TDPA, cumulative)   \\
-                f64[n]   E_out per joint, J (TDPA, cumulative)   |  ``WireEnergies``
-                f64      wave energy sent, J (cumulative)       /
-    56 + 32 n   u32      CRC-32 (zlib's) of every byte before it
-    60 + 32 n   u32      zero
+    48 + 48 n   u32      CRC-32 (zlib's) of every byte before it
+    52 + 48 n   u32      zero
 
 The decoder rejects, and counts by reason, a packet of the wrong size, magic or version, a
 corrupted one (CRC), one for another joint count or session, one holding a non-finite value or
-a magnitude beyond the bounds it was given (the cumulative energies E_in, E_out and the wave
-energy must also be >= 0), and one whose sequence number is not newer than the newest one the
-receiver has used (``Decoder.used_seq``, which the receiver sets). It never raises on bad bytes
-and writes nothing into the packet it was given unless it accepts.
+a magnitude beyond the bounds it was given (the wave integral within the energy bound's
+magnitude; the cumulative wave energy, E_in and E_out also >= 0), and one whose sequence
+number is not newer than the newest one the receiver has used (``Decoder.used_seq``, which the
+receiver sets). It never raises on bad bytes and writes nothing into the packet it was given
+unless it accepts.
 """
 
 from __future__ import annotations
@@ -38,16 +40,20 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from teleop_rt.com.port import Packet
-from teleop_rt.flat import Block, Scalar, Vector, jit
+from teleop_rt.com.port import P_E_OUT, P_SUM, P_WAVE_ENERGY, Packet
+from teleop_rt.flat import jit
 
 if sys.byteorder != "little":  # the layout is read through native views
     raise ImportError("teleop_rt.com.wire needs a little-endian host")
 
 MAGIC = int.from_bytes(b"TRWV", "little")
-VERSION = 1
+VERSION = 2  # 2: the wave integral, wave energy and E_in/E_out per joint
 HEADER_WORDS = 5  # magic/version/n, session, seq, tick, time
 W_ID, W_SESSION, W_SEQ, W_TICK, W_TIME = range(HEADER_WORDS)
+# the Packet's vectors, then its one scalar; the decoder's checks rely on the cumulative
+# energies (wave energy, E_in, E_out) being its last vectors
+N_FLOATS_PER_JOINT = len(Packet.VECTORS)
+assert len(Packet.SCALARS) == 1 and P_E_OUT == N_FLOATS_PER_JOINT - 1 == P_WAVE_ENERGY + 2
 ID_MASK = (1 << 48) - 1  # magic and version: the low 48 bits of word 0
 
 # decode's status codes, each also the index of its counter
@@ -59,7 +65,7 @@ USED_SEQ, SENDER_TIME, SEEN_TICK, COUNTS = range(4)  # the decoder's state, then
 
 def wire_size(n: int) -> int:
     """Bytes of a packet of ``n`` joints."""
-    return 8 * (HEADER_WORDS + 4 * n + 2 + 1)
+    return 8 * (HEADER_WORDS + N_FLOATS_PER_JOINT * n + 1 + 1)
 
 
 def _as_i64(value: int) -> int:
@@ -67,15 +73,6 @@ def _as_i64(value: int) -> int:
     if not 0 <= value < 1 << 64:
         raise ValueError(f"{value} is not an unsigned 64-bit number")
     return value - (1 << 64) if value >= 1 << 63 else value
-
-
-class WireEnergies(Block):
-    """The cumulative port energies a packet carries beside the waves (issue 17's TDPA and
-    wave-energy bound); their float buffer is the wire's, in its order."""
-
-    e_in = Vector("energy that entered the sender's port, per joint, J (monotone)")
-    e_out = Vector("energy that left it, per joint, J (monotone)")
-    wave_energy = Scalar("dt times the sum of the squared waves sent, J (monotone)")
 
 
 def _crc_table() -> np.ndarray:
@@ -108,7 +105,6 @@ class WireBuffer:
         self.n, self.size = n, wire_size(n)
         self.words = np.zeros(self.size // 8, dtype=np.int64)
         self.data = memoryview(self.words.view(np.uint8))
-        self.no_energies = np.zeros(2 * n + 1)  # what a packet without energies carries
 
 
 def encode_into(
@@ -116,41 +112,33 @@ def encode_into(
     packet: Packet,
     session_id: int,
     time_ns: int,
-    energies: WireEnergies | None = None,
 ) -> memoryview:
     """``packet`` (its tick and seq as they are) into ``buffer``; returns ``buffer.data``.
-    Without ``energies`` the energy fields are zeros. No allocation (session_id and time_ns
-    below 2**63 pass as they are)."""
+    No allocation (session_id and time_ns below 2**63 pass as they are)."""
     n = buffer.n
-    if packet.n != n or (energies is not None and energies.n != n):
+    if packet.n != n:
         raise ValueError(f"a {packet.n}-joint packet into a {n}-joint wire buffer")
     if session_id >= 1 << 63:
         session_id = _as_i64(session_id)
-    extra = buffer.no_energies if energies is None else energies.f
-    _encode(buffer.words, n, packet.f, packet.i, session_id, time_ns, extra)
+    _encode(buffer.words, n, packet.f, packet.i, session_id, time_ns)
     return buffer.data
 
 
-P_FLOATS = 2  # Packet's vectors (x, wave), then its scalar energy
 I_TICK, I_SEQ = Packet.tick.k, Packet.seq.k
 
 
 @jit
 def _encode(
-    words: np.ndarray, n: int, pf: np.ndarray, pi: np.ndarray, session: int, time_ns: int,
-    extra: np.ndarray,
-) -> None:  # fmt: skip
+    words: np.ndarray, n: int, pf: np.ndarray, pi: np.ndarray, session: int, time_ns: int
+) -> None:
     floats = words.view(np.float64)  # (fewer array arguments: each costs ~80 ns a call)
     words[W_ID] = MAGIC | (VERSION << 32) | (n << 48)
     words[W_SESSION] = session
     words[W_SEQ] = pi[I_SEQ]
     words[W_TICK] = pi[I_TICK]
     words[W_TIME] = time_ns
-    m = P_FLOATS * n + 1
-    for k in range(m):
+    for k in range(N_FLOATS_PER_JOINT * n + 1):
         floats[HEADER_WORDS + k] = pf[k]
-    for k in range(2 * n + 1):
-        floats[HEADER_WORDS + m + k] = extra[k]
     last = words.size - 1
     words[last] = crc32(words.view(np.uint8), 8 * last)
 
@@ -159,7 +147,7 @@ def _encode(
 class WireBounds:
     """The largest magnitudes a receiver accepts (a scalar for every joint, or one per joint):
     ``x`` the peer's port input (omega_c in rad/s from the HSI, tau_t in N m from the TO),
-    ``wave`` its wave, ``energy`` any of the energies, J."""
+    ``wave`` its wave, ``energy`` any of the energies, J (and the wave integral)."""
 
     x: float | list[float] = 1e6
     wave: float | list[float] = 1e6
@@ -182,14 +170,13 @@ class WireBounds:
 class Decoder:
     """The receiving side's defensive decoder for one peer: bounds, counters by reason (indexed
     by the status codes), the newest used sequence number, and the last accepted packet's
-    extras (``energies``, ``sender_time_ns``). ``seen_tick`` is the sender tick of the last
+    sender time (``sender_time_ns``). ``seen_tick`` is the sender tick of the last
     packet whose header was intact and ours (accepted or stale): what the playout needs to
     count a stale packet as late."""
 
     def __init__(self, n: int, bounds: WireBounds | None = None) -> None:
         self.n, self.size = n, wire_size(n)
         self.bounds = (bounds or WireBounds()).array(n)
-        self.energies = WireEnergies(n)
         self._rx = WireBuffer(n)
         self._rx_data = self._rx.data
         # used_seq, sender_time_ns, seen_tick, then the counters by reason
@@ -226,8 +213,8 @@ class Decoder:
     def decode(
         self, data: bytes | bytearray | memoryview, expect_session: int, into: Packet
     ) -> int:
-        """``data`` checked and, if accepted, into ``into`` (valid = 1), its energies into
-        ``self.energies``; returns the status (``OK`` or the reason it was dropped)."""
+        """``data`` checked and, if accepted, into ``into`` (valid = 1); returns the status
+        (``OK`` or the reason it was dropped)."""
         if into.n != self.n:
             raise ValueError(f"a {self.n}-joint decoder into a {into.n}-joint packet")
         if len(data) != self.size:
@@ -237,7 +224,7 @@ class Decoder:
         if expect_session >= 1 << 63:
             expect_session = _as_i64(expect_session)
         return _decode(self._rx.words, self.n, expect_session, self.bounds, self.state, into.f,
-                       into.i, self.energies.f)  # fmt: skip
+                       into.i)  # fmt: skip
 
 
 I_VALID = Packet.valid.k
@@ -246,17 +233,14 @@ I_VALID = Packet.valid.k
 @jit
 def _decode(
     words: np.ndarray, n: int, session: int, bounds: np.ndarray, state: np.ndarray,
-    pf: np.ndarray, pi: np.ndarray, extra: np.ndarray,
+    pf: np.ndarray, pi: np.ndarray,
 ) -> int:  # fmt: skip
     floats = words.view(np.float64)
     status = _check(words, floats, n, session, bounds, state)
     state[COUNTS + status] += 1
     if status == OK:
-        m = P_FLOATS * n + 1
-        for k in range(m):
+        for k in range(N_FLOATS_PER_JOINT * n + 1):
             pf[k] = floats[HEADER_WORDS + k]
-        for k in range(2 * n + 1):
-            extra[k] = floats[HEADER_WORDS + m + k]
         pi[I_TICK] = words[W_TICK]
         pi[I_SEQ] = words[W_SEQ]
         pi[I_VALID] = 1
@@ -281,18 +265,21 @@ def _check(
         return SESSION
     if words[W_SEQ] < 0:  # beyond 2**63: no sender counts that far
         return IMPLAUSIBLE
-    m = P_FLOATS * n + 1
-    for k in range(m + 2 * n + 1):
+    m = N_FLOATS_PER_JOINT * n
+    for k in range(m + 1):
         if not math.isfinite(floats[HEADER_WORDS + k]):
             return NON_FINITE
     for k in range(2 * n):  # x and wave against their bounds
         if abs(floats[HEADER_WORDS + k]) > bounds[k]:
             return IMPLAUSIBLE
     e_max = bounds[2 * n]
-    if abs(floats[HEADER_WORDS + 2 * n]) > e_max:
+    for k in range(n):  # the wave integral, and the energy crossed (it may be negative)
+        if abs(floats[HEADER_WORDS + P_SUM * n + k]) > e_max:
+            return IMPLAUSIBLE
+    if abs(floats[HEADER_WORDS + m]) > e_max:
         return IMPLAUSIBLE
-    for k in range(2 * n + 1):  # cumulative energies: monotone from zero
-        e = floats[HEADER_WORDS + m + k]
+    for k in range(P_WAVE_ENERGY * n, m):  # cumulative energies: monotone from zero
+        e = floats[HEADER_WORDS + k]
         if e < 0.0 or e > e_max:
             return IMPLAUSIBLE
     state[SEEN_TICK] = words[W_TICK]  # intact and ours: the playout may count it late

@@ -9,7 +9,8 @@ Topics (n joints, E environment elements; all SI units, joint space):
 
 * ``/hsi``       teleop_rt/msg/HsiTick: the HSI robot and the operator
 * ``/to``        teleop_rt/msg/ToTick: the TO robot and the environment
-* ``/channel``   teleop_rt/msg/ChannelTick: the wave channel's port variables, waves, energy
+* ``/channel``   teleop_rt/msg/ChannelTick: the channel's port variables, waves, energy, and
+  each port's balance and the energy its protection removed (``teleop_rt.com.port``)
 * ``/timing``    teleop_rt/msg/TimingTick: compute time and deadline lateness of the tick
 
 A message's log time is wall-clock: UTC at the session start plus the tick's time, in ns since
@@ -34,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 CDR_HEADER = b"\x00\x01\x00\x00"  # CDR, little endian, no options
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: /channel has the ports' balances and the energy the protection removed
 
 
 @dataclass(frozen=True)
@@ -148,6 +149,9 @@ class LogLayout:
                 *_joint(["u_l", "v_l", "u_r", "v_r"], n, "waves (eq 9), as used this tick"),
                 *_joint(["power", "energy"], n, "W and J per joint (eq 7, 8)"),
                 Field("total_energy", "float64", None, "J, all joints"),
+                Field("balance_hsi", "float64", None, "J received minus emitted at the HSI port"),
+                Field("balance_to", "float64", None, "J, the same at the TO port (< 0: active)"),
+                *_joint(["removed_hsi", "removed_to"], n, "J removed by the protection"),
             ),
         )
         timing = Topic(
