@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from teleop_rt import config
 from teleop_rt.com.channel import make_port
-from teleop_rt.com.port import HSI, TO, Packet, port_input, port_step
+from teleop_rt.com.port import HOLD_TICKS, HSI, TO, Packet, port_input, port_step
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
 
@@ -274,3 +274,17 @@ def test_the_harness_catches_an_active_channel() -> None:
     for channel in (("wave", "bounded"), ("tdpa", "bounded")):
         assert drive(Harness(*channel, 1, None), hold) >= PASSIVE_J
         assert drive(Harness(*channel, 1, None), drop) >= PASSIVE_J
+
+
+def test_tdpa_holds_the_peers_velocity_through_a_short_gap_only() -> None:
+    """The TO moves on at the HSI's last velocity for HOLD_TICKS ticks of a gap, then stops: a
+    held velocity would drive it for as long as the network is silent."""
+    harness, ticks = Harness("tdpa", "bounded", 1, None), 60
+    lost = [k >= 20 for k in range(ticks)]
+    flows = []
+    for k in range(ticks):
+        harness.step(k, (np.full(1, 0.7), np.zeros(1)), (1, 1), (False, lost[k]))
+        flows.append(float(harness.ports[TO].flow[0]))
+    assert flows[1:20] == [0.7] * 19
+    assert flows[20 : 20 + HOLD_TICKS] == [0.7] * HOLD_TICKS
+    assert flows[20 + HOLD_TICKS :] == [0.0] * (ticks - 20 - HOLD_TICKS)

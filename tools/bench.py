@@ -14,7 +14,10 @@ and read the medians, not the maxima):
 4. real-time mode, S seconds at 1 kHz with recording on: deadline lateness percentiles and
    the ticks that started more than a whole period late; then the host's own wake-up latency
    under the same grant for S seconds, measured by cyclictest (rt-tests) if it is installed;
-5. how the tick grows with the number of joints (planar chains generated from one template).
+5. what each channel kind costs: the full tick (recording off) at a 20 ms delay with the plain
+   wave channel (zero reconstruction), the protected wave (bounded) and TDPA, alternated in
+   one run, and the difference to the plain wave channel (issue 17's target: <= 2 us);
+6. how the tick grows with the number of joints (planar chains generated from one template).
 Times are min / median / p99 over R repeats of N ticks (the repeat with the lowest median).
 """
 
@@ -225,6 +228,23 @@ def full_tick(cfg, ticks: int, repeat: int, tmp: Path) -> dict:
             recorder.close(None)
         writer_us.append(1e6 * (children_cpu_s() - cpu_before) / max(recorder.published, 1))
     return {"plain": best_of(plain), "recorded": best_of(logged), "writer_cpu_us": writer_us}
+
+
+CHANNEL_KINDS = {  # label -> overrides; the first is the baseline
+    "plain wave (zero)": ["channel.mode=wave", "channel.wave_reconstruction=zero"],
+    "protected wave (bounded)": ["channel.mode=wave", "channel.wave_reconstruction=bounded"],
+    "TDPA": ["channel.mode=tdpa"],
+}
+
+
+def channel_kinds(path: Path, ticks: int, repeat: int) -> dict[str, dict]:
+    """The full tick per channel kind at a 20 ms delay, the kinds alternated in each repeat."""
+    runs: dict[str, list[np.ndarray]] = {label: [] for label in CHANNEL_KINDS}
+    for _ in range(repeat):
+        for label, overrides in CHANNEL_KINDS.items():
+            cfg = config.load(path, ["channel.delay_ms=20", *overrides])
+            runs[label].append(time_ticks(Session(cfg).step, ticks))
+    return {label: best_of(r) for label, r in runs.items()}
 
 
 def children_cpu_s() -> float:
@@ -484,6 +504,15 @@ def run(args, cfg, joints: list[int]) -> int:
                 print(f"  wake-ups over a period late: {host['late_over_period']} of "
                       f"{host['wakeups']} (a thread that does nothing else)")  # fmt: skip
             out["host_baseline"] = host
+
+        print("\nchannel kinds (full tick, recording off, 20 ms delay, alternated)")
+        kinds = channel_kinds(Path(args.config), args.ticks, args.repeat)
+        base = next(iter(kinds.values()))
+        for label, figures in kinds.items():
+            d_min, d_med = (figures[k] - base[k] for k in ("min", "median"))
+            print(line(label, figures) + f"   vs plain wave: min {d_min:+.2f}, median "
+                  f"{d_med:+.2f} us")  # fmt: skip
+        out["channel_kinds_us"] = kinds
 
         if joints:  # --joints "" skips the scaling table
             print("\nscaling with the number of joints (planar chains, full tick, recording off)")

@@ -40,12 +40,13 @@ stays passive when the network varies its delay, loses, duplicates or reorders p
                sums in the same order, and never acts).
 - ``tdpa``: the time-domain passivity approach (Ryu, Artigas & Preusche, Mechatronics 2010):
   velocity forward, torque back (the paper's force-feedback coupling), the last value held
-  through a loss; at each port a passivity observer of the energy that entered (E_in) and left
-  (E_out) it, per joint (monotone), each site sending its E_in. A site whose E_out would exceed
-  the peer's E_in it has received dissipates the difference in that tick: an impedance-type
-  passivity controller at the HSI (tau_c += beta omega_c: its output is a torque), an
-  admittance-type one at the TO (omega_t -= alpha tau_t: its output is a velocity). With no
-  delay the coupling is direct and lossless and no controller runs.
+  through a gap of up to ``HOLD_TICKS``, zero after; at each port a passivity observer of the
+  energy that entered (E_in) and left (E_out) it, per joint (monotone), each site sending its
+  E_in. A site whose E_out would exceed the peer's E_in it has received dissipates the
+  difference in that tick: an impedance-type passivity controller at the HSI (tau_c += beta
+  omega_c: its output is a torque), an admittance-type one at the TO (omega_t -= alpha tau_t:
+  its output is a velocity). With no delay the coupling is direct and lossless and no
+  controller runs.
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ DIRECT, WAVE, TDPA = 0, 1, 2  # channel modes
 ZERO, HOLD, INTEGRAL, BOUNDED = 0, 1, 2, 3  # a wave channel's reconstruction of missing waves
 MODES = {"direct": DIRECT, "wave": WAVE, "tdpa": TDPA}
 CATCH_UP = 10  # the most missed packets the wave integral catches up in one tick
+HOLD_TICKS = 10  # TDPA holds the peer's last value this long through a gap, then zero
 RECONSTRUCTIONS = {"zero": ZERO, "hold": HOLD, "integral": INTEGRAL, "bounded": BOUNDED}
 
 
@@ -113,6 +115,7 @@ class Port(Block):
     filtered = Int("1: received waves are low-passed", param=True)
     reconstruction = Int("a wave channel's: ZERO, HOLD, INTEGRAL or BOUNDED", param=True)
     last_seq = Int("sequence number of the newest packet used (-1: none)")
+    missing = Int("ticks since the last packet arrived")
     acted = Int("ticks in which the protection acted (bound or passivity controller)")
 
     def __init__(
@@ -178,6 +181,7 @@ PEER_SUM, PEER_ENERGY, USED_SUM, USED_ENERGY = (
 )  # fmt: skip
 PEER_E_IN, LIMITED = Port.peer_e_in.k, Port.limited.k
 RECONSTRUCTION, LAST_SEQ, ACTED = Port.reconstruction.k, Port.last_seq.k, Port.acted.k
+MISSING = Port.missing.k
 N_PORT_VECTORS = len(Port.VECTORS)
 
 
@@ -214,6 +218,9 @@ def port_step(
         wave_step(f, i, n, rx, rx_i, tx)
     if valid:
         i[LAST_SEQ] = rx_i[P_SEQ]
+        i[MISSING] = 0
+    else:
+        i[MISSING] += 1
     account_port_power(f, i, n, tx)
     if i[DELAY] > 0:
         account_balance(f, i, n)
@@ -305,17 +312,21 @@ def wave_step(
 
 @jit
 def tdpa_step(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.ndarray) -> None:
-    """The peer's delayed port input (held through a loss), then the passivity controller:
-    this port's E_out may not exceed the peer's E_in received so far."""
+    """The peer's delayed port input (held through a gap of up to ``HOLD_TICKS``, then zero: a
+    held velocity would drive the TO on for as long as the gap lasts), then the passivity
+    controller: this port's E_out may not exceed the peer's E_in received so far."""
     s = N_PORT_VECTORS * n
     dt = f[s + DT]
     flow, effort, held = vec(f, FLOW, n), vec(f, EFFORT, n), vec(f, HELD, n)
     e_out, peer_e_in, limited = vec(f, E_OUT, n), vec(f, PEER_E_IN, n), vec(f, LIMITED, n)
     hsi, valid = i[SIDE] == HSI, rx_i[P_VALID] != 0
     acted = False
+    expired = not valid and i[MISSING] >= HOLD_TICKS
     for j in range(n):
         if valid:
             held[j] = rx[P_X * n + j]
+        elif expired:
+            held[j] = 0.0
         if hsi:
             omega, tau = flow[j], held[j]
             out = -omega * tau * dt  # energy this tick's output takes out of the channel
