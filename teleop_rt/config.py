@@ -136,6 +136,10 @@ class ChannelSpec(Strict):
     # passive), and, unprotected, for comparison: hold (the last wave held) or integral (the
     # wave integral without the bound). With no loss all four compute the same.
     wave_reconstruction: Literal["bounded", "zero", "hold", "integral"] = "bounded"
+    # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
+    # time constant, within what its passivity controller allows (better T_p, worse T_tau:
+    # README, Passive over any network). None, the default, switches it off.
+    tdpa_drift_time_s: PositiveFloat | None = None
 
 
 class FaultSpec(Strict):

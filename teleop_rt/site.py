@@ -236,4 +236,4 @@ def port_for(cfg: SessionConfig, n: int, side: int) -> Port:
     ch = cfg.channel
     b = per_joint(ch.wave_impedance, n, "channel.wave_impedance")
     return make_port(side, ch.mode, b, cfg.delay_ticks, cfg.dt, ch.wave_filter_hz,
-                     ch.wave_reconstruction)  # fmt: skip
+                     ch.wave_reconstruction, ch.tdpa_drift_time_s)  # fmt: skip

@@ -69,13 +69,13 @@ def write_traces(folder: Path) -> dict[str, Path]:
 
 def run(
     path: Path, impairment: dict | None, channel: list[str], playout: str = "newest",
-    delay_ms: int = 2, seconds: float = SECONDS,
+    delay_ms: int = 2, seconds: float = SECONDS, sweep: bool = True,
 ) -> Session:  # fmt: skip
     overrides = [f"duration_s={seconds}", f"channel.delay_ms={delay_ms}",
                  f"link.playout={playout}", *channel]  # fmt: skip
     if impairment is not None:
         overrides.append("link.impairment=" + json.dumps({"seed": 3, **impairment}))
-    if path.stem == "free_space":
+    if path.stem == "free_space" and sweep:
         overrides.append("operator.waypoints=" + json.dumps(SWEEP))
     session = Session(config.load(path, overrides))
     session.summary = session.run()
@@ -288,3 +288,24 @@ def test_tdpa_holds_the_peers_velocity_through_a_short_gap_only() -> None:
     assert flows[1:20] == [0.7] * 19
     assert flows[20 : 20 + HOLD_TICKS] == [0.7] * HOLD_TICKS
     assert flows[20 + HOLD_TICKS :] == [0.0] * (ticks - 20 - HOLD_TICKS)
+
+
+def test_tdpa_drift_compensation_brings_the_to_back_and_stays_passive() -> None:
+    """Against the wall the passivity controllers cut the TO's velocity and it ends 0.05 rad
+    from the HSI; with the compensation it ends where the HSI is, passive all the way. In free
+    space with nothing lost (no controller acts) the compensation adds exactly nothing."""
+    runs = {}
+    for drift in ("null", "0.2"):
+        channel = ["channel.mode=tdpa", f"channel.tdpa_drift_time_s={drift}"]
+        wall = run(CONFIGS / "stiff_wall.yaml", None, channel, "fixed", 20, 6)
+        runs[drift] = (wall, run(CONFIGS / "free_space.yaml", None, channel, "fixed", 20, 4))
+    (wall_off, free_off), (wall_on, free_on) = runs["null"], runs["0.2"]
+
+    def gap(s: Session) -> float:  # the operator holds still at the end of both scripts
+        return float(np.abs(s.hsi.feedback.q - s.to.feedback.q).max())
+
+    assert gap(wall_off) > 0.02 and gap(wall_on) < 0.01 * gap(wall_off)
+    assert_passive_and_bounded(wall_on)
+    assert wall_on.to.port.acted > 0
+    assert free_on.to.port.acted == 0
+    assert np.array_equal(free_on.to.feedback.q, free_off.to.feedback.q)

@@ -52,10 +52,8 @@ def struct_layout(p: Packet, session: int, time_ns: int) -> bytes:
     """The layout of the module's docstring, written field by field with struct and zlib."""
     n = p.n
     head = struct.pack("<4sHHQQqq", b"TRWV", 2, n, session, p.seq, p.tick, time_ns)
-    x, w, w_sum, w_energy = p.x, p.wave, p.wave_sum, p.wave_energy
-    body = head + struct.pack(
-        f"<{n}d{n}d{n}d{n}d{n}d{n}dd", *x, *w, *w_sum, *w_energy, *p.e_in, *p.e_out, p.energy
-    )
+    vectors = (p.x, p.wave, p.wave_sum, p.x_sum, p.wave_energy, p.e_in, p.e_out)
+    body = head + struct.pack(f"<{7 * n}dd", *np.concatenate(vectors), p.energy)
     return body + struct.pack("<II", zlib.crc32(body), 0)
 
 
@@ -79,7 +77,7 @@ def test_the_layout_is_the_documented_one() -> None:
     for n in (1, 2, 7):
         p = packet(n, tick=2**40 + 3)
         raw = bytes(encode_into(WireBuffer(n), p, SESSION_ID, -5))
-        assert len(raw) == wire_size(n) == 56 + 48 * n
+        assert len(raw) == wire_size(n) == 56 + 56 * n
         assert raw == struct_layout(p, SESSION_ID, -5)
 
 
@@ -96,7 +94,8 @@ non_negative = st.floats(allow_nan=False, allow_infinity=False, min_value=0.0, m
     time_ns=st.integers(-(2**63), 2**63 - 1),
 )
 def test_valid_packets_round_trip_bit_for_bit(n, data, tick, session, time_ns) -> None:
-    signed = data.draw(st.lists(finite, min_size=3 * n, max_size=3 * n))  # x, wave, integral
+    # x, wave, the integrals; then the cumulative energies
+    signed = data.draw(st.lists(finite, min_size=4 * n, max_size=4 * n))
     cumulative = data.draw(st.lists(non_negative, min_size=3 * n, max_size=3 * n))
     values = np.array([*signed, *cumulative, data.draw(finite)])
     p = packet(n, tick, values)
@@ -154,8 +153,10 @@ def test_any_one_to_three_bit_flips_are_caught(data) -> None:
 def test_each_reason_is_counted_under_its_own_name() -> None:
     n = 2
     decoder, into = Decoder(n, WireBounds(x=[1.0, 2.0], wave=3.0, energy=10.0)), sentinel(n)
-    # x, wave, wave integral, wave energy, E_in, E_out (per joint), energy crossed
-    good_values = np.array([0.5, 1.5, 2.0, -2.0, -9.0, 9.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, -1.0])
+    # x, wave, wave integral, x integral, wave energy, E_in, E_out (per joint), energy crossed
+    good_values = np.array(
+        [0.5, 1.5, 2.0, -2.0, -9.0, 9.0, 8.0, -8.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, -1.0]
+    )
     p = packet(n, values=good_values)
 
     def case(raw: bytes, status: int) -> None:
@@ -174,12 +175,13 @@ def test_each_reason_is_counted_under_its_own_name() -> None:
     case(good[:-8] + bytes([good[-8] ^ 1]) + good[-7:], CHECKSUM)
     case(reseal(good[:6] + struct.pack("<H", 3) + good[8:]), JOINTS)
     case(encoded(p, session=SESSION_ID - 1), SESSION)
-    for k, bad in ((0, np.nan), (3, np.inf), (5, np.nan), (8, -np.inf), (12, np.nan)):
+    for k, bad in ((0, np.nan), (3, np.inf), (5, np.nan), (7, np.nan), (10, -np.inf),
+                   (14, np.nan)):  # fmt: skip
         case(with_value(k, bad), NON_FINITE)
-    # x per joint, wave, wave integral, energy crossed: against their bounds
-    for k, big in ((0, 1.01), (1, -2.01), (2, 3.5), (4, -10.5), (12, 10.5)):
+    # x per joint, wave, the integrals, energy crossed: against their bounds
+    for k, big in ((0, 1.01), (1, -2.01), (2, 3.5), (4, -10.5), (7, -10.5), (14, 10.5)):
         case(with_value(k, big), IMPLAUSIBLE)
-    for k, bad in ((6, -1e-9), (9, 11.0), (11, -1.0)):  # cumulative energies >= 0; bounded
+    for k, bad in ((8, -1e-9), (11, 11.0), (13, -1.0)):  # cumulative energies >= 0; bounded
         case(with_value(k, bad), IMPLAUSIBLE)
     q = packet(n, values=good_values.copy())
     q.seq = -1  # 2**64 - 1 on the wire
@@ -192,9 +194,9 @@ def test_each_reason_is_counted_under_its_own_name() -> None:
     assert decoder.decode(encoded(newer), SESSION_ID, into) == OK
     assert decoder.counts_by_reason() == {
         "ok": 1, "size": 1, "magic_version": 2, "checksum": 1, "joints": 1, "session": 1,
-        "non_finite": 5, "implausible": 9, "stale": 2,
+        "non_finite": 6, "implausible": 10, "stale": 2,
     }  # fmt: skip
-    assert decoder.rejected == 22
+    assert decoder.rejected == 24
 
 
 def test_the_bounds_must_be_positive_and_finite() -> None:

@@ -153,19 +153,20 @@ def two_port_step(
 def make_port(
     side: int, mode: str, wave_impedance: list[float], delay_ticks: int, dt: float,
     filter_hz: float | None, reconstruction: str = "bounded",
+    drift_time_s: float | None = None,
 ) -> Port:  # fmt: skip
     """Site ``side``'s port of a channel of ``mode`` ('wave', 'tdpa' or 'direct'; a wave
-    channel's ``reconstruction`` of missing waves: 'bounded', 'zero', 'hold' or 'integral')."""
+    channel's ``reconstruction`` of missing waves: 'bounded', 'zero', 'hold' or 'integral';
+    TDPA's drift compensation time constant, None: off)."""
     return Port(side, wave_impedance, delay_ticks, dt, MODES[mode], filter_hz,
-                RECONSTRUCTIONS[reconstruction])  # fmt: skip
+                RECONSTRUCTIONS[reconstruction], drift_time_s)  # fmt: skip
 
 
 def make_ports(
     mode: str, wave_impedance: list[float], delay_ticks: int, dt: float,
     filter_hz: float | None, reconstruction: str = "bounded",
+    drift_time_s: float | None = None,
 ) -> tuple[Port, Port]:  # fmt: skip
     """The HSI's and the TO's port of a channel of ``mode`` (a two-port in one object)."""
-    return (
-        make_port(HSI, mode, wave_impedance, delay_ticks, dt, filter_hz, reconstruction),
-        make_port(TO, mode, wave_impedance, delay_ticks, dt, filter_hz, reconstruction),
-    )
+    args = (mode, wave_impedance, delay_ticks, dt, filter_hz, reconstruction, drift_time_s)
+    return make_port(HSI, *args), make_port(TO, *args)

@@ -46,7 +46,10 @@ stays passive when the network varies its delay, loses, duplicates or reorders p
   difference in that tick: an impedance-type passivity controller at the HSI (tau_c += beta
   omega_c: its output is a torque), an admittance-type one at the TO (omega_t -= alpha tau_t:
   its output is a velocity). With no delay the coupling is direct and lossless and no
-  controller runs.
+  controller runs. Position drift (the TO's integral of its output against the HSI's integral
+  of its velocity, which packets carry): the TO adds ``drift_rate`` times the difference to its
+  velocity, before the passivity controller, which keeps the sum passive (after Artigas et al.,
+  "Position drift compensation in time domain passivity based teleoperation", IROS 2010).
 """
 
 from __future__ import annotations
@@ -72,6 +75,7 @@ class Packet(Block):
     x = Vector("the sender's port input: omega_c from the HSI, tau_t from the TO")
     wave = Vector("the sender's outgoing wave: u_l from the HSI, v_r from the TO")
     wave_sum = Vector("dt times the sum of the waves sent (the wave integral)")
+    x_sum = Vector("dt times the sum of the sender's port inputs (the HSI's: its position)")
     wave_energy = Vector("dt / 2 times the sum of the squared waves sent, J (monotone)")
     e_in = Vector("energy that entered the sender's port, J (monotone; TDPA)")
     e_out = Vector("energy that left it, J (monotone)")
@@ -103,11 +107,15 @@ class Port(Block):
     used_sum = Vector("dt times the sum of the waves used here (before the filter)")
     used_energy = Vector("dt / 2 times the sum of their squares, J")
     peer_e_in = Vector("the peer's E_in, J, as of its newest packet (TDPA)")
+    x_sum = Vector("dt times the sum of this port's inputs")
+    peer_x_sum = Vector("the peer's, as of its newest packet")
+    out_sum = Vector("dt times the sum of this port's outputs (TDPA's TO: its position)")
     limited = Vector("energy the protection removed: the bound's, or TDPA's dissipation, J")
     total_energy = Scalar("sum over joints, J")
     balance = Scalar("energy received minus emitted, as the method accounts it, J (joints: min)")
     min_balance = Scalar("its running minimum, J")
     alpha = Scalar("received-wave low-pass coefficient", param=True)
+    drift_rate = Scalar("TDPA's position-drift compensation at the TO, 1/s (0: off)", param=True)
     dt = Scalar(param=True)
     side = Int("HSI or TO", param=True)
     mode = Int("DIRECT, WAVE or TDPA", param=True)
@@ -127,6 +135,7 @@ class Port(Block):
         mode: int = WAVE,
         filter_hz: float | None = None,
         reconstruction: int = BOUNDED,
+        drift_time_s: float | None = None,
     ) -> None:
         b = [float(x) for x in wave_impedance]
         if mode == WAVE and any(not x > 0 for x in b):
@@ -137,6 +146,9 @@ class Port(Block):
         self.side, self.mode, self.delay_ticks, self.dt = side, mode, delay_ticks, dt
         self.reconstruction = reconstruction
         self.last_seq = -1
+        if drift_time_s is not None and not drift_time_s > 0:
+            raise ValueError("the drift compensation's time constant must be > 0 s")
+        self.drift_rate = 1.0 / drift_time_s if drift_time_s and side == TO else 0.0
         if mode == WAVE:
             self.b[:] = b
             self.sqrt_2b[:] = [math.sqrt(2.0 * x) for x in b]
@@ -161,8 +173,8 @@ class Port(Block):
 
 # indices for the kernels, derived from the declarations above
 P_X, P_WAVE = Packet.x.k, Packet.wave.k
-P_SUM, P_WAVE_ENERGY, P_E_IN, P_E_OUT = (
-    Packet.wave_sum.k, Packet.wave_energy.k, Packet.e_in.k, Packet.e_out.k
+P_SUM, P_X_SUM, P_WAVE_ENERGY, P_E_IN, P_E_OUT = (
+    Packet.wave_sum.k, Packet.x_sum.k, Packet.wave_energy.k, Packet.e_in.k, Packet.e_out.k
 )  # fmt: skip
 P_ENERGY = Packet.energy.k  # scalar, after the vectors
 P_TICK, P_SEQ, P_VALID = Packet.tick.k, Packet.seq.k, Packet.valid.k
@@ -182,6 +194,9 @@ PEER_SUM, PEER_ENERGY, USED_SUM, USED_ENERGY = (
 PEER_E_IN, LIMITED = Port.peer_e_in.k, Port.limited.k
 RECONSTRUCTION, LAST_SEQ, ACTED = Port.reconstruction.k, Port.last_seq.k, Port.acted.k
 MISSING = Port.missing.k
+X_SUM, PEER_X_SUM, OUT_SUM, DRIFT_RATE = (
+    Port.x_sum.k, Port.peer_x_sum.k, Port.out_sum.k, Port.drift_rate.k
+)  # fmt: skip
 N_PORT_VECTORS = len(Port.VECTORS)
 
 
@@ -191,9 +206,12 @@ def port_input(f: np.ndarray, i: np.ndarray, n: int, x: np.ndarray, tx: np.ndarr
     the outgoing packet (before the exchange: with no delay the peer needs it this tick)."""
     own = vec(f, FLOW, n) if i[SIDE] == HSI else vec(f, EFFORT, n)
     out = vec(tx, P_X, n)
+    dt = f[N_PORT_VECTORS * n + DT]
     for j in range(n):
         own[j] = x[j]
         out[j] = x[j]
+        f[X_SUM * n + j] += x[j] * dt
+        tx[P_X_SUM * n + j] = f[X_SUM * n + j]
 
 
 @jit
@@ -206,6 +224,7 @@ def port_step(
     if valid:  # the peer's E_in: monotone, so the newest packet's is the largest
         for j in range(n):
             f[PEER_E_IN * n + j] = max(f[PEER_E_IN * n + j], rx[P_E_IN * n + j])
+            f[PEER_X_SUM * n + j] = rx[P_X_SUM * n + j]
     if i[DELAY] == 0 or i[MODE] == DIRECT:
         # direct coupling (no delay) or plain delayed force feedback: the peer's port input
         out = vec(f, EFFORT, n) if i[SIDE] == HSI else vec(f, FLOW, n)
@@ -316,7 +335,7 @@ def tdpa_step(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.nda
     held velocity would drive the TO on for as long as the gap lasts), then the passivity
     controller: this port's E_out may not exceed the peer's E_in received so far."""
     s = N_PORT_VECTORS * n
-    dt = f[s + DT]
+    dt, rate = f[s + DT], f[s + DRIFT_RATE]
     flow, effort, held = vec(f, FLOW, n), vec(f, EFFORT, n), vec(f, HELD, n)
     e_out, peer_e_in, limited = vec(f, E_OUT, n), vec(f, PEER_E_IN, n), vec(f, LIMITED, n)
     hsi, valid = i[SIDE] == HSI, rx_i[P_VALID] != 0
@@ -332,6 +351,10 @@ def tdpa_step(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.nda
             out = -omega * tau * dt  # energy this tick's output takes out of the channel
         else:
             omega, tau = held[j], effort[j]
+            # position drift: toward the HSI's position as of its newest packet (an output of
+            # the peer's velocity as it was sent adds exactly 0, bit for bit); the passivity
+            # controller below then checks the energy of the sum
+            omega += rate * (f[PEER_X_SUM * n + j] - (f[OUT_SUM * n + j] + omega * dt))
             out = omega * tau * dt
         excess = min(e_out[j] + out - peer_e_in[j], out)
         if out > 0.0 and excess > 0.0:
@@ -345,6 +368,7 @@ def tdpa_step(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.nda
             effort[j] = tau
         else:
             flow[j] = omega
+            f[OUT_SUM * n + j] += omega * dt
     if acted:
         i[ACTED] += 1
 

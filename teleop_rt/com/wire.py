@@ -1,7 +1,7 @@
 """The packet on the network: one fixed little-endian layout, encoded without allocation and
 decoded defensively.
 
-Layout (n joints; 56 + 48 n bytes, every field 8-byte aligned)::
+Layout (n joints; 56 + 56 n bytes, every field 8-byte aligned)::
 
     offset      type     field
     0           u32      magic b"TRWV"
@@ -16,16 +16,17 @@ Layout (n joints; 56 + 48 n bytes, every field 8-byte aligned)::
     40          f64[n]   x, the sender's port input            \\
                 f64[n]   wave, the sender's outgoing wave       |
                 f64[n]   its wave integral (dt sum of waves)    |
+                f64[n]   its port input's integral              |
                 f64[n]   its wave energy sent, J (monotone)     |  ``Packet``'s floats,
                 f64[n]   E_in per joint, J (monotone)           |  in its order
                 f64[n]   E_out per joint, J (monotone)          |
                 f64      energy crossed the sender's port, J    /
-    48 + 48 n   u32      CRC-32 (zlib's) of every byte before it
-    52 + 48 n   u32      zero
+    48 + 56 n   u32      CRC-32 (zlib's) of every byte before it
+    52 + 56 n   u32      zero
 
 The decoder rejects, and counts by reason, a packet of the wrong size, magic or version, a
 corrupted one (CRC), one for another joint count or session, one holding a non-finite value or
-a magnitude beyond the bounds it was given (the wave integral within the energy bound's
+a magnitude beyond the bounds it was given (the integrals within the energy bound's
 magnitude; the cumulative wave energy, E_in and E_out also >= 0), and one whose sequence
 number is not newer than the newest one the receiver has used (``Decoder.used_seq``, which the
 receiver sets). It never raises on bad bytes and writes nothing into the packet it was given
@@ -40,14 +41,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from teleop_rt.com.port import P_E_OUT, P_SUM, P_WAVE_ENERGY, Packet
+from teleop_rt.com.port import P_E_OUT, P_SUM, P_WAVE_ENERGY, P_X_SUM, Packet
 from teleop_rt.flat import jit
 
 if sys.byteorder != "little":  # the layout is read through native views
     raise ImportError("teleop_rt.com.wire needs a little-endian host")
 
 MAGIC = int.from_bytes(b"TRWV", "little")
-VERSION = 2  # 2: the wave integral, wave energy and E_in/E_out per joint
+VERSION = 2  # 2: the integrals, wave energy and E_in/E_out per joint
 HEADER_WORDS = 5  # magic/version/n, session, seq, tick, time
 W_ID, W_SESSION, W_SEQ, W_TICK, W_TIME = range(HEADER_WORDS)
 # the Packet's vectors, then its one scalar; the decoder's checks rely on the cumulative
@@ -147,7 +148,7 @@ def _encode(
 class WireBounds:
     """The largest magnitudes a receiver accepts (a scalar for every joint, or one per joint):
     ``x`` the peer's port input (omega_c in rad/s from the HSI, tau_t in N m from the TO),
-    ``wave`` its wave, ``energy`` any of the energies, J (and the wave integral)."""
+    ``wave`` its wave, ``energy`` any of the energies, J (and the integrals)."""
 
     x: float | list[float] = 1e6
     wave: float | list[float] = 1e6
@@ -273,8 +274,10 @@ def _check(
         if abs(floats[HEADER_WORDS + k]) > bounds[k]:
             return IMPLAUSIBLE
     e_max = bounds[2 * n]
-    for k in range(n):  # the wave integral, and the energy crossed (it may be negative)
+    for k in range(n):  # the integrals, and the energy crossed (they may be negative)
         if abs(floats[HEADER_WORDS + P_SUM * n + k]) > e_max:
+            return IMPLAUSIBLE
+        if abs(floats[HEADER_WORDS + P_X_SUM * n + k]) > e_max:
             return IMPLAUSIBLE
     if abs(floats[HEADER_WORDS + m]) > e_max:
         return IMPLAUSIBLE
