@@ -416,6 +416,16 @@ def _recorder(
     return Recorder(session, path, wait_for_room=wait_for_room, metadata=metadata, live=live)
 
 
+def _site_recorder(site, log: Path | None, name: str, metadata: dict):
+    """The recorder of a site's replay: its own site log, by default
+    logs/<name>-replay-<UTC time>.<site>.mcap."""
+    from teleop_rt.recording.recorder import Recorder, default_log_path
+    from teleop_rt.recording.site_log import SiteLogSource, site_log_path
+
+    path = log or site_log_path(default_log_path(site.cfg.name + "-replay"), name)
+    return Recorder(SiteLogSource(site), path, wait_for_room=True, metadata=metadata)
+
+
 def _print_summary(summary, as_json: bool, recorder, can_status: dict | None = None) -> None:
     from teleop_rt.report import print_summary
 
@@ -505,6 +515,10 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.plot:  # before the replay, which can take minutes
         check_output(args.plot, "--plot", force=args.force, image=True, inputs=(args.log,))
     data, gap_note = before_first_gap(read_log(args.log))
+    if data.site:  # a site's own log: against its partner's logged packets
+        from teleop_rt.recording.site_replay import replay_site_main
+
+        return replay_site_main(args, data, gap_note, _site_recorder)
     if gap_note:
         print(f"teleop-rt: warning: {gap_note}", file=sys.stderr)
     original = log_metrics(data)
