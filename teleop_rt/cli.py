@@ -82,7 +82,7 @@ def _build_parser() -> argparse.ArgumentParser:
         const="127.0.0.1:8765",
         metavar="[HOST:]PORT",
         help="serve the session live to Foxglove (WebSocket; default 127.0.0.1:8765, port 0: "
-        "any free one), 3D included",
+        "any free one), 3D included; with --link zenoh the HSI site at PORT, the TO at PORT+1",
     )
     run.add_argument(
         "--can-log",
@@ -103,6 +103,12 @@ def _build_parser() -> argparse.ArgumentParser:
                       help="a safety stop (exit 3) at the (N+1)th missed deadline")  # fmt: skip
     add_backend_arg(site)
     site.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    add_log_args(site, "logs/<name>-<UTC time>.<site>.mcap")
+    site.add_argument(
+        "--live", nargs="?", const="127.0.0.1:8765", metavar="[HOST:]PORT",
+        help="serve this site live to Foxglove (WebSocket; default 127.0.0.1:8765, port 0: any "
+        "free one), from its log's writer",
+    )  # fmt: skip
     site.add_argument("--record-ticks", metavar="NPZ", help=argparse.SUPPRESS)  # for run --link
 
     check = sub.add_parser("check", help="validate a config (and load its robots) without running")
@@ -119,8 +125,14 @@ def _build_parser() -> argparse.ArgumentParser:
     info.add_argument("log", help="an MCAP log written by teleop-rt run or replay")
     info.add_argument("--json", action="store_true", help="print it as JSON")
 
-    metrics = sub.add_parser("metrics", help="transparency, energy and timing figures of a log")
-    metrics.add_argument("log", help="an MCAP log written by teleop-rt run or replay")
+    metrics = sub.add_parser(
+        "metrics", help="transparency, energy and timing figures of a log, or of two sites' logs"
+    )
+    metrics.add_argument(
+        "log", nargs="+", metavar="LOG",
+        help="an MCAP log written by teleop-rt run or replay, or the two logs of one session's "
+        "sites (teleop-rt site, run --link zenoh): HSI.mcap TO.mcap",
+    )  # fmt: skip
     metrics.add_argument("--json", action="store_true", help="print the figures as JSON")
     metrics.add_argument("--from", dest="t_from", type=float, metavar="S", help="start time, s")
     metrics.add_argument("--to", dest="t_to", type=float, metavar="S", help="end time, s")
@@ -374,7 +386,7 @@ def _live_arg(args: argparse.Namespace):
 def _cmd_site(args: argparse.Namespace) -> int:
     from teleop_rt.cli_sites import cmd_site
 
-    return cmd_site(args, _load_config)
+    return cmd_site(args, _load_config, _live_arg(args))
 
 
 @contextlib.contextmanager
@@ -402,6 +414,16 @@ def _recorder(
 
     path = Path(log) if log else default_log_path(session.cfg.name + suffix)
     return Recorder(session, path, wait_for_room=wait_for_room, metadata=metadata, live=live)
+
+
+def _site_recorder(site, log: Path | None, name: str, metadata: dict):
+    """The recorder of a site's replay: its own site log, by default
+    logs/<name>-replay-<UTC time>.<site>.mcap."""
+    from teleop_rt.recording.recorder import Recorder, default_log_path
+    from teleop_rt.recording.site_log import SiteLogSource, site_log_path
+
+    path = log or site_log_path(default_log_path(site.cfg.name + "-replay"), name)
+    return Recorder(SiteLogSource(site), path, wait_for_room=True, metadata=metadata)
 
 
 def _print_summary(summary, as_json: bool, recorder, can_status: dict | None = None) -> None:
@@ -458,7 +480,15 @@ def exit_code(summary, recorder=None) -> int:
 def _cmd_metrics(args: argparse.Namespace) -> int:
     from teleop_rt.recording.metrics import metrics_main
 
-    return metrics_main(args.log, args.json, args.t_from, args.t_to)
+    if len(args.log) > 2:
+        raise ConfigError(
+            f"metrics takes one log or the two logs of one session's sites, not {len(args.log)}"
+        )
+    if len(args.log) == 2:
+        from teleop_rt.recording.pair import pair_main
+
+        return pair_main(*args.log, args.json, args.t_from, args.t_to)
+    return metrics_main(args.log[0], args.json, args.t_from, args.t_to)
 
 
 def _cmd_info(args: argparse.Namespace) -> int:
@@ -485,6 +515,10 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.plot:  # before the replay, which can take minutes
         check_output(args.plot, "--plot", force=args.force, image=True, inputs=(args.log,))
     data, gap_note = before_first_gap(read_log(args.log))
+    if data.site:  # a site's own log: against its partner's logged packets
+        from teleop_rt.recording.site_replay import replay_site_main
+
+        return replay_site_main(args, data, gap_note, _site_recorder)
     if gap_note:
         print(f"teleop-rt: warning: {gap_note}", file=sys.stderr)
     original = log_metrics(data)

@@ -1,5 +1,11 @@
-"""``teleop-rt site hsi|to CONFIG`` (one site, its own process) and ``teleop-rt run CONFIG
---link zenoh`` (both sites as child processes on this host, one combined summary)."""
+"""``teleop-rt site hsi|to CONFIG`` (one site, its own process, its own log) and ``teleop-rt run
+CONFIG --link zenoh`` (both sites as child processes on this host, one combined summary).
+
+Logs of ``run --link zenoh``: each site writes its own; ``--log out.mcap`` gives ``out.hsi.mcap``
+and ``out.to.mcap`` (``site_log_path``), the default ``logs/<name>-<UTC time>.hsi.mcap`` and
+``.to.mcap``; both are checked before either site starts, and neither is ever overwritten.
+``--live HOST:PORT`` serves the HSI site at PORT and the TO site at PORT + 1 (port 0: two free
+ones, chosen here and announced before the sites start)."""
 
 from __future__ import annotations
 
@@ -17,8 +23,11 @@ from teleop_rt.errors import ConfigError
 CHILD_GRACE_S = 30.0  # after the run's duration: handshake, start-up, staged stop
 
 
-def cmd_site(args, load_config) -> int:
-    """One site: real time, its own loop and summary; exit as a run's (0, 3, 5, 130, 143)."""
+def cmd_site(args, load_config, live=None) -> int:
+    """One site: real time, its own loop, log and summary; exit as a run's (0, 3, 4, 5, 130,
+    143)."""
+    from teleop_rt.recording.recorder import create_log_file
+    from teleop_rt.recording.site_log import default_pair_base, site_log_path
     from teleop_rt.report import print_site_summary
     from teleop_rt.site_run import run_site
 
@@ -31,19 +40,40 @@ def cmd_site(args, load_config) -> int:
               f"for the {'to' if args.site == 'hsi' else 'hsi'} site (Ctrl-C stops)",
               file=sys.stderr)  # fmt: skip
     record = Path(args.record_ticks) if args.record_ticks else None
+    log = None
+    if not args.no_log:
+        log = (
+            Path(args.log_out)
+            if args.log_out
+            else site_log_path(default_pair_base(cfg.name), args.site)
+        )
+        create_log_file(log).unlink()  # refused now (exists, no folder) rather than after start
+    metadata = {"config": str(args.config),
+                "overrides": json.dumps([*args.overrides, *extra])}  # fmt: skip
 
     def say(line: str) -> None:
         print(f"{args.site} site: {line}", file=sys.stderr, flush=True)
 
+    def say_live(address) -> None:
+        print(f"live: ws://{address} (Foxglove: Open connection, Foxglove WebSocket)",
+              file=sys.stderr, flush=True)  # fmt: skip
+
     summary = run_site(cfg, args.site, realtime=True, overrun=args.overrun,
-                       max_missed=args.max_missed, record=record, on_peer=say)  # fmt: skip
+                       max_missed=args.max_missed, record=record, on_peer=say, log=log,
+                       live=live, metadata=metadata, on_live=say_live)  # fmt: skip
     if args.json:
         json.dump(summary.to_dict(), sys.stdout, indent=2)
         print()
     else:
         print_site_summary(summary)
+    status = summary.recording
+    if status is not None and not status["complete"]:
+        print(f"teleop-rt: log {summary.log} is incomplete: {status['failure']} "
+              f"(ticks dropped: {status['dropped_rows']})", file=sys.stderr)  # fmt: skip
     if summary.safety_stop:
         return 3
+    if status is not None and not status["complete"]:
+        return 4
     if summary.stop_signal:
         return 128 + summary.stop_signal
     return 130 if summary.stopped_early else 0
@@ -57,6 +87,14 @@ def run_two_sites(args, cfg) -> int:
 
     if not args.realtime:
         raise ConfigError("--link zenoh runs two processes in real time: add --realtime")
+    if args.can_log is not None:
+        raise ConfigError("--can-log records the buses of one process: not with --link zenoh")
+    logs = _site_logs(args, cfg)
+    lives = _live_addresses(args)
+    if lives:
+        print("live: " + ", ".join(f"{s} ws://{a}" for s, a in lives.items())
+              + " (Foxglove: Open connection, Foxglove WebSocket)", file=sys.stderr,
+              flush=True)  # fmt: skip
     cpus = sorted(os.sched_getaffinity(0))
     with tempfile.TemporaryDirectory(prefix="teleop-rt-sites-") as tmp:
         children = {}
@@ -70,6 +108,9 @@ def run_two_sites(args, cfg) -> int:
                     cmd += ["--backend", name]
             if args.duration is not None:
                 cmd += ["--duration", str(args.duration)]
+            cmd += ["--log", str(logs[site])] if logs else ["--no-log"]
+            if lives:
+                cmd += ["--live", str(lives[site])]
             if args.max_missed is not None:
                 cmd += ["--max-missed", str(args.max_missed)]
             cmd += ["--overrun", args.overrun]
@@ -97,13 +138,65 @@ def run_two_sites(args, cfg) -> int:
             pair = {"ticks": ticks, "t_p": t_p, "t_tau": t_tau,
                     "t_p_total": sum(t_p), "t_tau_total": sum(t_tau)}  # fmt: skip
     combined = {"name": cfg.name, "link": "zenoh", "pair": pair, "sites": summaries,
-                "exit_codes": codes}  # fmt: skip
+                "exit_codes": codes,
+                "logs": {s: str(p) for s, p in logs.items()} if logs else None}  # fmt: skip
     if args.json:
         json.dump(combined, sys.stdout, indent=2)
         print()
     else:
         print_pair_summary(combined)
     return max(codes.values(), key=lambda c: (c != 0, c))
+
+
+def _site_logs(args, cfg) -> dict[str, Path] | None:
+    """Each site's log path (None: --no-log); refused now if either exists."""
+    from teleop_rt.recording.recorder import LogPathError
+    from teleop_rt.recording.site_log import default_pair_base, site_log_path
+
+    if args.no_log:
+        return None
+    base = Path(args.log_out) if args.log_out else default_pair_base(cfg.name)
+    logs = {site: site_log_path(base, site) for site in ("hsi", "to")}
+    for path in logs.values():
+        if path.exists():
+            raise LogPathError(f"--log {base}: {path} exists; choose another path")
+    return logs
+
+
+def _live_addresses(args) -> dict:
+    """--live HOST:PORT: the HSI site at PORT, the TO at PORT + 1; port 0: two free ones."""
+    from teleop_rt.cli import _live_arg
+    from teleop_rt.recording.live import LiveAddress
+
+    live = _live_arg(args)
+    if live is None:
+        return {}
+    if live.port == 0:
+        ports = _free_ports(live.host, 2)
+    elif live.port < 65535:
+        ports = [live.port, live.port + 1]
+    else:
+        raise ConfigError(f"--live {live}: the TO site takes PORT + 1; choose a lower port")
+    pairs = zip(("hsi", "to"), ports, strict=True)
+    return {site: LiveAddress(live.host, port) for site, port in pairs}
+
+
+def _free_ports(host: str, count: int) -> list[int]:
+    import socket
+
+    socks = []
+    try:
+        for _ in range(count):
+            s = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
+            socks.append(s)
+            try:
+                s.bind((host, 0))
+            except OSError as err:
+                raise ConfigError(f"--live {host}:0: cannot bind there ({err.strerror})") from None
+        return [s.getsockname()[1] for s in socks]
+    finally:
+        for s in socks:
+            s.close()
 
 
 def _wait(children: dict, timeout_s: float) -> dict:

@@ -136,6 +136,34 @@ def print_comparison(
     console.print(table)
 
 
+def print_site_comparison(out: dict, console: Console | None = None) -> None:
+    """A site log's figures and its replay's (``teleop_rt.recording.site_replay``)."""
+    console = console or Console()
+    what = ", ".join(out["overrides"]) if out["overrides"] else "no overrides"
+    table = Table(title=f"replay of the {out['site']} site against its partner's logged packets "
+                  f"({what})", title_justify="left")  # fmt: skip
+    table.add_column("figure", style="bold")
+    table.add_column("original (log)")
+    table.add_column("replay")
+    a, b = out["original"], out["replay"]
+    error = "tau_h - tau_c" if out["site"] == "hsi" else "omega_t - v_t"
+    rows = [
+        ("ticks", str(a["ticks"]), str(b["ticks"])),
+        ("port energy (J)", f"{a['port_energy_j']:.4g}", f"{b['port_energy_j']:.4g}"),
+        ("its minimum (J)", f"{a['min_port_energy_j']:.4g}", f"{b['min_port_energy_j']:.4g}"),
+        (f"int ({error})^2 dt per joint", _fmt(a["controller_input"]),
+         _fmt(b["controller_input"])),
+        ("  total", f"{a['controller_input_total']:.4g}", f"{b['controller_input_total']:.4g}"),
+        ("safety stop", "yes" if a["safety_stop"] else "no", "yes" if b["safety_stop"] else "no"),
+    ]  # fmt: skip
+    for row in rows:
+        table.add_row(*row)
+    same = "identical to the log's" if out["identical"] else "differ from the log's"
+    table.add_row("signals", "", f"{same} (max |q - q_log| {out['max_abs_q_difference_rad']:.3g}"
+                  " rad)")  # fmt: skip
+    console.print(table)
+
+
 def _link_text(link: dict) -> str:
     peer = link.get("from_peer") or {}
     delay = peer.get("delay_ticks") or {}
@@ -165,6 +193,9 @@ def print_site_summary(summary, console: Console | None = None) -> None:
         table.add_row("stopped early", summary.stopped_early)
     for note in summary.notes:
         table.add_row("note", note)
+    if summary.log is not None:
+        whole = (summary.recording or {}).get("complete")
+        table.add_row("log", summary.log + ("" if whole else " (INCOMPLETE)"))
     console.print(table)
 
 
@@ -190,4 +221,7 @@ def print_pair_summary(combined: dict, console: Console | None = None) -> None:
         table.add_row(f"{name} link", _link_text(s["link"]))
         if s.get("stopped_early"):
             table.add_row(f"{name} stopped", s["stopped_early"])
+        if s.get("log"):
+            whole = (s.get("recording") or {}).get("complete")
+            table.add_row(f"{name} log", s["log"] + ("" if whole else " (INCOMPLETE)"))
     console.print(table)

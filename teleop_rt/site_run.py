@@ -3,9 +3,11 @@
 The site builds its robot's loop (``teleop_rt.site``) and its end of the network link
 (``teleop_rt.com.zenoh_link``), shakes hands with its peer before its backend starts, and runs
 its own real-time loop (``teleop_rt.runner``) with its own clock, signals, staged stop and
-summary. It keeps every tick's joint angles and measured torque (``TickRecord``, preallocated)
-so that a parent that ran both sites can compute T_p and T_tau of the pair (eq 18), aligned by
-tick: both sites start their tick clocks at the instant the handshake agreed on.
+summary, and its own log (``teleop_rt.recording.site_log``: the same recorder and writer as a
+session's). It keeps every tick's joint angles and measured torque (``TickRecord``,
+preallocated) so that a parent that ran both sites can compute T_p and T_tau of the pair (eq
+18) with or without logs, aligned by tick: both sites start their tick clocks at the instant
+the handshake agreed on (``teleop_rt.recording.pair`` does the same from the two logs).
 """
 
 from __future__ import annotations
@@ -14,14 +16,19 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from teleop_rt.com.zenoh_link import ZenohLink
+from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink
 from teleop_rt.config import SessionConfig
 from teleop_rt.loop import TickClock
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest
+
+if TYPE_CHECKING:
+    from teleop_rt.recording.live import LiveAddress
+    from teleop_rt.recording.recorder import Recorder
 
 SENDER_PRIORITY = 81  # the link's sender thread: above the loop's SCHED_FIFO 80
 
@@ -45,6 +52,8 @@ class SiteSummary:
     stop_signal: int | None = None
     safety_stop: bool = False
     saturated_ticks: int = 0
+    log: str | None = None  # this site's log, and whether it holds every tick (``status()``)
+    recording: dict | None = None
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -77,16 +86,36 @@ def run_site(
     max_missed: int | None = None,
     record: Path | None = None,
     on_peer: Callable[[str], None] | None = None,
+    log: Path | None = None,
+    live: LiveAddress | None = None,
+    metadata: dict[str, str] | None = None,
+    on_live: Callable[[LiveAddress], None] | None = None,
 ) -> SiteSummary:
-    """Run site ``name`` ('hsi' or 'to') of ``cfg`` against its peer over the config's link."""
+    """Run site ``name`` ('hsi' or 'to') of ``cfg`` against its peer over the config's link;
+    ``log``: record it there (``live``: and serve it, from the log's writer); ``metadata``:
+    further ``teleop_rt`` metadata of the log (the command line's config path and overrides)."""
     site: Site = (HsiSite if name == "hsi" else ToSite)(cfg, backend)
     site.warm_up()
-    link = ZenohLink(cfg, site.side, site.n, lambda: site.tick)
+    ZenohLink.check(cfg)
+    # the log's writer is forked before Zenoh starts its threads
+    recorder = _site_recorder(site, log, live, metadata) if log is not None else None
+    try:
+        link = ZenohLink(cfg, site.side, site.n, lambda: site.tick)
+    except BaseException:
+        if recorder is not None:
+            recorder.discard()
+        raise
+    if recorder is not None:
+        link.arrival = recorder.session.arrival
+        if recorder.live is not None and on_live is not None:
+            on_live(recorder.live)
     ticks = TickRecord(cfg.n_ticks, site.n)
     start_ns = [0]
 
     def handshake() -> None:
         start_ns[0] = link.handshake()
+        if recorder is not None:  # log times count from the agreed instant, on both sites
+            recorder.describe({"session_id": f"{link.session_id:x}"}, start_ns=start_ns[0])
         if on_peer is not None:
             on_peer(f"the {link.peer} site answered (session {link.session_id:x}); starting")
 
@@ -129,6 +158,7 @@ def run_site(
                 stop_signal=out.stop.signum,
                 safety_stop=out.safety_stop,
                 saturated_ticks=site.guard.saturated_ticks,
+                log=None if recorder is None else str(recorder.path),
             )  # fmt: skip
         )
         return summary[0].to_dict()
@@ -137,23 +167,36 @@ def run_site(
         run_loop(
             step, cfg.n_ticks, cfg.dt, [site.backend], stop_safely, realtime=realtime,
             overrun=overrun, max_missed=max_missed, before_start=handshake, at_start=at_start,
-            finish=finish,
+            finish=finish, recorder=recorder,
         )  # fmt: skip
+    except HandshakeError:
+        if recorder is not None:  # no session: no log of one
+            recorder.discard()
+        raise
     finally:
         link.close()
         if record is not None:
             ticks.save(record)
+    if recorder is not None:
+        summary[0].recording = recorder.status()
     return summary[0]
+
+
+def _site_recorder(
+    site: Site, path: Path, live: LiveAddress | None, metadata: dict[str, str] | None
+) -> Recorder:
+    from teleop_rt.recording.recorder import Recorder
+    from teleop_rt.recording.site_log import SiteLogSource
+
+    return Recorder(SiteLogSource(site), path, metadata=metadata, live=live)
 
 
 def pair_transparency(hsi: Path, to: Path, dt: float) -> tuple[list[float], list[float], int]:
     """T_p and T_tau (eq 18) per joint of two sites' tick records, aligned by tick (both sites
     count ticks from the instant they agreed to start); the ticks both ran."""
-    from teleop_rt.analysis.transparency import transparency
+    from teleop_rt.recording.metrics import transparency_sums
 
     a, b = np.load(hsi), np.load(to)
     k = min(len(a["q"]), len(b["q"]))
-    if k == 0:
-        return [0.0], [0.0], 0
-    t_p, t_tau = transparency(a["q"][:k], b["q"][:k], a["tau"][:k], b["tau"][:k], dt)
-    return t_p.tolist(), t_tau.tolist(), k
+    t_p, t_tau = transparency_sums(a["q"][:k], b["q"][:k], a["tau"][:k], b["tau"][:k], dt)
+    return t_p, t_tau, k

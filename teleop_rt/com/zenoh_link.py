@@ -12,6 +12,9 @@ clock; the TO starts only once it has heard the HSI (its robot is not enabled be
 start their tick clocks at that instant, so that their tick counts agree (on one host exactly;
 across hosts as well as their clocks agree: see README, "Two sites over a network").
 
+Per tick the link can say which of the peer's packets it handed the site (``Arrival``: its
+sender tick, the tick it arrived at, its one-way delay, or none): a site's log records it.
+
 A site that hears nothing from its peer for ``link.peer_timeout_ms`` stops its robot: the
 silence is a ``SafetyStop`` raised at the tick that notices it (the staged stop follows).
 """
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import random
 import threading
 import time
@@ -33,11 +37,31 @@ from teleop_rt.com.port import HSI, Packet
 from teleop_rt.com.wire import WireBuffer, encode_into
 from teleop_rt.com.zenoh_transport import ZenohTransport, zenoh_config
 from teleop_rt.errors import ConfigError, SafetyStop, TeleopError
+from teleop_rt.flat import Block, Scalar
 
 if TYPE_CHECKING:
     from teleop_rt.config import SessionConfig
 
 NAMES = ("hsi", "to")
+ARRIVAL_SLOTS = 4096  # arrivals remembered by sender tick (at least 2 (D + early slack) + 1)
+
+
+class Arrival(Block):
+    """The peer's packet a site used this tick, as floats for the site's log row."""
+
+    sender_tick = Scalar("the peer's tick of the packet used; -1: none was there")
+    arrival_tick = Scalar("this site's tick when it arrived; -1: none")
+    one_way_delay_us = Scalar("its sender's time to its arrival (one host); NaN: none")
+    valid = Scalar("1: the packet due was there; 0: a zero packet")
+
+    def __init__(self) -> None:
+        super().__init__(1)
+        self.none()
+
+    def none(self) -> None:
+        self.sender_tick = self.arrival_tick = -1.0
+        self.one_way_delay_us = math.nan
+        self.valid = 0.0
 
 
 class HandshakeError(TeleopError):
@@ -65,11 +89,7 @@ class ZenohLink(Link):
     def __init__(self, cfg: SessionConfig, side: int, n: int, clock_tick: Any) -> None:
         """``clock_tick()``: the site's current tick (where an arrival is counted)."""
         spec = cfg.link
-        if cfg.delay_ticks < 1:
-            raise ConfigError(
-                "channel.delay_ms: a link between processes needs a delay of at least one tick "
-                f"({1000.0 / cfg.rate_hz:g} ms): the packets take time"
-            )
+        self.check(cfg)
         self.cfg, self.side, self.n = cfg, side, n
         self.name, self.peer = NAMES[side], NAMES[1 - side]
         self.base = f"{spec.key}/{cfg.name}"
@@ -95,7 +115,20 @@ class ZenohLink(Link):
         # CLOCK_MONOTONIC: across hosts this is meaningless and only ticks compare)
         self.delays_ns = np.zeros(cfg.n_ticks + 10_000, dtype=np.int64)
         self.n_delays = 0
+        # per sender tick (modulo the slots): when its first copy arrived, and its delay
+        slots = max(ARRIVAL_SLOTS, 2 * (cfg.delay_ticks + 64))
+        self._arrived = np.full((slots, 3), -1, dtype=np.int64)  # sender tick, tick, delay ns
+        self.arrival: Arrival | None = None  # filled at every receive when set
         self._warm_up()
+
+    @staticmethod
+    def check(cfg: SessionConfig) -> None:
+        """ConfigError if ``cfg`` cannot run over a network (before anything is opened)."""
+        if cfg.delay_ticks < 1:
+            raise ConfigError(
+                "channel.delay_ms: a link between processes needs a delay of at least one tick "
+                f"({1000.0 / cfg.rate_hz:g} ms): the packets take time"
+            )
 
     def _warm_up(self) -> None:
         """Load (or compile) the codec's and the playout's kernels now, not at the first tick:
@@ -185,12 +218,19 @@ class ZenohLink(Link):
         if receiver is None:
             return
         with self._lock:  # the playout's kernels release the GIL: one thread at a time
-            status = receiver.arrive(self._tick(), data)
+            k = self._tick()
+            status = receiver.arrive(k, data)
+            if status == 0:
+                now = time.monotonic_ns()
+                delay = now - receiver.decoder.sender_time_ns
+                s = receiver.decoder.seen_tick
+                row = self._arrived[s % len(self._arrived)]
+                if row[0] != s:  # the first copy's
+                    row[0], row[1], row[2] = s, k, delay
         if status == 0:
-            now = time.monotonic_ns()
             self.last_arrival_ns = now
             if self.n_delays < self.delays_ns.size:
-                self.delays_ns[self.n_delays] = now - receiver.decoder.sender_time_ns
+                self.delays_ns[self.n_delays] = delay
                 self.n_delays += 1
 
     def send(self, side: int, packet: Packet) -> None:
@@ -205,7 +245,21 @@ class ZenohLink(Link):
                 f"(link.peer_timeout_ms = {self.cfg.link.peer_timeout_ms:g})"
             )
         with self._lock:
-            self.receiver.take(k, into)
+            used = self.receiver.take(k, into)
+            if self.arrival is not None:
+                self._note_arrival(used, into.tick)
+
+    def _note_arrival(self, used: int, s: int) -> None:
+        a = self.arrival
+        row = self._arrived[s % len(self._arrived)]
+        if not used:
+            a.none()
+        elif row[0] == s:
+            a.sender_tick, a.arrival_tick = s, row[1]
+            a.one_way_delay_us, a.valid = row[2] / 1e3, 1.0
+        else:  # (a packet is stored only after it was noted: not reached)
+            a.sender_tick, a.valid = s, 1.0
+            a.arrival_tick, a.one_way_delay_us = -1.0, math.nan
 
     def end_tick(self, side: int) -> None:
         data = encode_into(self._wire, self._packet, self.session_id, time.monotonic_ns())

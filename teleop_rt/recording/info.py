@@ -20,8 +20,7 @@ def log_info(data: LogData) -> dict:
     """Everything ``info`` reports, as plain JSON-able values."""
     meta = data.meta
     ticks = data.ticks
-    hsi = data.topics.get("/hsi")
-    first = int(hsi["tick"][0]) if ticks else None
+    first = int(data.topics[data.layout.topics[0].name]["tick"][0]) if ticks else None
     cfg = _config(data)
     return {
         "path": str(data.path),
@@ -45,6 +44,8 @@ def log_info(data: LogData) -> dict:
             for name, (kind, count) in data.other_topics.items()
         ],
         "name": meta.get("name"),
+        "site": data.site or None,  # a site's own log: which, and its session
+        "session_id": meta.get("session_id"),
         "config": meta.get("config"),
         "overrides": _json_list(meta.get("overrides")),
         "replay_of": meta.get("replay_of"),
@@ -115,8 +116,13 @@ def _headline(summary: dict | None) -> dict | None:
     if summary is None:
         return None
     timing = summary.get("timing", {})
-    keys = ("t_p_total", "t_tau_total", "channel_energy_j", "min_channel_energy_j", "realtime")
+    keys = ("t_p_total", "t_tau_total", "channel_energy_j", "min_channel_energy_j", "realtime",
+            "port_energy_j")  # fmt: skip
     out = {k: summary.get(k) for k in keys}
+    link = summary.get("link")
+    if isinstance(link, dict) and isinstance(link.get("from_peer"), dict):  # a site's
+        peer = link["from_peer"]
+        out["from_peer"] = {k: peer.get(k) for k in ("received", "used", "lost", "late")}
     out.update(
         missed_deadlines=timing.get("missed_deadlines"),
         late_over_period=timing.get("late_over_period"),
@@ -139,6 +145,8 @@ def format_info(info: dict) -> str:
         ("ticks", f"{info['ticks']} at {info['rate_hz']:g} Hz" + _first(info["first_tick"])),
         ("session", f"{info['name']}, delay {info['delay_ms']:g} ms"),
     ]
+    if info["site"]:
+        rows.append(("site", f"{info['site']} (session {info['session_id'] or '?'})"))
     if info["config"]:
         rows.append(("config", info["config"]))
     if info["replay_of"]:
@@ -162,6 +170,18 @@ def format_info(info: dict) -> str:
     s = info["summary"]
     if s is None:
         rows.append(("summary", "none"))
+    elif info["site"]:
+        peer = s.get("from_peer") or {}
+        rows += [
+            ("port energy (J)", _g(s["port_energy_j"])),
+            ("peer's packets", ", ".join(f"{k} {peer.get(k)}" for k in peer) or "?"),
+            ("mode", "real time" if s["realtime"] else "fast"),
+            (
+                "missed deadlines",
+                f"{s['missed_deadlines']} (a period late: {s['late_over_period']})",
+            ),
+            ("stopped early", s["stopped_early"] or "no"),
+        ]
     else:
         rows += [
             ("T_p total (rad^2 s)", _g(s["t_p_total"])),

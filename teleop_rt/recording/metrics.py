@@ -32,14 +32,8 @@ def log_metrics(data: LogData, offset: np.ndarray | None = None) -> dict:
     """
     hsi, to, channel, timing = (data.topics[name] for name in TOPICS)
     n, dt = len(hsi), data.dt
-    q_h, q_t = hsi["q"], to["q"]
-    if offset is None:
-        offset = q_h[0] - q_t[0] if n else np.zeros(data.layout.n)
-    e = q_h - q_t - offset
-    t_p = _sequential_sum(e * e * dt, data.layout.n)
-    tau_e = -to["tau_ext"]  # torque the TO applies to the environment, as the session
-    e = hsi["tau_ext"] - tau_e
-    t_tau = _sequential_sum(e * e * dt, data.layout.n)
+    # tau_e: the torque the TO applies to the environment, as the session has it
+    t_p, t_tau = transparency_sums(hsi["q"], to["q"], hsi["tau_ext"], -to["tau_ext"], dt, offset)
     energy = channel["total_energy"]
     finite = energy[~np.isnan(energy)]
     return {
@@ -60,6 +54,26 @@ def log_metrics(data: LogData, offset: np.ndarray | None = None) -> dict:
         "truncated": data.truncated,
         "cut_reason": data.cut_reason,
     }
+
+
+def transparency_sums(
+    q_h: np.ndarray,
+    q_t: np.ndarray,
+    tau_h: np.ndarray,
+    tau_e: np.ndarray,
+    dt: float,
+    offset: np.ndarray | None = None,
+) -> tuple[list[float], list[float]]:
+    """T_p and T_tau per joint (eq 18) of aligned (ticks, joints) series, with the live
+    accumulator's arithmetic; ``offset``: q_h - q_t at the session start (default: the first
+    row's). The one function for a session's log, two sites' logs and their tick records."""
+    n = q_h.shape[1]
+    if offset is None:
+        offset = q_h[0] - q_t[0] if len(q_h) else np.zeros(n)
+    e = q_h - q_t - offset
+    t_p = _sequential_sum(e * e * dt, n)
+    e = tau_h - tau_e
+    return t_p, _sequential_sum(e * e * dt, n)
 
 
 def _sequential_sum(terms: np.ndarray, n: int) -> list[float]:

@@ -27,7 +27,7 @@ from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Header, Metadata, Schema
 
 from teleop_rt.errors import TeleopError, quote
-from teleop_rt.recording.schema import CDR_HEADER, SCHEMA_VERSION, LogLayout, Topic
+from teleop_rt.recording.schema import CDR_HEADER, SCHEMA_VERSION, SITES, LogLayout, Topic
 
 if TYPE_CHECKING:
     from teleop_rt.config import SessionConfig
@@ -88,6 +88,15 @@ class LogData:
     @property
     def ticks(self) -> int:
         return min((len(a) for a in self.topics.values()), default=0)
+
+    @property
+    def site(self) -> str:
+        """'hsi' or 'to' for a site's own log (``teleop-rt site``), '' for a session's."""
+        return self.layout.site
+
+    def what(self) -> str:
+        """What the log is, in words (for messages that refuse it)."""
+        return _what(self.layout, self.meta)
 
     damaged: dict[str, str] = field(default_factory=dict)  # attachment name -> what is wrong
 
@@ -162,7 +171,8 @@ def read_log(
     t_from: float | None = None,
     t_to: float | None = None,
 ) -> LogData:
-    """Read ``topics`` (default: all four) of the ticks k with ``t_from <= k / rate_hz < t_to``.
+    """Read ``topics`` (default: all the log has) of the ticks k with
+    ``t_from <= k / rate_hz < t_to``.
 
     A file cut short (no footer, or no ``teleop_rt.summary``) is read up to its last complete
     chunk and flagged ``truncated`` with a ``cut_reason``. Anything else wrong raises LogError.
@@ -282,6 +292,11 @@ class _Reader:
         wanted = {t.name: t for t in layout.topics}
         names = list(wanted) if topics is None else list(topics)
         unknown = [n for n in names if n not in wanted]
+        if unknown and (layout.site or {"/port", "/link"} & set(unknown)):
+            hint = " (metrics HSI.mcap TO.mcap takes both sites' logs)" if layout.site else ""
+            raise self.fail(
+                f"{_what(layout, meta)}: it holds no {', '.join(unknown)}{hint}"
+            )  # fmt: skip
         if unknown:
             raise ValueError(f"unknown topic(s) {unknown}; a log has {list(wanted)}")
         first, stop, lo, hi = _window(float(meta["rate_hz"]), t_from, t_to)
@@ -446,7 +461,10 @@ class _Reader:
             )
         if ints["joints"] < 1:
             raise self.fail(f"'{META}' metadata: joints = 0")
-        return LogLayout(ints["joints"], ints["env_elements"]), meta
+        site = meta.get("site", "") if meta.get("log_kind") == "site" else ""
+        if site not in ("", *SITES):
+            raise self.fail(f"'{META}' metadata: site = {quote(site)} is neither hsi nor to")
+        return LogLayout(ints["joints"], ints["env_elements"], site), meta
 
     def _decode(self, topic: Topic, parts: list[np.ndarray]) -> np.ndarray:
         channels = [c for c in self.channels.values() if c.topic == topic.name]
@@ -532,6 +550,12 @@ def _gaps(
     bounds = np.concatenate(([first - 1], tick, [end]))
     jumps = np.flatnonzero(np.diff(bounds) > 1)
     return [(int(bounds[j]) + 1, int(bounds[j + 1]) - 1) for j in jumps]
+
+
+def _what(layout: LogLayout, meta: dict[str, str]) -> str:
+    if layout.site:
+        return f"the {layout.site} site's log of session {meta.get('session_id', '?')}"
+    return "a session's log (both robots)"
 
 
 def check_window(t_from: float | None, t_to: float | None) -> None:

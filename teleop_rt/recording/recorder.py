@@ -30,9 +30,10 @@ import resource
 import signal
 import struct
 import time
+from dataclasses import dataclass
 from multiprocessing.shared_memory import SharedMemory
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
@@ -58,6 +59,7 @@ from teleop_rt.version import software_version
 
 if TYPE_CHECKING:
     from teleop_rt.recording.live import LiveAddress
+    from teleop_rt.recording.scene import SceneSpec
     from teleop_rt.session import Session
 
 DEFAULT_LOG_DIR = Path("logs")
@@ -106,16 +108,40 @@ def create_log_file(path: Path) -> Path:
     return path
 
 
+@dataclass
+class LogParts:
+    """What a log is made of: its layout, where each ring column sits in the source's packed
+    state, the environment's shifts (for the scene), its metadata, attachments and 3D scene."""
+
+    layout: LogLayout
+    gather: np.ndarray
+    shifts: np.ndarray
+    metadata: dict[str, str]
+    attachments: dict[str, bytes]
+    scene: SceneSpec | None
+
+
+def session_parts(session: Session) -> LogParts:
+    """A one-process session's log: both robots, the channel, the timing."""
+    layout = LogLayout(session.n, len(session.cfg.environment))
+    return LogParts(
+        layout, row_sources(session, layout), shift_sources(session), _metadata(session),
+        _attachments(session), scene_spec(session),
+    )  # fmt: skip
+
+
 class Recorder:
     """Owns the ring and the writer process of one log file, and the policy on losing rows.
 
+    ``session``: a one-process ``Session``, or any source with ``cfg``, ``n``, ``dt``,
+    ``packed``, ``tick`` and ``log_parts()`` (a site's own log: ``teleop_rt.recording.site_log``).
     ``wait_for_room``: a full ring waits for the writer (fast mode with simulated robots only:
     nothing real is held) instead of dropping the row. ``metadata``: further ``teleop_rt``
     metadata keys (the CLI's config path and overrides)."""
 
     def __init__(
         self,
-        session: Session,
+        session: Session | Any,
         path: Path,
         capacity: int | None = None,
         wait_for_room: bool = False,
@@ -124,7 +150,8 @@ class Recorder:
     ) -> None:
         cfg = session.cfg
         self.path = create_log_file(Path(path))
-        self.layout = LogLayout(session.n, len(cfg.environment))
+        parts = session.log_parts() if hasattr(session, "log_parts") else session_parts(session)
+        self.layout = parts.layout
         self.session = session
         width = self.layout.ring_width
         if capacity is None:
@@ -150,8 +177,8 @@ class Recorder:
         # signal column of a row sits in the session's packed state
         self.ring = np.ndarray((capacity, width), np.float64, self.shm.buf, CONTROL_BYTES)
         self.ring.fill(0.0)  # its pages now, not as page faults on the tick path
-        self.gather = row_sources(session, self.layout)
-        self.shifts = shift_sources(session)  # for the 3D scene only (ring_width)
+        self.gather = parts.gather
+        self.shifts = parts.shifts  # for the 3D scene only (ring_width)
         fill_row(
             np.zeros(width), session.packed.f, self.gather, self.shifts, 0, 0.0, 0, 0, False
         )  # load (or compile) the kernel now
@@ -166,6 +193,7 @@ class Recorder:
         self.writer_gone = False
         self._full = False  # the ring was full at the last look
         self._period_ns = round(cfg.dt * 1e9)
+        self._start_fixed = False  # describe() gave the start instant
         # the session's start on the wall clock: now, until the first tick says when it ran
         self._count.pack_into(self.buf, START_NS * 8, time.time_ns())
         # fork: the writer starts in milliseconds (spawn would re-import numpy and mcap, and
@@ -179,13 +207,13 @@ class Recorder:
             args=(
                 self.shm.name,
                 capacity,
-                (self.layout.n, self.layout.n_env),
+                (self.layout.n, self.layout.n_env, self.layout.site),
                 str(self.path),
                 self._period_ns,
-                {**_metadata(session), **(metadata or {})},
-                _attachments(session),
+                {**parts.metadata, **(metadata or {})},
+                parts.attachments,
                 self._summary_rx,
-                scene_spec(session),
+                parts.scene,
                 live,
                 live_tx,
             ),
@@ -226,6 +254,18 @@ class Recorder:
         self.path.unlink()  # created empty by this recorder; nothing was written
         raise LiveError(f"--live {asked}: cannot serve the session there ({why})")
 
+    def describe(self, metadata: dict[str, str], start_ns: int | None = None) -> None:
+        """Before the first tick: further ``teleop_rt`` metadata learnt after the writer started
+        (a site's session id, from its handshake) and, if given, the instant tick 0 is due at,
+        which log times count from (a site's: the one agreed with its peer), instead of when it
+        ran."""
+        if self.published:
+            raise RuntimeError("describe() comes before the first tick")
+        if start_ns is not None:
+            self._count.pack_into(self.buf, START_NS * 8, start_ns)
+            self._start_fixed = True
+        self._summary_tx.send(("metadata", metadata))
+
     def record(self, compute_ns: int, lateness_ns: int, missed: bool) -> None:
         """Copy the tick the session just ran (its tick - 1) into the ring and publish it, or
         drop it if the writer cannot take it; raise ``RecordingFailure`` on a loss when the
@@ -233,7 +273,7 @@ class Recorder:
         s = self.session
         k = s.tick - 1
         i = self.published
-        if i == 0:  # once: UTC of tick 0, which log times count from (read before PUBLISHED)
+        if i == 0 and not self._start_fixed:  # UTC of tick 0 (read before PUBLISHED)
             start = time.time_ns() - compute_ns - k * self._period_ns
             self._count.pack_into(self.buf, START_NS * 8, start)
         if (
@@ -343,7 +383,7 @@ class Recorder:
         try:
             try:
                 if summary is not None:
-                    self._summary_tx.send({**summary, "recording": self.status()})
+                    self._summary_tx.send(("summary", {**summary, "recording": self.status()}))
                 self._count.pack_into(self.buf, CLOSED * 8, 1)
                 self._finish()
             except KeyboardInterrupt:  # a second Ctrl-C: the user will not wait
@@ -353,6 +393,14 @@ class Recorder:
             self.shm.close()
             self.shm.unlink()
         return self.status()
+
+    def discard(self) -> None:
+        """Before the first tick, when the run cannot start (its link cannot open, the peer
+        never answered): end the writer and remove the file, which holds no tick."""
+        if not self.closed:
+            self.close(None)
+        if self.published == 0:
+            self.path.unlink(missing_ok=True)
 
     def _finish(self) -> None:
         progress, since = self._progress(), time.monotonic()
@@ -397,35 +445,48 @@ def _ended(exitcode: int | None) -> str:
     return f"exited with code {exitcode}"
 
 
+ROBOT_SOURCES = {
+    "q": "feedback.q", "v": "feedback.v", "tau_ext": "feedback.tau_ext",
+    "tau_cmd": "computed_torque.tau", "a_ref": "controller.out",
+}  # fmt: skip
+WORLD_SOURCES = {
+    "operator_reference_m": "reference",
+    "operator_reference_velocity_m_s": "reference_velocity",
+    "operator_force_n": "force",
+    "environment_force_n": "force",
+    "in_contact": "contacts",
+}
+
+
 def row_sources(session: Session, layout: LogLayout) -> np.ndarray:
     """For each signal column of a log row (between the tick and time and the timing
     columns), its position in the session's packed state."""
     packed, hsi, to, ch = session.packed, session.hsi, session.to, session.channel
-    robot = {
-        "q": "feedback.q", "v": "feedback.v", "tau_ext": "feedback.tau_ext",
-        "tau_cmd": "computed_torque.tau", "a_ref": "controller.out",
-    }  # fmt: skip
-    world = {
-        "operator_reference_m": "reference",
-        "operator_reference_velocity_m_s": "reference_velocity",
-        "operator_force_n": "force",
-        "environment_force_n": "force",
-        "in_contact": "contacts",
-    }
     out: list[int] = []
     for topic in layout.topics[:3]:  # /hsi, /to, /channel; /timing is the record's own
         site = {"/hsi": hsi, "/to": to}.get(topic.name)
+        if site is not None:
+            out += robot_columns(packed, site, topic)
+            continue
         for field in topic.fields[2:]:
-            if site is None:
-                block, name = ch.source(field.name)
-            elif field.name in robot:
-                owner, name = robot[field.name].split(".")
-                block = getattr(site, owner)
-            else:
-                block, name = site.world, world[field.name]
+            block, name = ch.source(field.name)
             first = packed.index_of(block, name)
             out += range(first, first + field.count)
     return np.array(out, dtype=np.int64)
+
+
+def robot_columns(packed, site, topic) -> list[int]:
+    """Where the fields of a robot's topic (/hsi or /to) sit in ``packed``, column by column."""
+    out: list[int] = []
+    for field in topic.fields[2:]:
+        if field.name in ROBOT_SOURCES:
+            owner, name = ROBOT_SOURCES[field.name].split(".")
+            block = getattr(site, owner)
+        else:
+            block, name = site.world, WORLD_SOURCES[field.name]
+        first = packed.index_of(block, name)
+        out += range(first, first + field.count)
+    return out
 
 
 @jit

@@ -93,13 +93,15 @@ class SceneSpec:
     environment: tuple[EnvElement, ...]
     hand: bool  # an operator hand (its reference is in /hsi)
     every: int  # ticks between two scene messages
+    sides: tuple[str, ...] = SIDES  # the robots drawn: both (a session's log) or a site's own
 
 
-def scene_spec(session: Session) -> SceneSpec | None:
-    """The scene of a session; None when a robot's URDF cannot be found (no 3D topics)."""
+def scene_spec(session: Session, sides: tuple[str, ...] = SIDES) -> SceneSpec | None:
+    """The scene of a session (or of the robots ``sides`` of it: a site's log, whose source
+    has the site under its name); None when a robot's URDF cannot be found (no 3D topics)."""
     cfg = session.cfg
     urdf, ee, start = {}, {}, {}
-    for side in SIDES:
+    for side in sides:
         text = _urdf_text(getattr(cfg, side).robot)
         if text is None:
             return None
@@ -115,9 +117,10 @@ def scene_spec(session: Session) -> SceneSpec | None:
         urdf=urdf,
         ee_frame=ee,
         tool_start=start,
-        environment=env if _simulated(session.to) else (),
-        hand=cfg.operator.kind == "hand" and _simulated(session.hsi),
+        environment=env if "to" in sides and _simulated(session.to) else (),
+        hand=cfg.operator.kind == "hand" and "hsi" in sides and _simulated(session.hsi),
         every=max(1, round(cfg.rate_hz / SCENE_HZ)),
+        sides=tuple(sides),
     )
 
 
@@ -195,7 +198,7 @@ def combined_urdf(spec: SceneSpec) -> str:
     """One URDF of both robots (names prefixed ``hsi/``, ``to/``) mounted on ``world``."""
     out = ET.Element("robot", name="teleop_rt")
     ET.SubElement(out, "link", name=WORLD)
-    for side in SIDES:
+    for side in spec.sides:
         robot = ET.fromstring(spec.urdf[side])
         prefix = f"{side}/"
         root, _ = robot_tree(spec.urdf[side])
@@ -287,7 +290,7 @@ class Scene:
     def __init__(self, spec: SceneSpec) -> None:
         self.spec = spec
         self.robots = {}
-        for side in SIDES:
+        for side in spec.sides:
             model = pin.buildModelFromXML(spec.urdf[side])
             root, joints = robot_tree(spec.urdf[side])
             body = {f.name: i for i, f in enumerate(model.frames) if f.type == pin.FrameType.BODY}
@@ -298,7 +301,7 @@ class Scene:
             ]
             ee = model.getFrameId(spec.ee_frame[side])
             self.robots[side] = (model, model.createData(), pairs, ee, f"{side}/{root}")
-        self.frames = {side: self.robots[side][4] for side in SIDES}
+        self.frames = {side: self.robots[side][4] for side in spec.sides}
         self._environment = [_Slab(el, spec.tool_start["to"]) for el in spec.environment]
 
     def static_transforms(self, stamp_ns: int):
@@ -307,7 +310,7 @@ class Scene:
         subscribes)."""
 
         out = []
-        for side in SIDES:
+        for side in self.spec.sides:
             model, data, pairs, _, root = self.robots[side]
             pin.framesForwardKinematics(model, data, pin.neutral(model))
             out.append(_transform(WORLD, root, np.array(BASES_M[side]), (0, 0, 0, 1), stamp_ns))
@@ -315,11 +318,11 @@ class Scene:
         return FrameTransforms(transforms=out)
 
     def transforms(self, q: dict[str, np.ndarray], stamp_ns: int):
-        """foxglove.FrameTransforms of the moving joints of both robots at joint angles q
+        """foxglove.FrameTransforms of the moving joints of the robots at joint angles q
         (side -> angles)."""
 
         out = []
-        for side in SIDES:
+        for side in self.spec.sides:
             model, data, pairs, _, _ = self.robots[side]
             pin.framesForwardKinematics(model, data, q[side])
             out += [self._relative(data, p, stamp_ns) for p in pairs if not p[4]]
@@ -496,7 +499,7 @@ class SceneChannels:
         for i in np.flatnonzero(ticks % self.every == 0).tolist():
             row, k = rows[i], int(ticks[i])
             stamp = start_ns + k * period_ns
-            q = {"hsi": row[cols["hsi.q"]], "to": row[cols["to.q"]]}
+            q = {side: row[cols[f"{side}.q"]] for side in self.scene.spec.sides}
             self.tf.log(scene.transforms(q, stamp), log_time=stamp)
             if self.env is not None:
                 shifts, contacts = row[cols["shift"]], row[cols["to.in_contact"]]

@@ -13,6 +13,11 @@ Topics (n joints, E environment elements; all SI units, joint space):
   each port's balance and the energy its protection removed (``teleop_rt.com.port``)
 * ``/timing``    teleop_rt/msg/TimingTick: compute time and deadline lateness of the tick
 
+A site's own log (``teleop-rt site``, ``LogLayout(site="hsi" | "to")``) holds its robot's topic
+(``/hsi`` or ``/to``, as above), ``/port`` (teleop_rt/msg/HsiPortTick or ToPortTick: its port's
+variables, waves, power and energy under the paper's names), ``/link``
+(teleop_rt/msg/LinkTick: the peer's packet used at the tick, or none) and ``/timing``.
+
 A message's log time is wall-clock: UTC at the session start plus the tick's time, in ns since
 the epoch (``start_time_ns + k * period_ns``); the field ``t`` is the tick's time from the start.
 
@@ -24,6 +29,9 @@ Besides the messages a log holds (so that it describes itself):
   values), for a replay replay_of (the replayed log);
 * attachments ``config.yaml`` (the resolved session config) and ``urdf/hsi.urdf``,
   ``urdf/to.urdf`` when the robots came from URDF files;
+* in a site's log also log_kind ("site"), site ("hsi" or "to"), session_id (hex, from the
+  handshake), config_hash (of what both sites share) and the start time is the instant both
+  sites agreed to start at: tick k of either site's log is the same instant;
 * metadata ``teleop_rt.summary`` at the end: the live summary as JSON under the key ``json``.
   A log without it was cut short.
 """
@@ -107,15 +115,24 @@ ROBOT_FIELDS = (
 )
 
 
+# a site's port under the paper's names: (flow, effort, wave_out, wave_in) per side
+PORT_NAMES = {"hsi": ("omega_c", "tau_c", "u_l", "v_l"), "to": ("omega_t", "tau_t", "v_r", "u_r")}
+PEER_NAMES = {"hsi": ("tau_t", "v_r"), "to": ("omega_c", "u_l")}  # what the peer's packet holds
+SITES = ("hsi", "to")
+
+
 @dataclass(frozen=True)
 class LogLayout:
-    """Row layout and topics of a session with n joints and E environment elements."""
+    """Row layout and topics of a session with n joints and E environment elements, or of one
+    site's log (``site``: "hsi" or "to"; "" for a session's)."""
 
     n: int
     n_env: int
+    site: str = ""
 
     @property
     def topics(self) -> tuple[Topic, ...]:
+        """The topics in row order; /timing last (the recorder fills it, not the gather)."""
         n, e = self.n, self.n_env
         robot = [Field(name, "float64", n, doc) for name, doc in ROBOT_FIELDS]
         hsi = Topic(
@@ -164,7 +181,42 @@ class LogLayout:
                 Field("missed", "uint8", None, "1 if the tick ended after the next deadline"),
             ),
         )
-        return (hsi, to, channel, timing)
+        if not self.site:
+            return (hsi, to, channel, timing)
+        return ({"hsi": hsi, "to": to}[self.site], *self._site_topics(), timing)
+
+    def _site_topics(self) -> tuple[Topic, Topic]:
+        n, side = self.n, self.site
+        flow, effort, out, into = PORT_NAMES[side]
+        port = Topic(
+            "/port",
+            f"teleop_rt/msg/{side.capitalize()}PortTick",
+            (
+                *_common(),
+                Field(flow, "float64", n, "port flow, rad/s"),
+                Field(effort, "float64", n, "port effort, N m"),
+                Field(out, "float64", n, "the wave this port sends (eq 9)"),
+                Field(into, "float64", n, "the wave received, after the optional filter"),
+                *_joint(["power", "energy"], n, "into the channel at this port, W and J"),
+                Field("total_energy", "float64", None, "J, all joints"),
+            ),
+        )
+        peer_x, peer_wave = PEER_NAMES[side]
+        link = Topic(
+            "/link",
+            "teleop_rt/msg/LinkTick",
+            (
+                *_common(),
+                Field("sender_tick", "int64", None, "the peer's tick of the packet used; -1: none"),
+                Field("arrival_tick", "int64", None, "this site's tick it arrived at; -1: none"),
+                Field("one_way_delay_us", "float64", None, "sent to arrived, one host only"),
+                Field("x", "float64", n, f"the packet's port input ({peer_x})"),
+                Field("wave", "float64", n, f"the packet's wave ({peer_wave}), before filtering"),
+                Field("peer_energy", "float64", None, "energy through the peer's port, J"),
+                Field("valid", "uint8", None, "1: the peer's packet due was there; 0: zeros"),
+            ),
+        )
+        return port, link
 
     @property
     def row_width(self) -> int:
@@ -180,7 +232,10 @@ class LogLayout:
 
     def field_columns(self, topic: str, name: str) -> slice | None:
         """Row columns of one field of a topic (None if the topic has no such field)."""
-        start = self.columns()[topic].start
+        where = self.columns().get(topic)
+        if where is None:
+            return None
+        start = where.start
         for f in next(t for t in self.topics if t.name == topic).fields[2:]:
             if f.name == name:
                 return slice(start, start + f.count)

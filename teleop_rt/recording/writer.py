@@ -72,7 +72,7 @@ POLL_S = 0.005
 def writer_main(
     shm_name: str,
     capacity: int,
-    layout: tuple[int, int],
+    layout: tuple[int, int, str],
     path: str,
     period_ns: int,
     metadata: dict[str, str],
@@ -84,7 +84,10 @@ def writer_main(
 ) -> None:
     """Process entry point (must stay importable and picklable for 'spawn'). ``scene``: the 3D
     topics (``teleop_rt.recording.scene``); ``live``: serve the session there too, saying on
-    ``live_conn`` ("listening", address) or ("failed", why) before the first row."""
+    ``live_conn`` ("listening", address) or ("failed", why) before the first row.
+    ``summary_conn`` carries ("metadata", dict) before the first row (what the control process
+    learns after starting the writer: a site's session id, from its handshake) and
+    ("summary", dict) at the end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     _set_process_name(PROCESS_NAME)
@@ -135,6 +138,7 @@ def _write(
         compression=MCAPCompression.Lz4, chunk_size=256 * 1024, profile=PROFILE
     )
     sink = _Sink(path, ctrl)
+    inbox = _Inbox(summary_conn, metadata)
     writer = foxglove.open_mcap(sink, context=context, writer_options=options)
     channels = [
         foxglove.Channel(
@@ -176,7 +180,7 @@ def _write(
                 rows = np.concatenate([ring[start_slot:], ring[:end_slot]])
             ctrl[CONSUMED] = end  # the slots are copied: the producer may reuse them
             if start_ns is None:
-                start_ns = _describe(writer, int(ctrl[START_NS]), metadata, attachments)
+                start_ns = _describe(writer, int(ctrl[START_NS]), inbox.metadata(), attachments)
                 if scene is not None:
                     scene.describe(start_ns)
             _emit(rows, encoders, layout, period_ns, start_ns)
@@ -194,8 +198,8 @@ def _write(
             break
         time.sleep(POLL_S)
     if start_ns is None:  # no tick ran
-        _describe(writer, int(ctrl[START_NS]), metadata, attachments)
-    summary = None if sink.failed else _receive_summary(summary_conn)
+        _describe(writer, int(ctrl[START_NS]), inbox.metadata(), attachments)
+    summary = None if sink.failed else inbox.summary()
     if summary is not None:
         writer.write_metadata("teleop_rt.summary", {"json": json.dumps(summary)})
     writer.close()  # after a write error the sink drops this too
@@ -287,10 +291,34 @@ def _emit(rows: np.ndarray, encoders, layout: LogLayout, period_ns: int, start_n
             log(data[i * size : (i + 1) * size], log_time=stamp)
 
 
-def _receive_summary(conn: Any) -> dict | None:
-    try:
-        if conn.poll(0.5):
-            return conn.recv()
-    except (EOFError, OSError):
-        pass
-    return None
+class _Inbox:
+    """What the control process sends on the pipe: metadata it learnt after starting the
+    writer (taken when the first row comes), and the summary at the end."""
+
+    def __init__(self, conn: Any, metadata: dict[str, str]) -> None:
+        self.conn, self.meta = conn, dict(metadata)
+        self.last: dict | None = None
+
+    def _take(self, timeout: float) -> bool:
+        """One message, if one comes within ``timeout``; False if none (or the pipe closed)."""
+        try:
+            if not self.conn.poll(timeout):
+                return False
+            kind, body = self.conn.recv()
+        except (EOFError, OSError, ValueError, TypeError):
+            return False
+        if kind == "metadata":
+            self.meta.update(body)
+        else:
+            self.last = body
+        return True
+
+    def metadata(self) -> dict[str, str]:
+        while self._take(0.0):
+            pass
+        return self.meta
+
+    def summary(self) -> dict | None:
+        while self.last is None and self._take(0.5):
+            pass
+        return self.last

@@ -1,0 +1,111 @@
+"""A site's own log (``teleop-rt site``): its robot, its port, the peer's packets it used, its
+timing; written by the same recorder and writer as a session's log (``Recorder``), so the
+same rules hold: the tick only copies a row into the ring, a full ring drops and counts,
+a dead or failing writer is noticed, closing is bounded, an incomplete log is exit code 4.
+
+Topics (``LogLayout(site=...)``): the site's robot as in a session's log (``/hsi`` or
+``/to``), ``/port`` (its port under the paper's names), ``/link`` (per tick: the peer's packet
+used, or none, with its sender tick, the tick it arrived at and its one-way delay), ``/timing``,
+and the 3D topics of its robot alone, placed where a session's log places it (two site logs
+opened together show both robots as one session's log does). Metadata beyond a session's:
+log_kind "site", site, config_hash (what both sites share) and, once the handshake is done
+(``Recorder.describe``), session_id; log times count from the instant both sites agreed to
+start at, so tick k of the HSI's log and of the TO's is the same instant.
+
+Paths: ``--log out.mcap`` on ``teleop-rt run --link zenoh`` gives the sites ``out.hsi.mcap``
+and ``out.to.mcap`` (``site_log_path``); by default ``logs/<name>-<UTC time>.<site>.mcap``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from teleop_rt.com.zenoh_link import Arrival, shared_parts
+from teleop_rt.flat import Packed
+from teleop_rt.recording.recorder import (
+    DEFAULT_LOG_DIR,
+    LogParts,
+    _attachments,
+    _metadata,
+    default_log_path,
+    robot_columns,
+)
+from teleop_rt.recording.scene import scene_spec, shift_sources
+from teleop_rt.recording.schema import PORT_NAMES, LogLayout
+from teleop_rt.site import Site
+
+PORT_SOURCES = ("flow", "effort", "wave_out", "wave_in", "power", "energy", "total_energy")
+LINK_SOURCES = {
+    "sender_tick": ("arrival", "sender_tick"), "arrival_tick": ("arrival", "arrival_tick"),
+    "one_way_delay_us": ("arrival", "one_way_delay_us"), "x": ("rx", "x"),
+    "wave": ("rx", "wave"), "peer_energy": ("rx", "energy"), "valid": ("arrival", "valid"),
+}  # fmt: skip
+
+
+class SiteLogSource:
+    """What the recorder reads of a site that runs alone. Building it packs the site's blocks
+    and an ``Arrival`` (what the link fills in at every receive) into one buffer, the row's
+    only source."""
+
+    def __init__(self, site: Site) -> None:
+        self.site, self.cfg, self.n, self.dt = site, site.cfg, site.n, site.dt
+        self.name = site.name
+        setattr(self, site.name, site)  # as a session has it (scene_spec, shift_sources)
+        self.arrival = Arrival()
+        self.packed = Packed([*site.blocks, self.arrival])
+        site.bind(self.packed, 0)
+
+    @property
+    def tick(self) -> int:
+        return self.site.tick
+
+    def log_parts(self) -> LogParts:
+        site, cfg = self.site, self.cfg
+        n_env = len(cfg.environment) if self.name == "to" else 0
+        layout = LogLayout(self.n, n_env, self.name)
+        robot, port, link = layout.topics[:3]
+        out = robot_columns(self.packed, site, robot)
+        for field, attr in zip(port.fields[2:], PORT_SOURCES, strict=True):
+            out += self._columns(site.port, attr, field.count)
+        for field in link.fields[2:]:
+            owner, attr = LINK_SOURCES[field.name]
+            block = self.arrival if owner == "arrival" else site.rx
+            out += self._columns(block, attr, field.count)
+        shifts = shift_sources(self) if n_env else np.zeros(0, dtype=np.int64)
+        meta = {
+            **_metadata(self),
+            "env_elements": str(n_env),
+            "log_kind": "site",
+            "site": self.name,
+            "config_hash": shared_parts(cfg, self.n)["config_hash"],
+        }
+        return LogParts(
+            layout, np.array(out, dtype=np.int64), shifts, meta, _attachments(self),
+            scene_spec(self, (self.name,)),
+        )  # fmt: skip
+
+    def _columns(self, block, attr: str, count: int) -> list[int]:
+        first = self.packed.index_of(block, attr)
+        return list(range(first, first + count))
+
+
+def site_log_path(base: str | Path, site: str) -> Path:
+    """The log of ``site`` for a two-site run logging to ``base``: ``out.mcap`` gives
+    ``out.hsi.mcap`` / ``out.to.mcap``; a path without ``.mcap`` gets ``.<site>.mcap`` added."""
+    base = Path(base)
+    if base.suffix == ".mcap":
+        return base.with_suffix(f".{site}.mcap")
+    return base.with_name(f"{base.name}.{site}.mcap")
+
+
+def default_pair_base(name: str, directory: Path | None = None) -> Path:
+    """logs/<name>-<UTC time>.mcap such that neither site's log exists (numbered if needed)."""
+    directory = DEFAULT_LOG_DIR if directory is None else directory
+    base = default_log_path(name, directory)
+    i = 1
+    while any(site_log_path(base, s).exists() for s in PORT_NAMES):
+        base = default_log_path(f"{name}-{i}", directory)
+        i += 1
+    return base
