@@ -185,6 +185,8 @@ def print_site_summary(summary, console: Console | None = None) -> None:
     table.add_column("value")
     table.add_row("ticks", f"{summary.ticks} ({summary.simulated_time_s:g} s)")
     table.add_row("energy into the channel here", f"{summary.port_energy_j:.6g} J")
+    table.add_row("channel", channel_kind(summary.channel))
+    table.add_row("protection here", protection_text(summary.channel[summary.site]))
     table.add_row("link", _link_text(summary.link))
     late = summary.timing.get("lateness_us", {})
     table.add_row("deadline lateness", f"p99 {late.get('p99', 0):.1f} us, missed "
@@ -219,6 +221,8 @@ def print_pair_summary(combined: dict, console: Console | None = None) -> None:
         table.add_row(f"{name} site", f"{s['ticks']} ticks; {energy}; exit "
                       f"{combined['exit_codes'][name]}")  # fmt: skip
         table.add_row(f"{name} link", _link_text(s["link"]))
+        if "channel" in s:
+            table.add_row(f"{name} protection", protection_text(s["channel"][name]))
         if s.get("stopped_early"):
             table.add_row(f"{name} stopped", s["stopped_early"])
         if s.get("log"):

@@ -30,7 +30,7 @@ import pinocchio as pin
 from teleop_rt.analysis.transparency import TransparencyAccumulator, accumulate
 from teleop_rt.com.channel import ChannelMonitor, monitor_step
 from teleop_rt.com.link import InProcessLink, Link
-from teleop_rt.com.port import WAVE, Port
+from teleop_rt.com.port import WAVE
 from teleop_rt.config import SessionConfig
 from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
@@ -44,7 +44,7 @@ from teleop_rt.lockstep import (
 )
 from teleop_rt.loop import TickClock
 from teleop_rt.runner import LoopOutcome, run_loop
-from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest
+from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
 
 if TYPE_CHECKING:
     from teleop_rt.recording.recorder import Recorder
@@ -126,15 +126,6 @@ class Summary:
         d["t_p_total"] = self.t_p_total
         d["t_tau_total"] = self.t_tau_total
         return d
-
-
-def channel_figures(cfg: SessionConfig, ports: dict[str, Port]) -> dict:
-    """The channel's kind and what its protection did at each port given (a summary's)."""
-    ch = cfg.channel
-    kind = {"mode": ch.mode, "playout": cfg.link.playout}
-    if ch.mode == "wave":
-        kind["reconstruction"] = ch.wave_reconstruction
-    return {**kind, **{name: port.protection() for name, port in ports.items()}}
 
 
 class Session:

@@ -237,3 +237,12 @@ def port_for(cfg: SessionConfig, n: int, side: int) -> Port:
     b = per_joint(ch.wave_impedance, n, "channel.wave_impedance")
     return make_port(side, ch.mode, b, cfg.delay_ticks, cfg.dt, ch.wave_filter_hz,
                      ch.wave_reconstruction, ch.tdpa_drift_time_s)  # fmt: skip
+
+
+def channel_figures(cfg: SessionConfig, ports: dict[str, Port]) -> dict:
+    """The channel's kind and what its protection did at each port given (a summary's)."""
+    ch = cfg.channel
+    kind = {"mode": ch.mode, "playout": cfg.link.playout}
+    if ch.mode == "wave":
+        kind["reconstruction"] = ch.wave_reconstruction
+    return {**kind, **{name: port.protection() for name, port in ports.items()}}

@@ -24,7 +24,7 @@ from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink
 from teleop_rt.config import SessionConfig
 from teleop_rt.loop import TickClock
 from teleop_rt.runner import LoopOutcome, run_loop
-from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest
+from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
 
 if TYPE_CHECKING:
     from teleop_rt.recording.live import LiveAddress
@@ -43,6 +43,7 @@ class SiteSummary:
     simulated_time_s: float
     delay_ticks: int
     port_energy_j: float  # energy that entered the channel at this site's port (eq 7, 8)
+    channel: dict  # the channel kind and its protection's activity at this port
     timing: dict
     realtime: bool
     link: dict
@@ -149,6 +150,7 @@ def run_site(
                 simulated_time_s=out.stats.count * cfg.dt,
                 delay_ticks=cfg.delay_ticks,
                 port_energy_j=site.port.total_energy,
+                channel=channel_figures(cfg, {site.name: site.port}),
                 timing=out.timing(),
                 realtime=realtime,
                 link=link.stats(),

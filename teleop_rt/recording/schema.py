@@ -15,7 +15,8 @@ Topics (n joints, E environment elements; all SI units, joint space):
 
 A site's own log (``teleop-rt site``, ``LogLayout(site="hsi" | "to")``) holds its robot's topic
 (``/hsi`` or ``/to``, as above), ``/port`` (teleop_rt/msg/HsiPortTick or ToPortTick: its port's
-variables, waves, power and energy under the paper's names), ``/link``
+variables, waves, power and energy under the paper's names, its balance and the energy its
+protection removed), ``/link``
 (teleop_rt/msg/LinkTick: the peer's packet used at the tick, or none) and ``/timing``.
 
 A message's log time is wall-clock: UTC at the session start plus the tick's time, in ns since
@@ -118,6 +119,9 @@ ROBOT_FIELDS = (
 # a site's port under the paper's names: (flow, effort, wave_out, wave_in) per side
 PORT_NAMES = {"hsi": ("omega_c", "tau_c", "u_l", "v_l"), "to": ("omega_t", "tau_t", "v_r", "u_r")}
 PEER_NAMES = {"hsi": ("tau_t", "v_r"), "to": ("omega_c", "u_l")}  # what the peer's packet holds
+# the packet's other vectors (integrals and cumulative energies), logged as they are: what a
+# replay needs to hand the port the packet the site used (teleop_rt.com.port.Packet)
+PACKET_EXTRAS = ("wave_sum", "x_sum", "wave_energy", "e_in", "e_out")
 SITES = ("hsi", "to")
 
 
@@ -199,6 +203,8 @@ class LogLayout:
                 Field(into, "float64", n, "the wave received, after the optional filter"),
                 *_joint(["power", "energy"], n, "into the channel at this port, W and J"),
                 Field("total_energy", "float64", None, "J, all joints"),
+                Field("balance", "float64", None, "J received minus emitted (< 0: active)"),
+                Field("removed", "float64", n, "J removed by the protection"),
             ),
         )
         peer_x, peer_wave = PEER_NAMES[side]
@@ -212,6 +218,10 @@ class LogLayout:
                 Field("one_way_delay_us", "float64", None, "sent to arrived, one host only"),
                 Field("x", "float64", n, f"the packet's port input ({peer_x})"),
                 Field("wave", "float64", n, f"the packet's wave ({peer_wave}), before filtering"),
+                *(
+                    Field(name, "float64", n, "the packet's (teleop_rt.com.port.Packet)")
+                    for name in PACKET_EXTRAS
+                ),  # fmt: skip
                 Field("peer_energy", "float64", None, "energy through the peer's port, J"),
                 Field("valid", "uint8", None, "1: the peer's packet due was there; 0: zeros"),
             ),

@@ -33,14 +33,16 @@ from teleop_rt.recording.recorder import (
     robot_columns,
 )
 from teleop_rt.recording.scene import scene_spec, shift_sources
-from teleop_rt.recording.schema import PORT_NAMES, LogLayout
+from teleop_rt.recording.schema import PACKET_EXTRAS, PORT_NAMES, LogLayout
 from teleop_rt.site import Site
 
-PORT_SOURCES = ("flow", "effort", "wave_out", "wave_in", "power", "energy", "total_energy")
+PORT_SOURCES = ("flow", "effort", "wave_out", "wave_in", "power", "energy", "total_energy",
+                "balance", "limited")  # fmt: skip
 LINK_SOURCES = {
     "sender_tick": ("arrival", "sender_tick"), "arrival_tick": ("arrival", "arrival_tick"),
     "one_way_delay_us": ("arrival", "one_way_delay_us"), "x": ("rx", "x"),
     "wave": ("rx", "wave"), "peer_energy": ("rx", "energy"), "valid": ("arrival", "valid"),
+    **{name: ("rx", name) for name in PACKET_EXTRAS},
 }  # fmt: skip
 
 

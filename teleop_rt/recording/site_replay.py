@@ -36,7 +36,7 @@ from teleop_rt.com.zenoh_link import Arrival, shared_parts
 from teleop_rt.errors import ConfigError
 from teleop_rt.recording.reader import LogData, read_log, require_ticks
 from teleop_rt.recording.replay import replay_config, replay_operator
-from teleop_rt.recording.schema import PORT_NAMES
+from teleop_rt.recording.schema import PACKET_EXTRAS, PORT_NAMES
 from teleop_rt.runner import run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest
 
@@ -57,6 +57,8 @@ class LoggedLink(Link):
         if row["valid"]:
             into.x[:] = row["x"]
             into.wave[:] = row["wave"]
+            for name in PACKET_EXTRAS:
+                getattr(into, name)[:] = row[name]
             into.energy = float(row["peer_energy"])
             into.tick = into.seq = int(row["sender_tick"])
             into.valid = 1
