@@ -47,16 +47,17 @@ PROTECTED = {"bounded wave": ["channel.mode=wave"], "tdpa": ["channel.mode=tdpa"
 
 
 def write_traces(folder: Path) -> dict[str, Path]:
-    """Two traces of our own (seeded): a congested link whose delay ramps 10 -> 40 -> 10 ms
-    every 3.3 s with 2 % loss, and a wireless-like one: 15 ms +- 4 with 50 ms outages."""
+    """Two traces of our own (seeded): a congested link whose delay ramps 10 -> 80 -> 10 ms
+    every 2 s (beyond the playout's ring, in step with the free-space sweep) with 3 % loss,
+    and a wireless-like one: 15 ms +- 4 with 50 ms outages every second."""
     rng = np.random.default_rng(7)
-    ticks = np.arange(6600)
-    ramp = 10 + 30 * (1 - np.abs((ticks % 3300) / 1650.0 - 1))
+    ticks = np.arange(4000)
+    ramp = 10 + 70 * (1 - np.abs((ticks % 2000) / 1000.0 - 1))
     wireless = 15 + 4 * rng.standard_normal(ticks.size).clip(-3, 3)
     outage = (ticks % 1000) >= 950
     out = {}
     for name, delay, lost in (
-        ("trace_ramp", ramp, rng.random(ticks.size) < 0.02),
+        ("trace_ramp", ramp, rng.random(ticks.size) < 0.03),
         ("trace_outages", wireless, outage),
     ):
         path = folder / f"{name}.csv"

@@ -59,6 +59,28 @@ def test_in_time_packets_play_exactly_d_ticks_after_sending() -> None:
     assert playout.delay_percentiles() == {"p50": 1, "p99": 1, "max": 1}
 
 
+def test_newest_plays_the_newest_arrival_and_skips_what_it_overtook() -> None:
+    """The newest policy: the newest packet sent by k - D that arrived, each used once; a
+    network slower than the ring is long (80 ticks here, the ring holds D + 51) still plays;
+    when the delay drops the packets it overtook are skipped; with none new, zeros."""
+    d, delay = 2, 80
+    playout = Playout(N, d, policy="newest")
+    used = []
+    for k in range(200):
+        if delay <= k < 100 + delay:  # sender ticks 0..99 take 80 ticks
+            playout.arrive(k, sent(k - delay))
+        if k >= 110:  # from sender tick 100 on: 10 ticks
+            playout.arrive(k, sent(k - 10))
+        used.append(taken(playout, k))
+    assert used[:delay] == [None] * delay
+    assert used[delay:110] == list(range(30))  # each arrival played at once
+    assert used[110] == 100  # the overtaken ticks 30..99 are skipped
+    assert used[190:] == list(range(180, 190))
+    c = playout.counters()
+    assert c["skipped"] == 70 and c["used"] == len([u for u in used if u is not None])
+    assert c["late"] > 0  # the overtaken ones that still arrived, after 70 was played
+
+
 def test_late_duplicate_early_and_reordered() -> None:
     d = 4
     playout = Playout(N, d, early_ticks=6)

@@ -194,9 +194,12 @@ def _take(
     if last == NONE or s > last:
         found = s
         if st[POLICY] == NEWEST_POLICY:  # the newest stored since the last used, if any
-            oldest = s - st[SLOTS] + 1 if last == NONE else max(last + 1, s - st[SLOTS] + 1)
+            # from the newest arrival down (a network slower than the ring is long still
+            # plays: the ring holds the newest SLOTS sender ticks that arrived)
+            top = min(s, st[NEWEST])
+            oldest = top - st[SLOTS] + 1 if last == NONE else max(last + 1, top - st[SLOTS] + 1)
             found = NONE
-            for t in range(s, oldest - 1, -1):
+            for t in range(top, oldest - 1, -1):
                 slot = t % st[SLOTS]
                 if ring_i[slot, R_TICK] == t and ring_i[slot, R_USED] == 0:
                     found = t
