@@ -79,7 +79,15 @@ def parser_of(tool: str, monkeypatch) -> argparse.ArgumentParser:
 
 
 @pytest.mark.parametrize(
-    "tool", ["bench", "bench_can", "bench_instructions", "drive_emulator", "reproduce_paper"]
+    "tool",
+    [
+        "bench",
+        "bench_can",
+        "bench_instructions",
+        "drive_emulator",
+        "network_study",
+        "reproduce_paper",
+    ],
 )
 def test_every_tool_option_has_help(tool: str, monkeypatch) -> None:
     parser = parser_of(tool, monkeypatch)
