@@ -40,6 +40,7 @@ class SiteSummary:
     realtime: bool
     link: dict
     cpu_s: float  # this process's CPU time over the run (the loop, the link's threads)
+    spin_s: float = 0.0  # of which the loop spun before its deadlines (loop.TickClock)
     notes: list[str] = field(default_factory=list)
     stopped_early: str | None = None
     stop_signal: int | None = None
@@ -82,6 +83,8 @@ def run_site(
     site: Site = (HsiSite if name == "hsi" else ToSite)(cfg, backend)
     site.warm_up()
     link = ZenohLink(cfg, site.side, site.n, lambda: site.tick)
+    ppm = getattr(cfg.link.zenoh, name).clock_ppm
+    period_s = link.period_ns / 1e9  # the site's own clock: off by clock_ppm in a drift test
     ticks = TickRecord(cfg.n_ticks, site.n)
     start_ns = [0]
 
@@ -111,6 +114,9 @@ def run_site(
 
     summary: list[SiteSummary] = []
 
+    clock_note = [f"this site's clock ran {ppm:+g} ppm off (link.zenoh.{name}.clock_ppm)"]
+    clock_note = clock_note if ppm else []
+
     def finish(out: LoopOutcome) -> dict:
         summary.append(
             SiteSummary(
@@ -124,7 +130,8 @@ def run_site(
                 realtime=realtime,
                 link=link.stats(),
                 cpu_s=time.process_time() - cpu0[0],
-                notes=out.notes,
+                spin_s=out.clock.spun_ns / 1e9,
+                notes=out.notes + clock_note,
                 stopped_early=out.stopped_early,
                 stop_signal=out.stop.signum,
                 safety_stop=out.safety_stop,
@@ -135,7 +142,7 @@ def run_site(
 
     try:
         run_loop(
-            step, cfg.n_ticks, cfg.dt, [site.backend], stop_safely, realtime=realtime,
+            step, cfg.n_ticks, period_s, [site.backend], stop_safely, realtime=realtime,
             overrun=overrun, max_missed=max_missed, before_start=handshake, at_start=at_start,
             finish=finish,
         )  # fmt: skip

@@ -14,6 +14,11 @@ sender thread, which publishes while the loop sleeps to its next deadline (a ``p
 at p50 and over a millisecond at p99 on this VM); a packet that the sender has not taken by
 the next tick is replaced and counted. Received bytes go to ``listen``'s callback on Zenoh's
 thread.
+
+With a ``hold`` (``teleop_rt.com.hold``: the impairment stage in front of Zenoh) the tick
+``send_at``s each copy of its packet with the instant it is due instead; the sender thread
+sleeps until the earliest due instant (or the next packet) and publishes what is due, in due
+order, recording how late after its instant each went out (10 us bins).
 """
 
 from __future__ import annotations
@@ -21,11 +26,18 @@ from __future__ import annotations
 import json
 import os
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from teleop_rt.com.hold import NEVER, HeldPackets
 from teleop_rt.errors import TeleopError
+
+HOLD_BIN_NS = 10_000  # the hold error's histogram: 10 us bins, the last one "or later"
+HOLD_BINS = 1000
 
 
 class TransportError(TeleopError):
@@ -67,7 +79,10 @@ class ZenohTransport:
     """One site's Zenoh session: ``send`` bytes on ``key_out`` (off the tick), ``listen`` to a
     peer's key; ``session`` serves the handshake too."""
 
-    def __init__(self, config: Any, key_out: str, max_bytes: int = 4096) -> None:
+    def __init__(
+        self, config: Any, key_out: str, max_bytes: int = 4096, hold: HeldPackets | None = None
+    ) -> None:
+        """``hold``: where ``send_at`` keeps packets until they are due (None: no hold)."""
         import zenoh
 
         try:
@@ -89,6 +104,10 @@ class ZenohTransport:
         self._wake = threading.Event()
         self._running = True
         self.sent = self.replaced = self.send_errors = 0
+        self.hold = hold
+        self.hold_error = np.zeros(HOLD_BINS, dtype=np.int64)  # publish instant - due instant
+        self.hold_error_max_ns = 0
+        self._until = 0  # the due instant the sender sleeps until (NEVER: until woken)
         self._priority: int | None = None  # SCHED_FIFO priority the sender should take
         self._thread = threading.Thread(target=self._sender, name="teleop-rt-send", daemon=True)
         self._thread.start()
@@ -112,6 +131,15 @@ class ZenohTransport:
             self._fresh = True
         self._wake.set()
 
+    def send_at(self, data: bytes | bytearray | memoryview, due_ns: int) -> None:
+        """Hold a copy of ``data`` until ``due_ns`` (CLOCK_MONOTONIC), then publish it (never
+        blocks; a full hold drops the packet and counts it ``overflow``)."""
+        with self._lock:
+            self.hold.put(due_ns, data)  # type: ignore[union-attr]
+            wake = due_ns < self._until  # the sender sleeps past it (else: no wake-up needed)
+        if wake:
+            self._wake.set()
+
     def raise_priority(self, priority: int) -> None:
         """Run the sender at SCHED_FIFO ``priority`` (above a real-time loop's, so that a
         packet goes out while the loop sleeps, not after other threads of the CPU)."""
@@ -119,24 +147,69 @@ class ZenohTransport:
 
     def _sender(self) -> None:
         while self._running:
-            self._wake.wait()
+            timeout = None
+            if self.hold is not None:
+                with self._lock:
+                    _, due = self.hold.next_due()
+                    self._until = due
+                if due != NEVER:
+                    timeout = (due - time.monotonic_ns()) / 1e9
+            if timeout is None or timeout > 0:
+                self._wake.wait(timeout)
             self._wake.clear()
+            self._until = 0  # awake: it looks at the hold again before it sleeps
             if self._priority is not None:  # applied by the thread to itself
                 try:
                     os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(self._priority))
                 except OSError:
                     pass  # not granted: the loop's notes say what was
                 self._priority = None
+            if self.hold is not None:
+                self._publish_due()
             with self._lock:
                 if not self._fresh:
                     continue
                 payload = bytes(self._slot[: self._size])
                 self._fresh = False
-            try:
-                self.publisher.put(payload)
-                self.sent += 1
-            except Exception:  # a closed session while stopping; counted, never raised
-                self.send_errors += 1
+            self._put(payload)
+
+    def _put(self, payload: bytes) -> None:
+        try:
+            self.publisher.put(payload)
+            self.sent += 1
+        except Exception:  # a closed session while stopping; counted, never raised
+            self.send_errors += 1
+
+    def _publish_due(self) -> None:
+        """Publish every held packet whose instant has come, earliest first."""
+        hold = self.hold
+        while self._running:
+            with self._lock:
+                slot, due = hold.next_due()  # type: ignore[union-attr]
+                now = time.monotonic_ns()
+                if due > now:
+                    return
+                payload = hold.pop(slot)  # type: ignore[union-attr]
+            late = now - due
+            self._put(payload)
+            self.hold_error[min(late // HOLD_BIN_NS, HOLD_BINS - 1)] += 1
+            self.hold_error_max_ns = max(self.hold_error_max_ns, late)
+
+    def hold_stats(self) -> dict:
+        """What the hold did: packets held, published, still held or refused at the end; how
+        late after its instant a held packet went out, us (p50, p99 by 10 us bins; exact max)."""
+        hold = self.hold
+        if hold is None:
+            return {}
+        total = int(self.hold_error.sum())
+        error = None
+        if total:
+            cumulative = np.cumsum(self.hold_error)
+            p50, p99 = (int(np.searchsorted(cumulative, q * total)) for q in (0.5, 0.99))
+            error = {"p50": (p50 + 1) * HOLD_BIN_NS / 1e3, "p99": (p99 + 1) * HOLD_BIN_NS / 1e3,
+                     "max": self.hold_error_max_ns / 1e3}  # fmt: skip
+        return {"held": hold.held, "published": total, "unsent": len(hold),
+                "overflow": hold.overflow, "hold_error_us": error}  # fmt: skip
 
     def close(self) -> None:
         """Stop the sender and close the session (idempotent)."""
