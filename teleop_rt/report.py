@@ -134,11 +134,11 @@ def _stage_text(link: dict) -> str:
     text = ""
     imp = link.get("impairment")
     if imp:
-        error = imp.get("hold_error_us") or {}
+        late = link.get("send_after_due_us") or {}
         text += (
             f"; impairment here: lost {imp['lost']}, duplicated {imp['duplicated']}, reordered "
-            f"{imp['reordered']}, held {imp.get('held', 0)} (published p99 "
-            f"{error.get('p99', 0):.0f} us after their instant), refused {imp.get('overflow', 0)}"
+            f"{imp['reordered']}, held {imp.get('held', 0)} (out p99 {late.get('p99', 0):.0f} us "
+            f"after their instant), refused {imp.get('overflow', 0)}"
         )
     drift = link.get("drift")
     if drift and drift["retargets"]:

@@ -6,8 +6,8 @@ the in-process link's for that seed and stream) and holds every surviving copy u
 instant. So the receiver's counters are the sender's decisions plus what the real network and
 scheduling added, and the one-way delay moves by the impairment's delay.
 
-Drift: the TO's clock runs 500 ppm fast (``link.zenoh.to.clock_ppm``), so over 4 s the two
-tick counts slide by 2 ticks; each receiver follows by whole ticks, the TO with zero packets
+Drift: the TO's clock runs 500 ppm fast (``link.zenoh.to.clock_ppm``), so over 5 s the two
+tick counts slide by 2.5 ticks; each receiver follows by whole ticks, the TO with zero packets
 (its clock is ahead of the HSI's packets), the HSI by skipping (the TO's come faster)."""
 
 from __future__ import annotations
@@ -29,7 +29,10 @@ D = 20  # the playout delay, ticks (channel.delay_ms at 1 kHz)
 
 
 def two_sites(tmp_path: Path, seconds: float, *overrides: str) -> dict:
-    sets = [x for o in ("channel.delay_ms=20", *overrides) for x in ("--set", o)]
+    """Both sites for ``seconds``; a peer's silence stops them only after a second here (this
+    shared VM stalls a process by a few hundred ms now and then: not what these tests test)."""
+    base = ("channel.delay_ms=20", "link.peer_timeout_ms=1000")
+    sets = [x for o in (*base, *overrides) for x in ("--set", o)]
     cmd = [sys.executable, "-m", "teleop_rt", "run", str(PAPER), "--link", "zenoh", "--realtime",
            "--duration", str(seconds), "--json", *sets, *endpoints(free_port())]  # fmt: skip
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=240, cwd=tmp_path)
@@ -75,15 +78,20 @@ def test_the_receivers_counters_are_the_senders_decisions(tmp_path: Path) -> Non
 
 
 def test_each_receiver_follows_a_clock_that_runs_fast(tmp_path: Path) -> None:
-    both = two_sites(tmp_path, 4, "link.zenoh.to.clock_ppm=500", "link.max_drift_ppm=1000")
+    both = two_sites(tmp_path, 5, "link.zenoh.to.clock_ppm=500", "link.max_drift_ppm=1000")
     to, hsi = (both["sites"][n]["link"] for n in ("to", "hsi"))
     # the TO's clock is ahead: its playout steps back, playing a zero packet, never a repeat
-    assert to["drift"]["back"] >= 1 and to["drift"]["forward"] == 0, to["drift"]
-    assert to["from_peer"]["repeated"] == to["drift"]["back"] == to["drift"]["offset_ticks"]
+    # (each retarget shows at the next tick's take: one at the last arrival may not have)
+    back = to["drift"]["back"]
+    assert back >= 1 and to["drift"]["forward"] == 0 and to["drift"]["offset_ticks"] == back
+    assert back - 1 <= to["from_peer"]["repeated"] <= back, to
     # the TO's packets come faster to the HSI: its playout jumps over one now and then
-    assert hsi["drift"]["forward"] >= 1 and hsi["drift"]["back"] == 0, hsi["drift"]
-    assert hsi["from_peer"]["skipped"] == hsi["drift"]["forward"] == -hsi["drift"]["offset_ticks"]
+    forward = hsi["drift"]["forward"]
+    assert forward >= 1 and hsi["drift"]["back"] == 0 and hsi["drift"]["offset_ticks"] == -forward
+    assert forward - 1 <= hsi["from_peer"]["skipped"] <= forward, hsi
+    # between retargets the floor moves by at most the threshold (3/4) plus a window's slide
+    # (1/2 tick at 500 ppm) and what the real network adds to a window's minimum
     for link in (to, hsi):
-        assert abs(link["drift"]["floor_moved_ticks"]["max"]) < 1.2, link["drift"]
-        assert abs(link["drift"]["floor_moved_ticks"]["min"]) < 1.2, link["drift"]
+        floor = link["drift"]["floor_moved_ticks"]
+        assert -1.5 < floor["min"] <= floor["max"] < 1.5, link["drift"]
     assert any("500 ppm" in n for n in both["sites"]["to"]["notes"])

@@ -247,7 +247,7 @@ class ZenohLink(Link):
         data = encode_into(self._wire, packet, self.session_id, now)
         impairment = self.impairment
         if impairment is None:
-            self.transport.send(data)
+            self.transport.send(data, now)
         else:  # each surviving copy to the sender thread, with its instant
             delays = impairment.delays_ms
             for k in range(impairment.decide(packet.tick)):
@@ -268,6 +268,9 @@ class ZenohLink(Link):
             "one_way_delay_us": delay_us,
             "send_replaced": self.transport.replaced,
             "send_errors": self.transport.send_errors,
+            # how long after the tick handed it over (or after its instant, when held) each
+            # packet went out: this site's part of the one-way delay
+            "send_after_due_us": self.transport.late_out_us(),
             "from_peer": received,
         }
         if self.drift is not None:

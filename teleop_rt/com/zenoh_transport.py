@@ -24,7 +24,8 @@ and were dropped (0.7 % of them in a 30 s run on this loaded VM, 0.03 % with 16)
 With a ``hold`` (``teleop_rt.com.hold``: the impairment stage in front of Zenoh) the tick
 ``send_at``s each copy of its packet with the instant it is due instead; the sender thread
 sleeps until the earliest due instant (or the next packet) and publishes what is due, in due
-order, recording how late after its instant each went out (10 us bins).
+order. Either way the sender records how long after it was due (handed over, or its instant)
+each packet went out (10 us bins): the sending site's part of the one-way delay.
 """
 
 from __future__ import annotations
@@ -44,8 +45,8 @@ from teleop_rt.errors import TeleopError
 
 TX_QUEUE_BATCHES = 16  # Zenoh's real-time transmit queue, batches (one packet each: express)
 
-HOLD_BIN_NS = 10_000  # the hold error's histogram: 10 us bins, the last one "or later"
-HOLD_BINS = 1000
+BIN_NS = 10_000  # the histogram of how late packets went out: 10 us bins, the last "or later"
+BINS = 1000
 
 
 class TransportError(TeleopError):
@@ -115,8 +116,9 @@ class ZenohTransport:
         self._running = True
         self.sent = self.replaced = self.send_errors = 0
         self.hold = hold
-        self.hold_error = np.zeros(HOLD_BINS, dtype=np.int64)  # publish instant - due instant
-        self.hold_error_max_ns = 0
+        self.late_out = np.zeros(BINS, dtype=np.int64)  # put instant - due instant, by bin
+        self.late_out_max_ns = 0
+        self._at = 0  # when the mailbox's packet was handed over (CLOCK_MONOTONIC ns)
         self._until = 0  # the due instant the sender sleeps until (NEVER: until woken)
         self._priority: int | None = None  # SCHED_FIFO priority the sender should take
         self._thread = threading.Thread(target=self._sender, name="teleop-rt-send", daemon=True)
@@ -130,14 +132,16 @@ class ZenohTransport:
 
         self.subscribers.append(self.session.declare_subscriber(key, received))
 
-    def send(self, data: bytes | bytearray | memoryview) -> None:
-        """Hand this tick's packet to the sender (never blocks on the network)."""
+    def send(self, data: bytes | bytearray | memoryview, at_ns: int) -> None:
+        """Hand this tick's packet to the sender at ``at_ns`` (CLOCK_MONOTONIC; never blocks
+        on the network)."""
         n = len(data)
         with self._lock:
             if self._fresh:
                 self.replaced += 1  # the sender did not take the last one in time
             self._slot[:n] = data
             self._size = n
+            self._at = at_ns
             self._fresh = True
         self._signal()
 
@@ -185,10 +189,14 @@ class ZenohTransport:
                 if not self._fresh:
                     continue
                 payload = bytes(self._slot[: self._size])
+                due = self._at
                 self._fresh = False
-            self._put(payload)
+            self._put(payload, due)
 
-    def _put(self, payload: bytes) -> None:
+    def _put(self, payload: bytes, due_ns: int) -> None:
+        late = time.monotonic_ns() - due_ns
+        self.late_out[min(max(late, 0) // BIN_NS, BINS - 1)] += 1
+        self.late_out_max_ns = max(self.late_out_max_ns, late)
         try:
             self.publisher.put(payload)
             self.sent += 1
@@ -205,26 +213,28 @@ class ZenohTransport:
                 if due > now:
                     return
                 payload = hold.pop(slot)  # type: ignore[union-attr]
-            late = now - due
-            self._put(payload)
-            self.hold_error[min(late // HOLD_BIN_NS, HOLD_BINS - 1)] += 1
-            self.hold_error_max_ns = max(self.hold_error_max_ns, late)
+            self._put(payload, due)
+
+    def late_out_us(self) -> dict | None:
+        """How long after it was due a packet went out, us: p50, p99 (upper edges of 10 us
+        bins), the exact max; None before the first."""
+        total = int(self.late_out.sum())
+        if not total:
+            return None
+        cumulative = np.cumsum(self.late_out)
+        p50, p99 = (int(np.searchsorted(cumulative, q * total)) for q in (0.5, 0.99))
+        return {"p50": (p50 + 1) * BIN_NS / 1e3, "p99": (p99 + 1) * BIN_NS / 1e3,
+                "max": self.late_out_max_ns / 1e3}  # fmt: skip
 
     def hold_stats(self) -> dict:
-        """What the hold did: packets held, published, still held or refused at the end; how
-        late after its instant a held packet went out, us (p50, p99 by 10 us bins; exact max)."""
+        """What the hold did: packets held, published after their hold, still held at the end,
+        refused (a full hold)."""
         hold = self.hold
         if hold is None:
             return {}
-        total = int(self.hold_error.sum())
-        error = None
-        if total:
-            cumulative = np.cumsum(self.hold_error)
-            p50, p99 = (int(np.searchsorted(cumulative, q * total)) for q in (0.5, 0.99))
-            error = {"p50": (p50 + 1) * HOLD_BIN_NS / 1e3, "p99": (p99 + 1) * HOLD_BIN_NS / 1e3,
-                     "max": self.hold_error_max_ns / 1e3}  # fmt: skip
-        return {"held": hold.held, "published": total, "unsent": len(hold),
-                "overflow": hold.overflow, "hold_error_us": error}  # fmt: skip
+        published = hold.held - len(hold)
+        return {"held": hold.held, "published": published, "unsent": len(hold),
+                "overflow": hold.overflow}  # fmt: skip
 
     def close(self) -> None:
         """Stop the sender and close the session (idempotent)."""
