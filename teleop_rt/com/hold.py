@@ -64,10 +64,3 @@ class HeldPackets:
         self.due[slot] = NEVER
         self._free.append(slot)
         return data
-
-    def clear(self) -> int:
-        """Drop everything still held (the link is closing); how many were dropped."""
-        dropped = len(self)
-        self.due[:] = NEVER
-        self._free = list(range(self.slots - 1, -1, -1))
-        return dropped
