@@ -329,6 +329,9 @@ class ZenohEndpoints(Strict):
 
     listen: list[str] = Field(default_factory=list)
     connect: list[str] = Field(default_factory=list)
+    # tests only: this site's tick clock runs this many ppm fast (> 0) or slow, as a host's
+    # crystal does, to show the receivers following it (teleop_rt.com.drift)
+    clock_ppm: Annotated[float, Field(ge=-10_000, le=10_000, allow_inf_nan=False)] = 0.0
 
 
 class TlsFiles(Strict):
@@ -365,9 +368,13 @@ class LinkSpec(Strict):
     peer_timeout_ms: Annotated[float, Field(gt=0, le=10_000, allow_inf_nan=False)] = 50.0
     # the peer must appear (and agree on the session) within this, else the site refuses
     handshake_timeout_s: Annotated[float, Field(gt=0, le=3600, allow_inf_nan=False)] = 10.0
+    # the receiver follows a peer whose clock drifts by at most one tick per 1e6 / this many
+    # ticks (teleop_rt.com.drift; 0: never)
+    max_drift_ppm: Annotated[float, Field(ge=0, le=10_000, allow_inf_nan=False)] = 200.0
     zenoh: ZenohSpec = ZenohSpec()
-    # a seeded network emulation between the sites of a one-process session (fast mode,
-    # bit-reproducible): delay, jitter, loss, bursts, duplication, reordering, traces
+    # a seeded network emulation between the sites: delay, jitter, loss, bursts, duplication,
+    # reordering, traces; in one process (fast mode, bit-reproducible) and in front of Zenoh
+    # (each site holds its own packets until their instant: teleop_rt.com.zenoh_link)
     impairment: ImpairmentSpec | None = None
     # which packet a site uses at its tick k (teleop_rt.com.playout): fixed, the one sent at
     # k - D (jitter within D becomes the constant delay D); newest, the newest one sent by

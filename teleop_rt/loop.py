@@ -67,6 +67,7 @@ class TickClock:
         self.sleep = sleep
         self.deadline_ns = 0
         self.skipped = 0
+        self.spun_ns = 0  # time spent spinning before deadlines (CPU the loop burns by design)
 
     def start(self) -> None:
         self.deadline_ns = self.now_ns()
@@ -83,8 +84,10 @@ class TickClock:
         if remaining > self.spin_ns:
             self.sleep((remaining - self.spin_ns) * 1e-9)
             now = self.now_ns()
+        spin_from = now
         while now < self.deadline_ns:
             now = self.now_ns()
+        self.spun_ns += now - spin_from
         return now - self.deadline_ns
 
     def finish(self, end_ns: int) -> bool:

@@ -173,7 +173,27 @@ def _link_text(link: dict) -> str:
         f"duplicated {peer.get('duplicated', 0)}, reordered {peer.get('reordered', 0)}, rejected "
         f"{peer.get('rejected', 0)}; one-way delay p50 {delay.get('p50')} / p99 "
         f"{delay.get('p99')} / max {delay.get('max')} ticks"
-    )
+    ) + _stage_text(link)
+
+
+def _stage_text(link: dict) -> str:
+    """What a Zenoh site's impairment stage did to its packets, and its drift follower."""
+    text = ""
+    imp = link.get("impairment")
+    if imp:
+        late = link.get("send_after_due_us") or {}
+        text += (
+            f"; impairment here: lost {imp['lost']}, duplicated {imp['duplicated']}, reordered "
+            f"{imp['reordered']}, held {imp.get('held', 0)} (out p99 {late.get('p99', 0):.0f} us "
+            f"after their instant), refused {imp.get('overflow', 0)}"
+        )
+    drift = link.get("drift")
+    if drift and drift["retargets"]:
+        text += (
+            f"; clock drift followed: {drift['back']} zero packets, {drift['forward']} skipped "
+            f"(offset {drift['offset_ticks']} ticks)"
+        )
+    return text
 
 
 def print_site_summary(summary, console: Console | None = None) -> None:

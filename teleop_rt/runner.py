@@ -59,6 +59,7 @@ def run_loop(
     before_start: Callable[[], None] | None = None,
     at_start: Callable[[], None] | None = None,
     finish: Callable[[LoopOutcome], dict] | None = None,
+    spin_ns: int | None = None,
 ) -> LoopOutcome:
     """Run ``step`` ``total`` times, one per period ``dt`` in real time (else back to back).
 
@@ -67,10 +68,12 @@ def run_loop(
     tick (a site waits there for the instant both sites start at); ``after_tick`` after each tick
     (tests' observers); ``bring_to_rest(clock)`` after a safety finding (the staged stop, paced
     by the clock in real time). Whatever ends the run, every backend is stopped together and
-    ``recorder`` is closed with the summary ``finish(outcome)`` gives."""
+    ``recorder`` is closed with the summary ``finish(outcome)`` gives. ``spin_ns``: how long
+    before each deadline the clock stops sleeping and spins (None: ``TickClock``'s default)."""
     period_ns = int(round(dt * 1e9))
     stats = TimingStats(total, period_ns)
-    clock = TickClock(period_ns, realtime, overrun, max_missed=max_missed)
+    spin = {} if spin_ns is None else {"spin_ns": spin_ns}
+    clock = TickClock(period_ns, realtime, overrun, max_missed=max_missed, **spin)
     grant = acquire_realtime() if realtime else None
     perf = time.perf_counter_ns
     out = LoopOutcome(stats, clock, realtime, perf(), StopSignals())

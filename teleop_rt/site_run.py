@@ -31,6 +31,11 @@ if TYPE_CHECKING:
     from teleop_rt.recording.recorder import Recorder
 
 SENDER_PRIORITY = 81  # the link's sender thread: above the loop's SCHED_FIFO 80
+# A site's loop spins 50 us before each deadline, not the one-process loop's 200 us: the
+# sleep here overshoots by about 40-60 us, so a tick still starts on time at p50 (p99 about
+# 100 us late, well within the network's own jitter), and the spin costs ~5 us per tick
+# instead of ~150 (15 % of a core: a third of a site's CPU; see README, Performance).
+SITE_SPIN_NS = 50_000
 
 
 @dataclass
@@ -48,6 +53,7 @@ class SiteSummary:
     realtime: bool
     link: dict
     cpu_s: float  # this process's CPU time over the run (the loop, the link's threads)
+    spin_s: float = 0.0  # of which the loop spun before its deadlines (loop.TickClock)
     notes: list[str] = field(default_factory=list)
     stopped_early: str | None = None
     stop_signal: int | None = None
@@ -110,6 +116,8 @@ def run_site(
         link.arrival = recorder.session.arrival
         if recorder.live is not None and on_live is not None:
             on_live(recorder.live)
+    ppm = getattr(cfg.link.zenoh, name).clock_ppm
+    period_s = link.period_ns / 1e9  # the site's own clock: off by clock_ppm in a drift test
     ticks = TickRecord(cfg.n_ticks, site.n)
     start_ns = [0]
 
@@ -141,6 +149,9 @@ def run_site(
 
     summary: list[SiteSummary] = []
 
+    clock_note = [f"this site's clock ran {ppm:+g} ppm off (link.zenoh.{name}.clock_ppm)"]
+    clock_note = clock_note if ppm else []
+
     def finish(out: LoopOutcome) -> dict:
         summary.append(
             SiteSummary(
@@ -155,7 +166,8 @@ def run_site(
                 realtime=realtime,
                 link=link.stats(),
                 cpu_s=time.process_time() - cpu0[0],
-                notes=out.notes,
+                spin_s=out.clock.spun_ns / 1e9,
+                notes=out.notes + clock_note,
                 stopped_early=out.stopped_early,
                 stop_signal=out.stop.signum,
                 safety_stop=out.safety_stop,
@@ -167,9 +179,9 @@ def run_site(
 
     try:
         run_loop(
-            step, cfg.n_ticks, cfg.dt, [site.backend], stop_safely, realtime=realtime,
+            step, cfg.n_ticks, period_s, [site.backend], stop_safely, realtime=realtime,
             overrun=overrun, max_missed=max_missed, before_start=handshake, at_start=at_start,
-            finish=finish, recorder=recorder,
+            finish=finish, recorder=recorder, spin_ns=SITE_SPIN_NS,
         )  # fmt: skip
     except HandshakeError:
         if recorder is not None:  # no session: no log of one

@@ -106,6 +106,8 @@ def test_sleep_targets_deadline_minus_spin_then_spins_to_the_deadline() -> None:
     assert fake.last_read == START + PERIOD  # the spin ended exactly on the deadline
     # the spin read the clock through the last SPIN ns (plus the read before the sleep)
     assert fake.reads - reads_before == 1 + SPIN // READ
+    # counted from the read after the sleep: CPU the loop burns by design
+    assert clock.spun_ns == SPIN - READ
 
 
 def test_no_sleep_when_less_than_spin_remains() -> None:
@@ -139,7 +141,7 @@ def test_late_wait_returns_the_lateness_without_sleeping() -> None:
     clock.start()
     fake.t = START + 37_000
     assert clock.wait() == 37_000
-    assert fake.sleep_targets == []
+    assert fake.sleep_targets == [] and clock.spun_ns == 0
 
 
 # --- finish: what counts as a missed deadline --------------------------------------------------

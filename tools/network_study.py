@@ -638,9 +638,8 @@ def playout_section(st: Settings) -> list[str]:
         "",
         "* **delay** and **loss** sweeps: constant network delay, `fixed` playout at D = the "
         "network's delay. Every packet arrives exactly at its playout tick (or never), so the "
-        "channel sees the constant delay D and the losses. The `newest` playout would compute "
-        "the same here (tried: bit-identical figures at 50 ms), but it looks back only "
-        "D + 50 ticks, so at D = 1 it loses every packet of a network slower than 51 ms.",
+        "channel sees the constant delay D and the losses (the `newest` playout would compute "
+        "the same here: bit-identical figures at 50 ms).",
         f"* **jitter, newest**: {BASE_MS:g} ms mean delay with normal jitter (uncorrelated, as "
         "netem's `delay 20ms Xms`, so packets 1 ms apart overtake each other), `newest` "
         "playout at the minimum playout delay D = 1 ms: a port uses the newest packet that has "

@@ -4,7 +4,8 @@ At its tick k a site uses the packet the peer sent at tick k - D - offset, if it
 then, else a zero packet (``valid = 0``: a zero wave is passive, holding the last one is not).
 D is the playout delay in ticks (the channel's nominal one-way delay, >= 1 over a network), and
 ``offset`` how far the receiver's tick count runs ahead of the sender's (0 in one process;
-``retarget`` moves it by whole ticks when the clocks have drifted, which the caller decides).
+``retarget`` moves it by whole ticks when the clocks have drifted: over a network
+``teleop_rt.com.drift`` decides when, from the floor of the arrivals' lateness).
 So jitter up to D becomes the constant delay D (Kosuge et al., 1996): the ``fixed`` policy.
 The ``newest`` policy uses instead the newest packet sent by k - D - offset that has arrived
 and is newer than the last one used (zeros if there is none): less latency when the network is

@@ -17,6 +17,20 @@ sender tick, the tick it arrived at, its one-way delay, or none): a site's log r
 
 A site that hears nothing from its peer for ``link.peer_timeout_ms`` stops its robot: the
 silence is a ``SafetyStop`` raised at the tick that notices it (the staged stop follows).
+
+Clocks that drift: across hosts the two tick clocks run at rates that differ by tens of ppm.
+The receiver follows the sender's (``teleop_rt.com.drift``): it tracks the floor of the
+arrivals' lateness, measured on its own clock, over windows of a second and moves the
+playout by a whole tick when the floor has slid by 3/4 tick for a whole window, playing a
+zero packet or skipping one (never a packet twice). ``link.zenoh.<site>.clock_ppm`` makes a
+site's clock run off on purpose, for tests.
+
+``link.impairment`` applies here too, in real time: each site draws its own direction's fate
+of every packet from ``teleop_rt.com.impairment`` (stream 0 at the HSI, 1 at the TO, as the
+in-process ``ImpairedLink``: the same seed decides the same per packet in both) and hands the
+copies that survive to the transport's sender thread with the instant each is due (send
+instant plus its delay), which holds them in a preallocated pool (``teleop_rt.com.hold``)
+and publishes each at its instant: lost never, duplicated twice, reordered ones at once.
 """
 
 from __future__ import annotations
@@ -31,10 +45,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from teleop_rt.com.drift import DriftFollower
+from teleop_rt.com.hold import HeldPackets
+from teleop_rt.com.impairment import MAX_ARRIVALS, Impairment
 from teleop_rt.com.link import Link
 from teleop_rt.com.playout import Receiver
 from teleop_rt.com.port import HSI, Packet
-from teleop_rt.com.wire import WireBuffer, encode_into
+from teleop_rt.com.wire import OK, STALE, WireBuffer, encode_into, wire_size
 from teleop_rt.com.zenoh_transport import ZenohTransport, zenoh_config
 from teleop_rt.errors import ConfigError, SafetyStop, TeleopError
 from teleop_rt.flat import Block, Scalar
@@ -101,7 +118,19 @@ class ZenohLink(Link):
             files = {"root_ca": tls.root_ca, "certificate": own.certificate,
                      "private_key": own.private_key}  # fmt: skip
         config = zenoh_config(ends.listen, ends.connect, files, spec.zenoh.mode)
-        self.transport = ZenohTransport(config, f"{self.base}/{self.name}/waves")
+        # this direction's impairment and the hold its surviving copies wait in
+        self.impairment: Impairment | None = None
+        hold = None
+        if spec.impairment is not None:
+            self.impairment = Impairment(spec.impairment, cfg.dt, stream=side)
+            slack = 64  # ticks the sender thread may fall behind before packets are refused
+            slots = MAX_ARRIVALS * (self.impairment.max_delay_ticks + slack)
+            hold = HeldPackets(wire_size(n), slots)
+        self.transport = ZenohTransport(config, f"{self.base}/{self.name}/waves", hold=hold)
+        # this site's tick period in real time: a clock clock_ppm fast counts its ticks sooner
+        self.period_ns = cfg.dt * 1e9 / (1.0 + ends.clock_ppm * 1e-6)
+        self.start_ns = 0
+        self.drift: DriftFollower | None = None
         self._tick = clock_tick
         self._lock = threading.Lock()
         self._wire = WireBuffer(n)
@@ -189,7 +218,10 @@ class ZenohLink(Link):
             listener.undeclare()
             hello.undeclare()
         self.session_id = int(mine["session_id"])
-        self.receiver = Receiver(self.n, self.cfg.delay_ticks, self.session_id)
+        self.receiver = Receiver(
+            self.n, self.cfg.delay_ticks, self.session_id, policy=self.cfg.link.playout
+        )
+        self.drift = DriftFollower(self.receiver.playout, self.cfg.link.max_drift_ppm)
         self.transport.listen(f"{self.base}/{self.peer}/waves", self._arrive)
         return int(mine["start_ns"])
 
@@ -209,8 +241,9 @@ class ZenohLink(Link):
                           *(f"connect {e}" for e in ends.connect)]) or "none"  # fmt: skip
 
     def start(self) -> None:
-        """The loop starts now: the peer's silence is counted from here."""
-        self.last_arrival_ns = time.monotonic_ns()
+        """The loop starts now: the peer's silence is counted from here, and the arrivals'
+        times in ticks of this site's clock."""
+        self.start_ns = self.last_arrival_ns = time.monotonic_ns()
 
     # --- the Link interface -------------------------------------------------------------------
     def _arrive(self, data: bytes) -> None:  # on Zenoh's thread
@@ -220,14 +253,17 @@ class ZenohLink(Link):
         with self._lock:  # the playout's kernels release the GIL: one thread at a time
             k = self._tick()
             status = receiver.arrive(k, data)
-            if status == 0:
-                now = time.monotonic_ns()
-                delay = now - receiver.decoder.sender_time_ns
+            now = time.monotonic_ns()
+            delay = now - receiver.decoder.sender_time_ns
+            if status == OK:
                 s = receiver.decoder.seen_tick
                 row = self._arrived[s % len(self._arrived)]
                 if row[0] != s:  # the first copy's
                     row[0], row[1], row[2] = s, k, delay
-        if status == 0:
+            if (status == OK or status == STALE) and self.start_ns:  # intact and ours
+                ticks = (now - self.start_ns) / self.period_ns
+                self.drift.arrival(ticks, receiver.decoder.seen_tick)  # type: ignore[union-attr]
+        if status == OK:
             self.last_arrival_ns = now
             if self.n_delays < self.delays_ns.size:
                 self.delays_ns[self.n_delays] = delay
@@ -262,8 +298,16 @@ class ZenohLink(Link):
             a.arrival_tick, a.one_way_delay_us = -1.0, math.nan
 
     def end_tick(self, side: int) -> None:
-        data = encode_into(self._wire, self._packet, self.session_id, time.monotonic_ns())
-        self.transport.send(data)
+        now = time.monotonic_ns()
+        packet = self._packet
+        data = encode_into(self._wire, packet, self.session_id, now)
+        impairment = self.impairment
+        if impairment is None:
+            self.transport.send(data, now)
+        else:  # each surviving copy to the sender thread, with its instant
+            delays = impairment.delays_ms
+            for k in range(impairment.decide(packet.tick)):
+                self.transport.send_at(data, now + int(delays[k] * 1e6))
         self.sent += 1
 
     # --- afterwards -----------------------------------------------------------------------------
@@ -272,16 +316,27 @@ class ZenohLink(Link):
         received = self.receiver.stats() if self.receiver is not None else {}
         d = self.delays_ns[: self.n_delays] / 1e3
         delay_us = (
-            {"p50": float(np.percentile(d, 50)), "p99": float(np.percentile(d, 99)),
-             "max": float(d.max())} if d.size else None
+            {"min": float(d.min()), "p50": float(np.percentile(d, 50)),
+             "p99": float(np.percentile(d, 99)), "max": float(d.max())} if d.size else None
         )  # fmt: skip
-        return {
+        out = {
             "sent": self.sent,
             "one_way_delay_us": delay_us,
             "send_replaced": self.transport.replaced,
             "send_errors": self.transport.send_errors,
+            # how long after the tick handed it over (or after its instant, when held) each
+            # packet went out: this site's part of the one-way delay
+            "send_after_due_us": self.transport.late_out_us(),
             "from_peer": received,
         }
+        if self.drift is not None:
+            out["drift"] = self.drift.stats()
+        imp = self.impairment
+        if imp is not None:  # what this site's impairment stage did to its own packets
+            out["impairment"] = {"decided": imp.decided, "lost": imp.lost,
+                                 "duplicated": imp.duplicated, "reordered": imp.reordered,
+                                 **self.transport.hold_stats()}  # fmt: skip
+        return out
 
     def close(self) -> None:
         self.transport.close()
