@@ -122,3 +122,17 @@ def write_text(path: str | Path, text: str, option: str, force: bool = False) ->
     with open_output(out, option, force) as stream:
         stream.write(text.encode())
     return out
+
+
+def report_folder_problem(out: Path) -> str | None:
+    """A report's folder (``tools/reproduce_paper.py``, ``tools/network_study.py``): DIR and
+    DIR/figures created before the work; the reason it cannot be used, else None."""
+    if out.exists() and not out.is_dir():
+        return f"--out {out}: is a file, not a folder"
+    try:
+        (out / "figures").mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        return f"--out {out}: cannot create {out / 'figures'} ({err.strerror})"
+    if not os.access(out, os.W_OK) or not os.access(out / "figures", os.W_OK):
+        return f"--out {out}: cannot write into it (permission denied)"
+    return None

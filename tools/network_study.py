@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import tempfile
 import time
@@ -42,6 +41,7 @@ sys.path.insert(0, str(ROOT))
 from teleop_rt import config  # noqa: E402
 from teleop_rt.analysis import experiment  # noqa: E402
 from teleop_rt.analysis.discrete import filter_group_delay_s  # noqa: E402
+from teleop_rt.output import report_folder_problem  # noqa: E402
 from teleop_rt.session import Session  # noqa: E402
 
 CONFIGS = {
@@ -1009,15 +1009,7 @@ def prepare_out(out: Path, quick: bool) -> str | None:
     """Create DIR and DIR/figures before the work; the reason it cannot be used, else None."""
     if quick and out.resolve() == (ROOT / "docs").resolve():
         return f"--out {out}: a quick run never writes over the committed report"
-    if out.exists() and not out.is_dir():
-        return f"--out {out}: is a file, not a folder"
-    try:
-        (out / "figures").mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        return f"--out {out}: cannot create {out / 'figures'} ({err.strerror})"
-    if not os.access(out, os.W_OK) or not os.access(out / "figures", os.W_OK):
-        return f"--out {out}: cannot write into it (permission denied)"
-    return None
+    return report_folder_problem(out)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 import tempfile
 import time
@@ -56,6 +55,7 @@ from teleop_rt.analysis.discrete import (  # noqa: E402
     spectral_radius,
 )
 from teleop_rt.analysis.impedance import ImpedanceParams, displayed_impedance  # noqa: E402
+from teleop_rt.output import report_folder_problem  # noqa: E402
 from teleop_rt.session import Session  # noqa: E402
 
 EXPERIMENT = ROOT / "configs" / "paper_experiment.yaml"
@@ -1321,22 +1321,9 @@ def default_out(quick: bool) -> Path:
     return Path(tempfile.mkdtemp(prefix="teleop-rt-paper-quick-")) if quick else ROOT / "docs"
 
 
-def prepare_out(out: Path) -> str | None:
-    """Create DIR and DIR/figures before the work; the reason it cannot be used, else None."""
-    if out.exists() and not out.is_dir():
-        return f"--out {out}: is a file, not a folder"
-    try:
-        (out / "figures").mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        return f"--out {out}: cannot create {out / 'figures'} ({err.strerror})"
-    if not os.access(out, os.W_OK) or not os.access(out / "figures", os.W_OK):
-        return f"--out {out}: cannot write into it (permission denied)"
-    return None
-
-
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    problem = prepare_out(args.out)
+    problem = report_folder_problem(args.out)
     if problem is not None:
         print(f"reproduce_paper: error: {problem}", file=sys.stderr)
         return 2
