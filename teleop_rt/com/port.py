@@ -285,15 +285,12 @@ def wave_step(
             # in step: nothing missed and the integral as the peer's; after a long gap the
             # integral is not caught up (a jolt), only taken as it is
             synced = (missed == 0 and used_sum == f[PEER_SUM * n + j]) or missed > CATCH_UP
-
             f[PEER_SUM * n + j] = rx[P_SUM * n + j]
             f[PEER_ENERGY * n + j] = rx[P_WAVE_ENERGY * n + j]
-        if how == ZERO:
-            w = received[j]
-        elif how == HOLD or not valid:
-            w = received[j] if valid else held[j]
-        elif synced:
-            w = received[j]  # the integral is in step: the wave as it was sent
+        if how == ZERO or (valid and (how == HOLD or synced)):
+            w = received[j]  # (zero: zeros when none arrived; else the wave as it was sent)
+        elif not valid:
+            w = held[j]
         else:  # catch the integral up in this tick: the samples missed and this one
             w = (f[PEER_SUM * n + j] - used_sum) / dt
         e = w * w * half_dt
