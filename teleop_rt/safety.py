@@ -45,13 +45,6 @@ class RobotLimits:
         self.velocity = [v if v > 0 else None for v in model.model.velocityLimit.tolist()]
         self.effort = [e if e > 0 else None for e in model.effort_limits.tolist()]
 
-    def clamp_effort(self, tau: list[float]) -> None:
-        """Clamp torques in place to the URDF effort limits (whatever the safety spec says:
-        the safe-stop reaction uses it)."""
-        for j, emax in enumerate(self.effort):
-            if emax is not None:
-                tau[j] = min(max(tau[j], -emax), emax)
-
 
 # what a check found (0: nothing); MEASURED_*: a non-finite measurement; SATURATION: a torque
 # at its limit for too long
@@ -99,7 +92,8 @@ class RobotGuard(Block):
     lo = Vector("lower position limit, rad (-inf: none)", param=True)
     hi = Vector("upper position limit, rad (inf: none)", param=True)
     vmax = Vector("speed limit, rad/s", param=True)
-    emax = Vector("effort limit, N m", param=True)
+    emax = Vector("effort limit, N m (inf: none, or torque_limits: off)", param=True)
+    urdf_emax = Vector("the URDF's effort limit, N m, whatever the spec (the stop's)", param=True)
     prev_v = Vector("last tick's velocity (tracking)")
     prev_a = Vector("last tick's commanded acceleration (tracking)")
     run = Vector("ticks in a row off the commanded acceleration")
@@ -132,6 +126,7 @@ class RobotGuard(Block):
         self.vmax[:] = [x if x is not None else inf for x in velocity]
         effort = lim.effort if spec.torque_limits != "off" else [None] * self.n
         self.emax[:] = [x if x is not None else inf for x in effort]
+        self.urdf_emax[:] = [x if x is not None else inf for x in lim.effort]
         self.tau_ext_max[:] = plausible(
             spec.measured_torque_limit_nm, lim.effort, MEASURED_TORQUE_FACTOR, self.n,
             "safety.measured_torque_limit_nm",
@@ -172,6 +167,26 @@ class RobotGuard(Block):
         if self.workspace is not None:
             self.check_workspace(tick, fb.q)
         return bool(self.saturated)
+
+    def motion_usable(self, q: np.ndarray, v: np.ndarray) -> bool:
+        """Angles finite and speeds finite within the plausibility bounds: what the staged stop
+        may act on (the checks ``measured_fault`` makes of them every tick)."""
+        return motion_plausible(self.f, self.n, as_floats(q), as_floats(v))
+
+    def force_plausible(self, tau_ext: np.ndarray) -> bool:
+        """Measured external torques finite and within their plausibility bounds."""
+        return force_plausible(self.f, self.n, as_floats(tau_ext))
+
+    def follows(self, v: np.ndarray, prev_v: np.ndarray, prev_a: np.ndarray) -> bool:
+        """The acceleration measured from ``prev_v`` to ``v`` within the tracking tolerance of
+        the one commanded, ``prev_a``, on every joint (the tracking check's criterion)."""
+        return follows_command(self.f, self.n, as_floats(v), prev_v, prev_a)
+
+    def clamp_command(self, tau: np.ndarray) -> bool:
+        """A staged stop's command: False if any torque is not finite (nothing may be written
+        then), else clamped in place to the URDF effort limits, whatever the safety spec says
+        (``torque_limits: off`` and ``enabled: false`` included)."""
+        return clamp_to_effort(self.f, self.n, tau)
 
     def stop_for(self, tick: int, code: int, age_ticks: int) -> SafetyStop:
         """The SafetyStop that words a finding of the compiled checks."""
@@ -230,6 +245,7 @@ G = RobotGuard
 LO, HI, VMAX, EMAX, PREV_V, PREV_A, RUN = (
     x.k for x in (G.lo, G.hi, G.vmax, G.emax, G.prev_v, G.prev_a, G.run)
 )
+URDF_EMAX = G.urdf_emax.k
 TAU_EXT_MAX, V_MEASURED_MAX = G.tau_ext_max.k, G.v_measured_max.k
 TOLERANCE, INV_DT, VALUE = G.tolerance.k, G.inv_dt.k, G.value.k
 ENABLED, STALE_TICKS, TRACKING_TICKS, STOP_ON_TORQUE = (
@@ -299,6 +315,52 @@ def _first_non_finite(values: np.ndarray, n: int) -> int:
         if not math.isfinite(values[j]):
             return j
     return -1
+
+
+@jit
+def motion_plausible(f: np.ndarray, n: int, q: np.ndarray, v: np.ndarray) -> bool:
+    """Every angle finite, every speed finite and within its plausibility bound."""
+    v0 = V_MEASURED_MAX * n
+    for j in range(n):
+        if not (math.isfinite(q[j]) and -f[v0 + j] <= v[j] <= f[v0 + j]):  # (NaN fails)
+            return False
+    return True
+
+
+@jit
+def force_plausible(f: np.ndarray, n: int, tau_ext: np.ndarray) -> bool:
+    """Every measured external torque within its plausibility bound (NaN fails)."""
+    t0 = TAU_EXT_MAX * n
+    for j in range(n):
+        if not -f[t0 + j] <= tau_ext[j] <= f[t0 + j]:
+            return False
+    return True
+
+
+@jit
+def follows_command(
+    f: np.ndarray, n: int, v: np.ndarray, prev_v: np.ndarray, prev_a: np.ndarray
+) -> bool:
+    """(v - prev_v) / dt within the tracking tolerance of prev_a on every joint."""
+    s = N_GUARD_VECTORS * n
+    tol, inv_dt = f[s + TOLERANCE], f[s + INV_DT]
+    for j in range(n):
+        error = (v[j] - prev_v[j]) * inv_dt - prev_a[j]
+        if not -tol <= error <= tol:
+            return False
+    return True
+
+
+@jit
+def clamp_to_effort(f: np.ndarray, n: int, tau: np.ndarray) -> bool:
+    """False if a torque is not finite (tau untouched), else tau clamped to the URDF limits."""
+    for j in range(n):
+        if not math.isfinite(tau[j]):
+            return False
+    emax = vec(f, URDF_EMAX, n)
+    for j in range(n):
+        tau[j] = min(max(tau[j], -emax[j]), emax[j])
+    return True
 
 
 @jit

@@ -21,7 +21,7 @@ import pinocchio as pin
 from teleop_rt.com.channel import make_port
 from teleop_rt.com.link import Link
 from teleop_rt.com.port import HSI, TO, Packet, Port
-from teleop_rt.config import SessionConfig, per_joint
+from teleop_rt.config import SafetySpec, SessionConfig, per_joint
 from teleop_rt.control import ComputedTorque, Pid
 from teleop_rt.errors import SafetyStop
 from teleop_rt.flat import Block, Packed
@@ -41,6 +41,8 @@ if TYPE_CHECKING:
 
 SIDES = {"hsi": HSI, "to": TO}
 REST_SPEED_RAD_S = 1e-3  # a robot slower than this on every joint is at rest
+STOP_GAIN_OF_DEADBEAT = 0.5  # the TO's stop gain at most half the deadbeat gain M_v / dt
+STOP_DAMPING_DEFAULT = SafetySpec.model_fields["stop_damping_nm_s_per_rad"].default
 
 
 class SensorsUnusable(Exception):
@@ -90,7 +92,7 @@ class Site:
         computed_torque: ComputedTorque, guard: RobotGuard, port: Port, dt: float,
     ) -> None:  # fmt: skip
         self.side, self.dt = SIDES[self.name], dt
-        self.stop_damping = 0.5  # N m s/rad (safety.stop_damping_nm_s_per_rad)
+        self.stop_damping = STOP_DAMPING_DEFAULT
         self.model, self.n = model, model.nv
         self.controller, self.computed_torque, self.guard = controller, computed_torque, guard
         self.backend = backend
@@ -101,6 +103,18 @@ class Site:
             raise ValueError(f"the {self.name} site needs the {self.name}'s port")
         self.port = port
         self.tx, self.rx = Packet(self.n), Packet(self.n)
+        # the staged stop's buffers, and the TO's stop gain: its controller's kp, at most
+        # STOP_GAIN_OF_DEADBEAT of the sampled velocity loop's deadbeat gain M_v / dt, so that
+        # the stop converges whatever kp is (the loop v[k+1] = (1 - k dt / M_v) v[k] is stable
+        # for k dt / M_v < 2; a kp beyond it may be the very fault that stopped the run)
+        self._zeros, self._stop_tau, self._stop_a_ref, self._stop_v, self._stop_a = (
+            np.zeros(self.n) for _ in range(5)
+        )
+        self.found_fault = False  # this site's own guard found what stopped the run
+        self.begin_rest()
+        deadbeat = 1.0 / (computed_torque.inv_mass * dt)
+        self._stop_gain = np.minimum(np.nan_to_num(controller.kp, nan=0.0),
+                                     STOP_GAIN_OF_DEADBEAT * deadbeat)  # fmt: skip
         self.tick = 0
         self.blocks: list[Block] = [getattr(self, attr) for attr in SITE_ORDER]
         self.bind(Packed(self.blocks))  # alone until a session packs it with the other site
@@ -165,28 +179,78 @@ class Site:
         if guard.workspace is not None and guard.enabled:
             q = self.feedback.q
             if np.isfinite(q).all():
-                guard.check_workspace(self.tick, q)
+                try:
+                    guard.check_workspace(self.tick, q)
+                except SafetyStop:
+                    self.found_fault = True
+                    raise
+
+    def begin_rest(self) -> None:
+        """Before the staged stop's first tick. The TO may feed its torque sensor forward (and
+        so hold still in a contact) only if its own guard did not find the fault: a fault of
+        this robot may be that very sensor (a bias trips the tracking or saturation checks
+        first), and a biased τ_ext fed forward would drive it at its effort limits."""
+        self._force_trusted = self.side == TO and not self.found_fault
+        self._stop_ticks = self._stop_ticks_trusted = 0
 
     def rest_step(self) -> bool:
         """One tick of the staged stop after a safety finding: the HSI damped (gravity
         compensated, ``safety.stop_damping_nm_s_per_rad``), the TO brought to zero velocity
-        under its own velocity loop; True once this robot is at rest. ``SensorsUnusable`` if
-        its sensors cannot be trusted (the caller then commands zero torque)."""
+        under a velocity loop of its own; True once this robot is at rest.
+
+        The stop trusts as little as it can. It acts on angles and speeds only once they pass
+        the guard's measurement checks (fresh, finite, speeds within the plausibility bounds).
+        The TO's torque sensor is fed forward only while trusted (see ``begin_rest``), within
+        its plausibility bound, and while the TO follows the acceleration commanded the tick
+        before (eq 3 / 13 again: a wrong τ_ext shows as an acceleration off by M⁻¹ times its
+        error); once it fails it is dropped for the rest of the stop, and the TO's virtual mass
+        is then damped against whatever touches it. The command passes the checks every write
+        passes: finite, then clamped to the URDF effort limits. ``SensorsUnusable`` otherwise:
+        the caller then commands zero torque."""
         fb = self.backend.read()
-        usable = (fb.q, fb.v, fb.tau_ext) if self.side == TO else (fb.q, fb.v)
-        if fb.age_ticks or not all(np.isfinite(x).all() for x in usable):
+        guard = self.guard
+        if fb.age_ticks or not guard.motion_usable(fb.q, fb.v):
             raise SensorsUnusable(self.name)
+        tau = self._stop_tau
         if self.side == HSI:
-            zeros = np.zeros(self.n)
-            g = self.model.rnea(fb.q, zeros, zeros) - self.stop_damping * fb.v
-        else:
-            g = self.computed_torque.step(fb.q, fb.v, -self.controller.kp * fb.v, fb.tau_ext)
-        self.guard.limits.clamp_effort(g)
-        self.backend.write(g)
+            tau[:] = self.model.rnea(fb.q, self._zeros, self._zeros)
+            tau -= self.stop_damping * fb.v
+        else:  # M M_v^-1 (-k v) + n(q, v) - τ_ext (when trusted)
+            if self._force_trusted and (
+                not guard.force_plausible(fb.tau_ext)
+                or (self._stop_ticks and not guard.follows(fb.v, self._stop_v, self._stop_a))
+            ):
+                self._force_trusted = False
+                self._stop_ticks_trusted = self._stop_ticks
+            tau_ext = fb.tau_ext if self._force_trusted else self._zeros
+            np.multiply(self._stop_gain, fb.v, out=self._stop_a_ref)
+            np.negative(self._stop_a_ref, out=self._stop_a_ref)
+            tau[:] = self.computed_torque.step(fb.q, fb.v, self._stop_a_ref, tau_ext)
+            self._stop_v[:] = fb.v
+            self._stop_a[:] = self.computed_torque.a_des
+        self._stop_ticks += 1
+        if not guard.clamp_command(tau):
+            raise SensorsUnusable(self.name)
+        self.backend.write(tau)
         return float(np.abs(fb.v).max()) < REST_SPEED_RAD_S
+
+    def write_zero_torque(self) -> None:
+        """Command zero torque (a staged stop that cannot trust this robot's sensors)."""
+        self._stop_tau[:] = 0.0
+        self.backend.write(self._stop_tau)
+
+    def stop_note(self) -> str:
+        """What the staged stop did without the TO's torque sensor ('' when nothing)."""
+        if self.side != TO or self._force_trusted:
+            return ""
+        if self.found_fault:
+            return "the TO stopped without its torque sensor (its own fault)"
+        ticks = self._stop_ticks_trusted
+        return f"the TO's torque sensor disagreed with its motion after {ticks} ticks; dropped"
 
     def stop_for(self, code: int) -> SafetyStop:
         """The SafetyStop that words a finding of this site's compiled checks."""
+        self.found_fault = True
         return self.guard.stop_for(self.tick, code, self.feedback.age_ticks)
 
 
@@ -194,19 +258,40 @@ def bring_to_rest(sites: list[Site], until: Site, wait: Callable[[], object], li
     """The staged stop after a safety finding, one tick at a time (``wait`` paces it: the
     clock's, in real time): every site's ``rest_step`` until ``until`` is at rest, at most
     ``limit`` ticks; what happened, for the summary's notes (zero torque follows, the backends'
-    stop). Sensors that are not usable, or a further fault, end it at once."""
-    name = until.name.upper()
+    stop). A site whose sensors become unusable is commanded zero torque from then on while
+    the others go on stopping; a further fault ends it at once."""
+    for site in sites:
+        site.begin_rest()
+    stopping = list(sites)
+    said: list[str] = []
+    ending = f"{until.name.upper()} not at rest after {limit} ticks; zero torque"
     try:
         for k in range(limit):
             wait()
-            resting = [site.rest_step() for site in sites]
-            if resting[sites.index(until)]:
-                return f"{name} at rest after {k + 1} ticks, then zero torque"
-    except SensorsUnusable:
-        return f"sensors unusable after {k} ticks: zero torque"
+            resting = False
+            for site in sites:
+                if site not in stopping:
+                    site.write_zero_torque()
+                    continue
+                try:
+                    at_rest = site.rest_step()
+                except SensorsUnusable:
+                    stopping.remove(site)
+                    site.write_zero_torque()
+                    said.append(f"{site.name.upper()}'s sensors unusable after {k} ticks: "
+                                "zero torque from then on")  # fmt: skip
+                    continue
+                resting = resting or (site is until and at_rest)
+            if resting:
+                ending = f"{until.name.upper()} at rest after {k + 1} ticks, then zero torque"
+                break
+            if until not in stopping:
+                ending = "zero torque"
+                break
     except SafetyStop as exc:
-        return f"a further fault while stopping ({exc}): zero torque"
-    return f"{name} not at rest after {limit} ticks; zero torque"
+        ending = f"a further fault while stopping ({exc}): zero torque"
+    said += [note for site in sites if (note := site.stop_note())]
+    return "; ".join([*said, ending])
 
 
 class HsiSite(Site):
