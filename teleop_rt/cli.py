@@ -593,6 +593,7 @@ def _cmd_bode(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from teleop_rt.analysis.bode import (
+        MAX_POINT_SECONDS,
         default_omegas,
         measure_displayed_impedance,
         plot_bode,
@@ -612,8 +613,10 @@ def _cmd_bode(args: argparse.Namespace) -> int:
         omegas = default_omegas(args.omega_min, args.omega_max, args.points).tolist()
     if not omegas or not all(w > 0 and math.isfinite(w) for w in omegas):
         raise ConfigError("frequencies must be positive finite numbers (rad/s)")
-    if not (args.max_seconds > 0 and math.isfinite(args.max_seconds)):
-        raise ConfigError(f"--max-seconds must be > 0, got {args.max_seconds}")
+    if not 0 < args.max_seconds <= MAX_POINT_SECONDS:
+        raise ConfigError(
+            f"--max-seconds must be > 0 and at most {MAX_POINT_SECONDS:g} s, got {args.max_seconds}"
+        )
     to_stdout = args.json_out == "-"
     json_file = None if to_stdout else args.json_out
     # every output path is checked before the sweep, which can take minutes
