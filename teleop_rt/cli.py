@@ -17,9 +17,9 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from teleop_rt import __version__
 from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop, TeleopError
 from teleop_rt.exit_signals import Terminated, exit_on_signals
+from teleop_rt.version import software_version
 
 EXIT_INTERRUPTED = 130
 
@@ -29,7 +29,8 @@ def _build_parser() -> argparse.ArgumentParser:
         prog="teleop-rt",
         description="1 kHz haptic bilateral teleoperation (Kuschel & Buss architecture).",
     )
-    parser.add_argument("--version", action="version", version=f"teleop-rt {__version__}")
+    # what the logs record: the release with the git commit when run from a checkout
+    parser.add_argument("--version", action="version", version=f"teleop-rt {software_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def add_backend_arg(p: argparse.ArgumentParser) -> None:
@@ -122,7 +123,7 @@ def _build_parser() -> argparse.ArgumentParser:
     )
 
     info = sub.add_parser("info", help="what a log holds: start, duration, topics, session, status")
-    info.add_argument("log", help="an MCAP log written by teleop-rt run or replay")
+    info.add_argument("log", help="an MCAP log written by teleop-rt run, site or replay")
     info.add_argument("--json", action="store_true", help="print it as JSON")
 
     metrics = sub.add_parser(
@@ -140,7 +141,9 @@ def _build_parser() -> argparse.ArgumentParser:
     replay = sub.add_parser(
         "replay", help="re-simulate a log with its operator input (and --set overrides)"
     )
-    replay.add_argument("log", help="an MCAP log written by teleop-rt run")
+    replay.add_argument(
+        "log", help="an MCAP log written by teleop-rt run, or a site's log (teleop-rt site)"
+    )
     add_set_arg(replay, "change the logged session, e.g. --set channel.delay_ms=100 (repeatable)")
     replay.add_argument("--json", action="store_true", help="print both summaries as JSON")
     replay.add_argument(
@@ -185,13 +188,16 @@ def _build_parser() -> argparse.ArgumentParser:
             f"--env-{name}",
             type=float,
             default=None,
-            help=f"joint-space environment Z_e of the excited joint, {unit} (default 0)",
+            help=f"joint-space environment Z_e of the excited joint, {unit} (default: the "
+            "config's environment at the TO's start pose; any --env-* replaces all of it, "
+            "the others 0)",
         )
     bode.add_argument(
         "--max-seconds",
         type=float,
         default=60.0,
-        help="simulated seconds per frequency (at least 3 windows) before it counts as not settled",
+        help="simulated seconds per frequency (at least 3 windows) before it counts as not "
+        "settled (default 60, at most 3600)",
     )
     return parser
 

@@ -26,7 +26,7 @@ from teleop_rt.com.impairment import ImpairmentSpec
 from teleop_rt.errors import ConfigError, quote
 from teleop_rt.hal.can.config import CanSpec
 from teleop_rt.inputs import file_problem, read_bounded, shown
-from teleop_rt.schema import BOOL_ERROR, StrictModel
+from teleop_rt.schema import BOOL_ERROR, StrictModel, annotation_leaves
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
@@ -470,7 +470,7 @@ def _format_error(err: ValidationError) -> str:
     if first["type"] == BOOL_ERROR:  # raised for the whole section: the key is in its ctx
         loc = f"{loc}.{first['ctx']['key']}" if loc else first["ctx"]["key"]
     if first["type"] == "extra_forbidden":
-        msg = _unknown_key(loc_parts) or "unknown key"
+        msg = _unknown_key(loc_parts) or "unknown key" + _close_key(loc_parts)
     return f"{loc or 'config'}: {msg}"
 
 
@@ -492,6 +492,28 @@ def _unknown_key(loc: tuple) -> str | None:
             f"whole section instead, --set '{where}={{{example}}}'"
         )
     return msg
+
+
+def _close_key(loc: tuple) -> str:
+    """'; did you mean 'delay_ms'?' when a key of that section is close to the one typed (a
+    typo), else nothing: a suggestion far from what was typed only misleads."""
+    import difflib
+
+    section: Any = SessionConfig
+    for i, part in enumerate(loc[:-1]):
+        if isinstance(part, int) or _is_member_tag(part):
+            continue
+        if _is_union_tag(part, loc[i - 1] if i else None):
+            section = _KINDS["operator" if loc[i - 1] == "operator" else "environment"][part]
+            continue
+        field = section.model_fields.get(part) if isinstance(section, type) else None
+        models = [t for t in annotation_leaves(field.annotation) if isinstance(t, type)
+                  and issubclass(t, BaseModel)] if field else []  # fmt: skip
+        if len(models) != 1:
+            return ""
+        section = models[0]
+    close = difflib.get_close_matches(str(loc[-1]), list(section.model_fields), n=1, cutoff=0.75)
+    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 _UNION_TAGS = {"damper", "hand", "wall", "foam", "spring", "mass"}

@@ -55,21 +55,21 @@ def _refused(key: str, message: str) -> PydanticCustomError:
     return PydanticCustomError(BOOL_ERROR, message, {"key": key})
 
 
-def _leaves(annotation: Any) -> list[Any]:
+def annotation_leaves(annotation: Any) -> list[Any]:
     """The plain types and Literal values an annotation is made of (through unions,
     Annotated, list[...] and Optional)."""
     origin = typing.get_origin(annotation)
     if origin is Literal:
         return list(typing.get_args(annotation))
     if origin is typing.Annotated:
-        return _leaves(typing.get_args(annotation)[0])
+        return annotation_leaves(typing.get_args(annotation)[0])
     if origin in (typing.Union, types.UnionType, list):
-        return [leaf for arg in typing.get_args(annotation) for leaf in _leaves(arg)]
+        return [leaf for arg in typing.get_args(annotation) for leaf in annotation_leaves(arg)]
     return [annotation]
 
 
 def _unbooled(value: Any, annotation: Any, key: str) -> Any:
-    leaves = _leaves(annotation)
+    leaves = annotation_leaves(annotation)
     if any(leaf is bool for leaf in leaves):
         return value  # the field takes booleans (safety.enabled, can options)
     numeric = any(leaf in (int, float) for leaf in leaves)

@@ -76,7 +76,8 @@ def test_a_long_seed_is_refused(capsys) -> None:
 def test_a_long_integer_in_a_config_file_is_one_line(tmp_path, capsys) -> None:
     text = Path(PAPER).read_text().replace("../robots", str(ROOT / "robots"))
     path = tmp_path / "seed.yaml"
-    path.write_text(text + f"\nseed: {'7' * 5000}\n")
+    assert "\nseed: 0\n" in text  # replaced: a second seed key is refused as a repeated key
+    path.write_text(text.replace("\nseed: 0\n", f"\nseed: {'7' * 5000}\n"))
     assert_refused(["check", str(path)], capsys, str(path), "integer too long")
 
 
@@ -327,14 +328,14 @@ def _numeric_fields(cls, seen: set) -> list[tuple[type, str]]:
 
     from pydantic import BaseModel
 
-    from teleop_rt.schema import _leaves
+    from teleop_rt.schema import annotation_leaves
 
     out = []
     if cls in seen:
         return out
     seen.add(cls)
     for name, field in cls.model_fields.items():
-        leaves = _leaves(field.annotation)
+        leaves = annotation_leaves(field.annotation)
         for leaf in leaves:
             sections = [leaf] + [a for a in typing.get_args(leaf) if isinstance(a, type)]
             for sub in sections:
@@ -480,3 +481,47 @@ def test_bode_refuses_a_frequency_too_low_to_measure(omega, capsys) -> None:
     assert_refused(["bode", PAPER, "--omegas", f"2,{omega}"], capsys,
                    f"frequency {float(omega):g} rad/s", "limit of 3600 s")  # fmt: skip
     assert_refused(["bode", PAPER, "--max-seconds", "1e9"], capsys, "--max-seconds", "3600")
+
+
+# --- issue 28's texts -------------------------------------------------------------------------
+def test_the_contact_warning_states_the_right_fraction(capsys) -> None:
+    """500 kN/m is 68 321 N m/rad at q0 against a limit of 36 000: 190 %, beyond the limit."""
+    code, _, err = cli(["check", PAPER, "--set", "environment.1.stiffness_n_per_m=500000"], capsys)
+    assert code == 0
+    line = next(x for x in err.splitlines() if "environment.1" in x)
+    assert "68321 N m/rad" in line and "190% of the sampled contact loop's limit 36000" in line
+    assert "beyond it the contact is unstable" in line and "above 50% of" not in line
+
+
+@pytest.mark.parametrize(
+    "typed, suggestion",
+    [("channel.dleay_ms", "did you mean 'delay_ms'?"), ("operatr", "did you mean 'operator'?"),
+     ("link.peer_timout_ms", "did you mean 'peer_timeout_ms'?"), ("channel.xyz", None),
+     ("seed_value_of_it", None)],
+)  # fmt: skip
+def test_an_unknown_key_suggests_only_a_close_one(typed, suggestion, capsys) -> None:
+    err = assert_refused(["check", PAPER, "--set", f"{typed}=3"], capsys, f"{typed}: unknown key")
+    if suggestion is None:
+        assert "did you mean" not in err
+    else:
+        assert suggestion in err
+
+
+def test_version_is_the_logs_version(capsys) -> None:
+    from teleop_rt.version import software_version
+
+    with pytest.raises(SystemExit):
+        main(["--version"])
+    assert capsys.readouterr().out == f"teleop-rt {software_version()}\n"
+
+
+def test_help_texts(capsys) -> None:
+    def help_of(*argv: str) -> str:
+        with pytest.raises(SystemExit):
+            main([*argv, "--help"])
+        return " ".join(capsys.readouterr().out.split())
+
+    bode = help_of("bode", PAPER)
+    assert "(default 0)" not in bode and "the config's environment" in bode
+    assert "(default 60, at most 3600)" in bode
+    assert "site" in help_of("replay", "x") and "site" in help_of("info", "x")
