@@ -525,3 +525,13 @@ def test_help_texts(capsys) -> None:
     assert "(default 0)" not in bode and "the config's environment" in bode
     assert "(default 60, at most 3600)" in bode
     assert "site" in help_of("replay", "x") and "site" in help_of("info", "x")
+
+
+def test_a_fast_runs_preempted_max_is_explained() -> None:
+    """Fast mode's max tick of 12-24 ms (the host preempted the process) gets a note; a max
+    near p99 none."""
+    from teleop_rt.report import preemption_note
+
+    note = preemption_note({"p50": 20.0, "p99": 40.0, "p99.9": 900.0, "max": 24_000.0})
+    assert note is not None and "host preemption" in note and "24 ms" in note
+    assert preemption_note({"p50": 20.0, "p99": 40.0, "p99.9": 60.0, "max": 90.0}) is None
