@@ -538,3 +538,15 @@ def test_a_fast_runs_preempted_max_is_explained() -> None:
     note = preemption_note({"p50": 20.0, "p99": 40.0, "p99.9": 900.0, "max": 24_000.0})
     assert note is not None and "host preemption" in note and "24 ms" in note
     assert preemption_note({"p50": 20.0, "p99": 40.0, "p99.9": 60.0, "max": 90.0}) is None
+
+
+@pytest.mark.parametrize("tool", ["bench_instructions", "bench_link"])
+def test_a_tools_help_is_not_cut_mid_sentence(tool) -> None:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    done = subprocess.run([sys.executable, str(ROOT / "tools" / f"{tool}.py"), "--help"],
+                          capture_output=True, text=True, env=env, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    description = " ".join(done.stdout.split("\n\n")[1].split())
+    assert description.endswith((".", ")")), description
+    assert {"bench_instructions": "instruction counts repeat).",
+            "bench_link": "the same config in one process."}[tool] in description  # fmt: skip
