@@ -33,14 +33,17 @@ def _build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"teleop-rt {software_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    def add_backend_arg(p: argparse.ArgumentParser) -> None:
+    def add_backend_arg(p: argparse.ArgumentParser, one_robot: bool = False) -> None:
+        # a site runs one robot: its backend is just NAME (hsi:/to: would name the other too)
         p.add_argument(
             "--backend",
             type=_backend_arg,
             action="append",
             default=[],
-            metavar="[hsi:|to:]NAME",
-            help="backend instead of the config's, for both robots or one of them "
+            metavar="NAME" if one_robot else "[hsi:|to:]NAME",
+            help="backend of this site's robot instead of the config's: --backend can"
+            if one_robot
+            else "backend instead of the config's, for both robots or one of them "
             "(repeatable): --backend can, --backend hsi:can --backend to:sim",
         )
 
@@ -102,7 +105,7 @@ def _build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     site.add_argument("--max-missed", type=_non_negative_int, metavar="N",
                       help="a safety stop (exit 3) at the (N+1)th missed deadline")  # fmt: skip
-    add_backend_arg(site)
+    add_backend_arg(site, one_robot=True)
     site.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     add_log_args(site, "logs/<name>-<UTC time>.<site>.mcap")
     site.add_argument(

@@ -528,6 +528,8 @@ def test_help_texts(capsys) -> None:
     assert "(default 0)" not in bode and "the config's environment" in bode
     assert "(default 60, at most 3600)" in bode
     assert "site" in help_of("replay", "x") and "site" in help_of("info", "x")
+    site = help_of("site", "hsi", PAPER)
+    assert "--backend NAME" in site and "hsi:|to:" not in site
 
 
 def test_a_fast_runs_preempted_max_is_explained() -> None:
