@@ -552,3 +552,8 @@ def test_a_tools_help_is_not_cut_mid_sentence(tool) -> None:
     assert description.endswith((".", ")")), description
     assert {"bench_instructions": "instruction counts repeat).",
             "bench_link": "the same config in one process."}[tool] in description  # fmt: skip
+
+
+def test_log_on_a_folder_says_it_is_a_folder(tmp_path, capsys) -> None:
+    assert_refused(["run", PAPER, "--duration", "0.01", "--log", str(tmp_path)], capsys,
+                   f"--log {tmp_path}: is a folder")  # fmt: skip
