@@ -17,9 +17,9 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from teleop_rt import __version__
 from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop, TeleopError
 from teleop_rt.exit_signals import Terminated, exit_on_signals
+from teleop_rt.version import software_version
 
 EXIT_INTERRUPTED = 130
 
@@ -29,17 +29,21 @@ def _build_parser() -> argparse.ArgumentParser:
         prog="teleop-rt",
         description="1 kHz haptic bilateral teleoperation (Kuschel & Buss architecture).",
     )
-    parser.add_argument("--version", action="version", version=f"teleop-rt {__version__}")
+    # what the logs record: the release with the git commit when run from a checkout
+    parser.add_argument("--version", action="version", version=f"teleop-rt {software_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    def add_backend_arg(p: argparse.ArgumentParser) -> None:
+    def add_backend_arg(p: argparse.ArgumentParser, one_robot: bool = False) -> None:
+        # a site runs one robot: its backend is just NAME (hsi:/to: would name the other too)
         p.add_argument(
             "--backend",
             type=_backend_arg,
             action="append",
             default=[],
-            metavar="[hsi:|to:]NAME",
-            help="backend instead of the config's, for both robots or one of them "
+            metavar="NAME" if one_robot else "[hsi:|to:]NAME",
+            help="backend of this site's robot instead of the config's: --backend can"
+            if one_robot
+            else "backend instead of the config's, for both robots or one of them "
             "(repeatable): --backend can, --backend hsi:can --backend to:sim",
         )
 
@@ -101,7 +105,7 @@ def _build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     site.add_argument("--max-missed", type=_non_negative_int, metavar="N",
                       help="a safety stop (exit 3) at the (N+1)th missed deadline")  # fmt: skip
-    add_backend_arg(site)
+    add_backend_arg(site, one_robot=True)
     site.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
     add_log_args(site, "logs/<name>-<UTC time>.<site>.mcap")
     site.add_argument(
@@ -122,7 +126,7 @@ def _build_parser() -> argparse.ArgumentParser:
     )
 
     info = sub.add_parser("info", help="what a log holds: start, duration, topics, session, status")
-    info.add_argument("log", help="an MCAP log written by teleop-rt run or replay")
+    info.add_argument("log", help="an MCAP log written by teleop-rt run, site or replay")
     info.add_argument("--json", action="store_true", help="print it as JSON")
 
     metrics = sub.add_parser(
@@ -140,7 +144,9 @@ def _build_parser() -> argparse.ArgumentParser:
     replay = sub.add_parser(
         "replay", help="re-simulate a log with its operator input (and --set overrides)"
     )
-    replay.add_argument("log", help="an MCAP log written by teleop-rt run")
+    replay.add_argument(
+        "log", help="an MCAP log written by teleop-rt run, or a site's log (teleop-rt site)"
+    )
     add_set_arg(replay, "change the logged session, e.g. --set channel.delay_ms=100 (repeatable)")
     replay.add_argument("--json", action="store_true", help="print both summaries as JSON")
     replay.add_argument(
@@ -185,13 +191,16 @@ def _build_parser() -> argparse.ArgumentParser:
             f"--env-{name}",
             type=float,
             default=None,
-            help=f"joint-space environment Z_e of the excited joint, {unit} (default 0)",
+            help=f"joint-space environment Z_e of the excited joint, {unit} (default: the "
+            "config's environment at the TO's start pose; any --env-* replaces all of it, "
+            "the others 0)",
         )
     bode.add_argument(
         "--max-seconds",
         type=float,
         default=60.0,
-        help="simulated seconds per frequency (at least 3 windows) before it counts as not settled",
+        help="simulated seconds per frequency (at least 3 windows) before it counts as not "
+        "settled (default 60, at most 3600)",
     )
     return parser
 
@@ -593,6 +602,7 @@ def _cmd_bode(args: argparse.Namespace) -> int:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from teleop_rt.analysis.bode import (
+        MAX_POINT_SECONDS,
         default_omegas,
         measure_displayed_impedance,
         plot_bode,
@@ -612,8 +622,10 @@ def _cmd_bode(args: argparse.Namespace) -> int:
         omegas = default_omegas(args.omega_min, args.omega_max, args.points).tolist()
     if not omegas or not all(w > 0 and math.isfinite(w) for w in omegas):
         raise ConfigError("frequencies must be positive finite numbers (rad/s)")
-    if not (args.max_seconds > 0 and math.isfinite(args.max_seconds)):
-        raise ConfigError(f"--max-seconds must be > 0, got {args.max_seconds}")
+    if not 0 < args.max_seconds <= MAX_POINT_SECONDS:
+        raise ConfigError(
+            f"--max-seconds must be > 0 and at most {MAX_POINT_SECONDS:g} s, got {args.max_seconds}"
+        )
     to_stdout = args.json_out == "-"
     json_file = None if to_stdout else args.json_out
     # every output path is checked before the sweep, which can take minutes

@@ -16,8 +16,6 @@ from typing import Annotated, Any, Literal
 import yaml
 from pydantic import (
     BaseModel,
-    BeforeValidator,
-    ConfigDict,
     Field,
     ValidationError,
     field_validator,
@@ -27,19 +25,12 @@ from pydantic import (
 from teleop_rt.com.impairment import ImpairmentSpec
 from teleop_rt.errors import ConfigError, quote
 from teleop_rt.hal.can.config import CanSpec
+from teleop_rt.inputs import file_problem, read_bounded, shown
+from teleop_rt.schema import BOOL_ERROR, StrictModel, annotation_leaves
 
-
-def _not_bool(value: Any) -> Any:
-    # pydantic's lax mode reads true as 1 and false as 0; in a config that is always a slip
-    if isinstance(value, bool):
-        raise ValueError(f"expected a number, got {str(value).lower()}")
-    return value
-
-
-NoBool = BeforeValidator(_not_bool)
-PositiveFloat = Annotated[float, NoBool, Field(gt=0, allow_inf_nan=False)]
-NonNegFloat = Annotated[float, NoBool, Field(ge=0, allow_inf_nan=False)]
-FiniteFloat = Annotated[float, NoBool, Field(allow_inf_nan=False)]
+PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+NonNegFloat = Annotated[float, Field(ge=0, allow_inf_nan=False)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 PerJointPositive = PositiveFloat | list[PositiveFloat]
 PerJointNonNeg = NonNegFloat | list[NonNegFloat]
 
@@ -54,8 +45,9 @@ MAX_STOP_TICKS = 100_000  # a staged stop that long is no stop (100 s at 1 kHz)
 MAX_SEED = 2**63 - 1
 
 
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=False)
+class Strict(StrictModel):
+    """A config section: unknown keys refused, frozen, no boolean taken as a number
+    (teleop_rt.schema)."""
 
 
 def _vec3(values: list[float], key: str) -> list[float]:
@@ -126,7 +118,7 @@ class ChannelSpec(Strict):
     and controllers), or, for comparison, plain delayed force feedback (direct, not passive)."""
 
     mode: Literal["wave", "tdpa", "direct"] = "wave"
-    delay_ms: Annotated[float, NoBool, Field(ge=0, le=MAX_DELAY_MS, allow_inf_nan=False)] = 0.0
+    delay_ms: Annotated[float, Field(ge=0, le=MAX_DELAY_MS, allow_inf_nan=False)] = 0.0
     wave_impedance: PerJointPositive = 2.0  # b, N m s/rad per joint
     # First-order low-pass on each received wave (keeps the channel passive; damps the
     # ringing of the discrete terminations against stiff contact). None switches it off.
@@ -153,7 +145,7 @@ class FaultSpec(Strict):
 
     kind: Literal["nan", "dropout", "noise_burst", "bias", "saturation", "stuck"]
     robot: Literal["hsi", "to"]
-    joint: Annotated[int, NoBool, Field(ge=0)] = 0
+    joint: Annotated[int, Field(ge=0)] = 0
     start_s: NonNegFloat = 0.0
     duration_s: PositiveFloat = 1e9
     magnitude: NonNegFloat = 1.0
@@ -163,11 +155,11 @@ class PlantSpec(Strict):
     """The simulated plant: integrator, sub-steps, sensor models and injected faults."""
 
     integrator: Literal["semi_implicit_euler", "rk4"] = "semi_implicit_euler"
-    substeps: Annotated[int, NoBool, Field(ge=1, le=100)] = 1
+    substeps: Annotated[int, Field(ge=1, le=100)] = 1
     torque_noise_std_nm: NonNegFloat = 0.0
     velocity_noise_std_rad_s: NonNegFloat = 0.0
     # Coulomb friction is smoothed as f_c * tanh(v / v_s) so the stiff sign() never enters.
-    coulomb_smoothing_rad_s: Annotated[float, NoBool, Field(ge=1e-6, le=10.0)] = 0.01
+    coulomb_smoothing_rad_s: Annotated[float, Field(ge=1e-6, le=10.0)] = 0.01
     faults: list[FaultSpec] = Field(default_factory=list)
 
 
@@ -205,14 +197,14 @@ class SafetySpec(Strict):
     torque_limits: Literal["saturate", "stop", "off"] = "saturate"  # URDF effort limits
     # a torque pinned at its limit this many ticks in a row is a fault (a loop gone unstable,
     # a stuck joint), not a transient: stop. 0 never stops for saturation.
-    saturation_stop_ticks: Annotated[int, NoBool, Field(ge=0, le=MAX_TICKS)] = 200
+    saturation_stop_ticks: Annotated[int, Field(ge=0, le=MAX_TICKS)] = 200
     # feedback that has not been refreshed for this many ticks is stale: stop
-    stale_ticks: Annotated[int, NoBool, Field(ge=1, le=MAX_TICKS)] = 3
+    stale_ticks: Annotated[int, Field(ge=1, le=MAX_TICKS)] = 3
     # a joint whose measured acceleration misses the commanded virtual dynamics (eq 3 / 13) by
     # more than this, this many ticks in a row, does not follow its torque (saturated or
     # blocked actuator, broken model): stop. 0 ticks switches the check off.
     tracking_error_rad_s2: PositiveFloat = 20.0
-    tracking_error_ticks: Annotated[int, NoBool, Field(ge=0, le=MAX_TICKS)] = 20
+    tracking_error_ticks: Annotated[int, Field(ge=0, le=MAX_TICKS)] = 20
     # the tool frame outside its box is a stop (one forward-kinematics call per boxed robot)
     workspace: WorkspaceLimits = WorkspaceLimits()
     # plausibility of the measurements (sensor faults), checked whatever ``enabled`` says:
@@ -222,7 +214,7 @@ class SafetySpec(Strict):
     measured_velocity_limit_rad_s: PerJointPositive | None = None
     # the stop itself: the HSI is damped, the TO is brought to rest, then both get zero torque
     stop_damping_nm_s_per_rad: NonNegFloat = 0.5
-    stop_max_ticks: Annotated[int, NoBool, Field(ge=0, le=MAX_STOP_TICKS)] = 500
+    stop_max_ticks: Annotated[int, Field(ge=0, le=MAX_STOP_TICKS)] = 500
 
 
 class RecordingSpec(Strict):
@@ -386,9 +378,9 @@ class SessionConfig(Strict):
     """A whole session: rate, duration, both robots, the channel, plant, operator, environment."""
 
     name: Annotated[str, Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")] = "session"
-    rate_hz: Annotated[int, NoBool, Field(ge=MIN_RATE_HZ, le=MAX_RATE_HZ)] = 1000
+    rate_hz: Annotated[int, Field(ge=MIN_RATE_HZ, le=MAX_RATE_HZ)] = 1000
     duration_s: PositiveFloat = 10.0
-    seed: Annotated[int, NoBool, Field(ge=0, le=MAX_SEED)] = 0
+    seed: Annotated[int, Field(ge=0, le=MAX_SEED)] = 0
     backend: str = "sim"  # a name from the backend registry (teleop_rt.hal)
     hsi: SideSpec
     to: SideSpec
@@ -475,8 +467,10 @@ def _format_error(err: ValidationError) -> str:
         and not (_is_member_tag(p) and not (keep_last and i == len(loc_parts) - 1))
     )
     msg = first["msg"].removeprefix("Value error, ")
+    if first["type"] == BOOL_ERROR:  # raised for the whole section: the key is in its ctx
+        loc = f"{loc}.{first['ctx']['key']}" if loc else first["ctx"]["key"]
     if first["type"] == "extra_forbidden":
-        msg = _unknown_key(loc_parts) or "unknown key"
+        msg = _unknown_key(loc_parts) or "unknown key" + _close_key(loc_parts)
     return f"{loc or 'config'}: {msg}"
 
 
@@ -498,6 +492,28 @@ def _unknown_key(loc: tuple) -> str | None:
             f"whole section instead, --set '{where}={{{example}}}'"
         )
     return msg
+
+
+def _close_key(loc: tuple) -> str:
+    """'; did you mean 'delay_ms'?' when a key of that section is close to the one typed (a
+    typo), else nothing: a suggestion far from what was typed only misleads."""
+    import difflib
+
+    section: Any = SessionConfig
+    for i, part in enumerate(loc[:-1]):
+        if isinstance(part, int) or _is_member_tag(part):
+            continue
+        if _is_union_tag(part, loc[i - 1] if i else None):
+            section = _KINDS["operator" if loc[i - 1] == "operator" else "environment"][part]
+            continue
+        field = section.model_fields.get(part) if isinstance(section, type) else None
+        models = [t for t in annotation_leaves(field.annotation) if isinstance(t, type)
+                  and issubclass(t, BaseModel)] if field else []  # fmt: skip
+        if len(models) != 1:
+            return ""
+        section = models[0]
+    close = difflib.get_close_matches(str(loc[-1]), list(section.model_fields), n=1, cutoff=0.75)
+    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 _UNION_TAGS = {"damper", "hand", "wall", "foam", "spring", "mass"}
@@ -580,14 +596,11 @@ def _resolve_paths(cfg: SessionConfig, base_dir: Path) -> SessionConfig:
 
 
 def read_yaml(path: Path) -> Any:
-    """Read a YAML file safely (no object tags, bounded size, no alias bombs)."""
-    try:
-        raw = path.read_bytes()
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such config file") from None
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot read ({err.strerror})") from None
-    return parse_yaml(raw, str(path))
+    """Read a YAML file safely (a regular file only, bounded size, no object tags, no alias
+    bombs, no duplicate keys)."""
+    if file_problem(path) == "no such file":
+        raise ConfigError(f"{shown(path)}: no such config file")
+    return parse_yaml(read_bounded(path, MAX_CONFIG_BYTES, "config "), shown(path))
 
 
 def parse_yaml(raw: bytes, where: str) -> Any:
@@ -619,8 +632,8 @@ def _value_problem(err: ValueError) -> str:
 
 
 class _NoAliasLoader(yaml.SafeLoader):
-    """SafeLoader that refuses anchors/aliases: a config never needs them and they enable
-    exponential 'billion laughs' expansion."""
+    """SafeLoader that refuses anchors/aliases (a config never needs them and they enable
+    exponential 'billion laughs' expansion) and repeated keys."""
 
     def compose_node(self, parent: Any, index: Any) -> Any:  # type: ignore[override]
         if self.check_event(yaml.AliasEvent):
@@ -630,6 +643,24 @@ class _NoAliasLoader(yaml.SafeLoader):
                 f"(line {event.start_mark.line + 1})"
             )
         return super().compose_node(parent, index)
+
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:  # type: ignore[override]
+        # YAML's last-wins for a repeated key would silently drop a value the user wrote
+        lines: dict[Any, int] = {}
+        for key_node, _ in getattr(node, "value", ()):
+            key = self.construct_object(key_node, deep=True)
+            line = key_node.start_mark.line + 1
+            try:
+                first = lines.get(key)
+            except TypeError:  # an unhashable key: SafeLoader says so
+                continue
+            if first is not None:
+                where = f"line {line} twice" if first == line else f"lines {first} and {line}"
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"duplicate key {key!r} ({where})", key_node.start_mark
+                )
+            lines[key] = line
+        return super().construct_mapping(node, deep=deep)
 
 
 def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
@@ -642,8 +673,12 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
         if not sep or not key:
             raise ConfigError(f"--set {item!r}: expected key=value")
         try:
-            value = yaml.safe_load(text)
-        except (yaml.YAMLError, RecursionError):
+            value = yaml.load(text, Loader=_NoAliasLoader)  # noqa: S506 - SafeLoader subclass
+        except yaml.YAMLError as err:
+            problem = getattr(err, "problem", None)
+            why = f": {problem}" if problem else ""
+            raise ConfigError(f"--set {key}: value {quote(text)} is not valid YAML{why}") from None
+        except RecursionError:
             raise ConfigError(f"--set {key}: value {quote(text)} is not valid YAML") from None
         except ValueError as err:
             raise ConfigError(f"--set {key}: value {quote(text)}: {_value_problem(err)}") from None

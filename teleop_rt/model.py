@@ -24,6 +24,9 @@ import pinocchio as pin
 from teleop_rt.config import RobotSpec
 from teleop_rt.errors import ModelError
 from teleop_rt.flat import jit
+from teleop_rt.inputs import file_problem, shown
+
+MAX_URDF_BYTES = 10_000_000  # a URDF is text; meshes are separate files
 
 
 @jit
@@ -145,8 +148,15 @@ def load_pinocchio_model(spec: RobotSpec, name: str) -> pin.Model:
     """Build a Pinocchio model from a URDF file or an example-robot-data robot name."""
     if spec.urdf is not None:
         path = Path(spec.urdf)
-        if not path.is_file():
-            raise ModelError(f"{name}.robot.urdf: no such file: {path}")
+        problem = file_problem(path)  # before Pinocchio opens it (a FIFO would block it)
+        if problem == "no such file":
+            raise ModelError(f"{name}.robot.urdf: no such file: {shown(path)}")
+        if problem is not None:
+            raise ModelError(f"{name}.robot.urdf: {shown(path)}: {problem}")
+        if path.stat().st_size > MAX_URDF_BYTES:
+            raise ModelError(
+                f"{name}.robot.urdf: {shown(path)}: larger than {MAX_URDF_BYTES} bytes"
+            )
         try:
             with _c_stderr_captured() as diagnostics:
                 return pin.buildModelFromUrdf(str(path))

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING
 
 from teleop_rt.errors import TeleopError
+from teleop_rt.inputs import shown
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -60,6 +61,16 @@ def check_output(
     out = Path(path)
     if image:
         image_format(out, option)
+    try:
+        _check_output_path(out, option, force, inputs)
+    except OSError as err:  # ENAMETOOLONG, ELOOP: what stat says of the path
+        raise OutputError(f"{option} {shown(out)}: cannot be written ({err.strerror})") from None
+    return out
+
+
+def _check_output_path(
+    out: Path, option: str, force: bool, inputs: tuple[str | Path, ...]
+) -> None:
     if out.is_dir():
         raise OutputError(f"{option} {out}: is a folder; give a file name")
     folder = out.parent
@@ -75,7 +86,6 @@ def check_output(
         raise OutputError(
             f"{option} {out}: the file exists; pass --force to overwrite it or choose another path"
         )
-    return out
 
 
 def distinct(*outputs: tuple[str, str | Path | None]) -> None:

@@ -76,7 +76,8 @@ def test_a_long_seed_is_refused(capsys) -> None:
 def test_a_long_integer_in_a_config_file_is_one_line(tmp_path, capsys) -> None:
     text = Path(PAPER).read_text().replace("../robots", str(ROOT / "robots"))
     path = tmp_path / "seed.yaml"
-    path.write_text(text + f"\nseed: {'7' * 5000}\n")
+    assert "\nseed: 0\n" in text  # replaced: a second seed key is refused as a repeated key
+    path.write_text(text.replace("\nseed: 0\n", f"\nseed: {'7' * 5000}\n"))
     assert_refused(["check", str(path)], capsys, str(path), "integer too long")
 
 
@@ -158,6 +159,9 @@ def test_an_empty_window_is_no_result(real_log, argv, named, tmp_path, capsys) -
     path.write_bytes(real_log)
     assert_refused(["metrics", str(path), *argv], capsys, named, "ticks run from 0 to 1.199 s")
     assert_refused(["metrics", str(path), "--json", *argv], capsys, named)
+    # plot says the same line as metrics (and the README)
+    out = str(tmp_path / "p.png")
+    assert_refused(["plot", str(path), "-o", out, *argv], capsys, named, "ticks run from 0 to")
 
 
 def test_a_damaged_attachment_is_named_by_replay(real_log, tmp_path, capsys) -> None:
@@ -289,3 +293,267 @@ def test_a_broken_urdf_is_one_line_with_urdfdoms_reason(text, reason, tmp_path) 
     done = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=300)
     assert done.returncode == 2, done.stderr
     assert_one_error_line(done.stderr, "to.robot.urdf", "broken.urdf is not a valid URDF", reason)
+
+
+# --- issue 29: accepted though wrong ----------------------------------------------------------
+def _paper_copy(tmp_path: Path, extra: str = "", name: str = "paper.yaml") -> Path:
+    """The paper experiment's config with its URDFs pointed back to robots/ and ``extra``."""
+    text = Path(PAPER).read_text().replace("../robots", str(ROOT / "robots"))
+    path = tmp_path / name
+    path.write_text(text + extra)
+    return path
+
+
+@pytest.mark.parametrize(
+    "key", ["link.peer_timeout_ms", "link.handshake_timeout_s", "recording.ring_s", "seed"]
+)
+@pytest.mark.parametrize("word", ["true", "yes", "off"])
+def test_a_boolean_for_a_number_is_refused(key, word, capsys) -> None:
+    assert_refused(
+        ["check", PAPER, "--set", f"{key}={word}"], capsys, key, "expected a number, got"
+    )
+
+
+def test_a_boolean_in_a_per_joint_list_is_refused(capsys) -> None:
+    assert_refused(["check", PAPER, "--set", "to.controller.kp=[20, true]"], capsys,
+                   "to.controller.kp.1: expected a number, got true")  # fmt: skip
+
+
+def test_a_boolean_for_a_number_in_a_config_file_is_refused(tmp_path, capsys) -> None:
+    path = _paper_copy(tmp_path, "\nlink:\n  peer_timeout_ms: true\n")
+    assert_refused(["check", str(path)], capsys, "link.peer_timeout_ms: expected a number")
+
+
+def _numeric_fields(cls, seen: set) -> list[tuple[type, str]]:
+    """Every (section class, field) of the schema whose annotation holds an int or a float and
+    no bool, walking the nested sections."""
+    import typing
+
+    from pydantic import BaseModel
+
+    from teleop_rt.schema import annotation_leaves
+
+    out = []
+    if cls in seen:
+        return out
+    seen.add(cls)
+    for name, field in cls.model_fields.items():
+        leaves = annotation_leaves(field.annotation)
+        for leaf in leaves:
+            sections = [leaf] + [a for a in typing.get_args(leaf) if isinstance(a, type)]
+            for sub in sections:
+                if isinstance(sub, type) and issubclass(sub, BaseModel):
+                    out += _numeric_fields(sub, seen)
+        if bool not in leaves and any(leaf in (int, float) for leaf in leaves):
+            out.append((cls, name))
+    return out
+
+
+def test_every_numeric_field_of_the_schema_refuses_booleans() -> None:
+    """Not a list to keep up to date: every section's every number (config, impairment, can)."""
+    from pydantic import ValidationError
+
+    from teleop_rt.config import SessionConfig
+    from teleop_rt.schema import BOOL_ERROR
+
+    fields = _numeric_fields(SessionConfig, set())
+    assert len(fields) > 60 and {c.__name__ for c, _ in fields} >= {
+        "LinkSpec", "RecordingSpec", "ImpairmentSpec", "DriveSpec", "ZenohEndpoints",
+    }  # fmt: skip
+    for cls, name in fields:
+        with pytest.raises(ValidationError) as info:
+            cls.model_validate({name: True})
+        first = info.value.errors()[0]
+        assert first["type"] == BOOL_ERROR and first["ctx"]["key"] == name, (cls, name)
+
+
+def test_a_repeated_key_in_a_config_file_is_refused(tmp_path, capsys) -> None:
+    path = _paper_copy(tmp_path, "\nchannel:\n  delay_ms: 50\n")
+    err = assert_refused(["check", str(path)], capsys, str(path), "duplicate key 'channel'")
+    first = Path(PAPER).read_text().splitlines().index("channel:") + 1
+    assert f"lines {first} and " in err
+    path = _paper_copy(tmp_path, "\nseed: 1\nseed: 2\n", "seed.yaml")
+    assert_refused(["check", str(path)], capsys, "duplicate key 'seed'")
+    assert_refused(["check", PAPER, "--set", "channel={delay_ms: 1, delay_ms: 2}"], capsys,
+                   "--set channel", "duplicate key 'delay_ms'")  # fmt: skip
+
+
+def test_torque_limits_off_unquoted_means_off(tmp_path, capsys) -> None:
+    """YAML 1.1 reads an unquoted off as false; for torque_limits it means the choice 'off'."""
+    path = _paper_copy(tmp_path, "\nsafety:\n  torque_limits: off\n")
+    for argv in (["check", str(path), "--print"],
+                 ["check", PAPER, "--print", "--set", "safety.torque_limits=off"]):  # fmt: skip
+        code, out, err = cli(argv, capsys)
+        assert code == 0, err
+        assert "torque_limits: 'off'" in out
+
+
+@pytest.mark.parametrize("value", ["on", "yes", "true"])
+def test_a_word_read_as_a_boolean_is_refused_with_a_hint(value, capsys) -> None:
+    for key in ("safety.torque_limits", "recording.on_loss"):
+        assert_refused(["check", PAPER, "--set", f"{key}={value}"], capsys, key,
+                       "got the boolean true", "expected one of")  # fmt: skip
+
+
+@pytest.mark.parametrize("key", ["hsi.robot.urdf", "to.robot", "hsi"])
+def test_replay_refuses_a_new_robot_model(real_log, key, tmp_path, capsys) -> None:
+    """A replay re-runs the robots attached to the log: a --set that changes a robot's model
+    would be shown in the title and ignored; it is refused."""
+    path = tmp_path / "log.mcap"
+    path.write_bytes(real_log)
+    value = {"hsi.robot.urdf": str(tmp_path / "other.urdf"),
+             "to.robot": "{example_robot: double_pendulum}",
+             "hsi": "{robot: {example_robot: double_pendulum}}"}[key]  # fmt: skip
+    assert_refused(["replay", str(path), "--no-log", "--set", f"{key}={value}"], capsys,
+                   f"--set {key}: a replay re-runs the logged robots")  # fmt: skip
+
+
+# --- issue 29: files that are not regular files, too long names, too much work -----------------
+LONG = "a" * 300
+
+
+@pytest.mark.parametrize(
+    "path, named",
+    [
+        ("/dev/zero", "is a character device, not a regular file"),
+        ("/tmp", "is a folder, not a regular file"),
+        (f"/tmp/{LONG}.yaml", "cannot be read (File name too long)"),
+    ],
+    ids=["device", "folder", "long-name"],
+)
+def test_a_config_that_is_no_regular_file_is_one_line(path, named, capsys) -> None:
+    err = assert_refused(["check", path], capsys, named)
+    assert len(err) < 300
+
+
+def test_a_fifo_is_refused_without_blocking(tmp_path) -> None:
+    """A FIFO as a config, URDF, trace or log: refused in one line without being opened (an
+    open for reading blocks until a writer comes)."""
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    delay = ["--set", "channel.delay_ms=10"]
+    for argv, named in (
+        (["check", str(fifo)], "config"),
+        (["check", PAPER, "--set", f"to.robot.urdf={fifo}"], "to.robot.urdf"),
+        (["check", PAPER, *delay, "--set", f"link.impairment.trace={fifo}"], "impairment trace"),
+        (["info", str(fifo)], str(fifo)),
+        (["metrics", str(fifo)], str(fifo)),
+        (["replay", str(fifo), "--no-log"], str(fifo)),
+        (["plot", str(fifo), "-o", str(tmp_path / "p.png")], str(fifo)),
+    ):
+        done = subprocess.run([sys.executable, "-m", "teleop_rt.cli", *argv], env=env,
+                              capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert done.returncode == 2, (argv, done.stderr)
+        assert_one_error_line(done.stderr, named, "is a FIFO (named pipe), not a regular file")
+
+
+def test_dev_zero_as_a_trace_or_urdf_is_one_line(capsys) -> None:
+    """Read whole before its size was checked: a MemoryError (or the OOM killer)."""
+    assert_refused(["check", PAPER, "--set", "channel.delay_ms=10", "--set",
+                    "link.impairment.trace=/dev/zero"], capsys,
+                   "impairment trace /dev/zero: is a character device")  # fmt: skip
+    assert_refused(["check", PAPER, "--set", "to.robot.urdf=/dev/zero"], capsys,
+                   "to.robot.urdf: /dev/zero: is a character device")  # fmt: skip
+
+
+def test_a_large_trace_is_refused_before_it_is_read(tmp_path, capsys) -> None:
+    from teleop_rt.com.impairment import MAX_TRACE_BYTES
+
+    trace = tmp_path / "big.csv"
+    with open(trace, "wb") as f:  # sparse: no disk space
+        f.truncate(MAX_TRACE_BYTES + 1)
+    assert_refused(["check", PAPER, "--set", "channel.delay_ms=10", "--set",
+                    f"link.impairment.trace={trace}"], capsys,
+                   f"larger than {MAX_TRACE_BYTES} bytes")  # fmt: skip
+
+
+@pytest.mark.parametrize("command", ["metrics", "info", "plot", "replay"])
+def test_a_long_file_name_is_one_line(command, tmp_path, capsys) -> None:
+    log = f"/tmp/{LONG}.mcap"
+    err = assert_refused([command, log], capsys, "(File name too long)")
+    assert len(err) < 300
+    urdf = f"/tmp/{LONG}.urdf"
+    assert_refused(["check", PAPER, "--set", f"to.robot.urdf={urdf}"], capsys,
+                   "to.robot.urdf", "File name too long")  # fmt: skip
+
+
+@pytest.mark.parametrize("omega", ["1e-9", "0.01"])
+def test_bode_refuses_a_frequency_too_low_to_measure(omega, capsys) -> None:
+    """1e-9 rad/s asked for windows of 45.7 TiB; refused before any work, naming it."""
+    assert_refused(["bode", PAPER, "--omegas", f"2,{omega}"], capsys,
+                   f"frequency {float(omega):g} rad/s", "limit of 3600 s")  # fmt: skip
+    assert_refused(["bode", PAPER, "--max-seconds", "1e9"], capsys, "--max-seconds", "3600")
+
+
+# --- issue 28's texts -------------------------------------------------------------------------
+def test_the_contact_warning_states_the_right_fraction(capsys) -> None:
+    """500 kN/m is 68 321 N m/rad at q0 against a limit of 36 000: 190 %, beyond the limit."""
+    code, _, err = cli(["check", PAPER, "--set", "environment.1.stiffness_n_per_m=500000"], capsys)
+    assert code == 0
+    line = next(x for x in err.splitlines() if "environment.1" in x)
+    assert "68321 N m/rad" in line and "190% of the sampled contact loop's limit 36000" in line
+    assert "beyond it the contact is unstable" in line and "above 50% of" not in line
+
+
+@pytest.mark.parametrize(
+    "typed, suggestion",
+    [("channel.dleay_ms", "did you mean 'delay_ms'?"), ("operatr", "did you mean 'operator'?"),
+     ("link.peer_timout_ms", "did you mean 'peer_timeout_ms'?"), ("channel.xyz", None),
+     ("seed_value_of_it", None)],
+)  # fmt: skip
+def test_an_unknown_key_suggests_only_a_close_one(typed, suggestion, capsys) -> None:
+    err = assert_refused(["check", PAPER, "--set", f"{typed}=3"], capsys, f"{typed}: unknown key")
+    if suggestion is None:
+        assert "did you mean" not in err
+    else:
+        assert suggestion in err
+
+
+def test_version_is_the_logs_version(capsys) -> None:
+    from teleop_rt.version import software_version
+
+    with pytest.raises(SystemExit):
+        main(["--version"])
+    assert capsys.readouterr().out == f"teleop-rt {software_version()}\n"
+
+
+def test_help_texts(capsys) -> None:
+    def help_of(*argv: str) -> str:
+        with pytest.raises(SystemExit):
+            main([*argv, "--help"])
+        return " ".join(capsys.readouterr().out.split())
+
+    bode = help_of("bode", PAPER)
+    assert "(default 0)" not in bode and "the config's environment" in bode
+    assert "(default 60, at most 3600)" in bode
+    assert "site" in help_of("replay", "x") and "site" in help_of("info", "x")
+    site = help_of("site", "hsi", PAPER)
+    assert "--backend NAME" in site and "hsi:|to:" not in site
+
+
+def test_a_fast_runs_preempted_max_is_explained() -> None:
+    """Fast mode's max tick of 12-24 ms (the host preempted the process) gets a note; a max
+    near p99 none."""
+    from teleop_rt.report import preemption_note
+
+    note = preemption_note({"p50": 20.0, "p99": 40.0, "p99.9": 900.0, "max": 24_000.0})
+    assert note is not None and "host preemption" in note and "24 ms" in note
+    assert preemption_note({"p50": 20.0, "p99": 40.0, "p99.9": 60.0, "max": 90.0}) is None
+
+
+@pytest.mark.parametrize("tool", ["bench_instructions", "bench_link"])
+def test_a_tools_help_is_not_cut_mid_sentence(tool) -> None:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    done = subprocess.run([sys.executable, str(ROOT / "tools" / f"{tool}.py"), "--help"],
+                          capture_output=True, text=True, env=env, timeout=120)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    description = " ".join(done.stdout.split("\n\n")[1].split())
+    assert description.endswith((".", ")")), description
+    assert {"bench_instructions": "instruction counts repeat).",
+            "bench_link": "the same config in one process."}[tool] in description  # fmt: skip
+
+
+def test_log_on_a_folder_says_it_is_a_folder(tmp_path, capsys) -> None:
+    assert_refused(["run", PAPER, "--duration", "0.01", "--log", str(tmp_path)], capsys,
+                   f"--log {tmp_path}: is a folder")  # fmt: skip

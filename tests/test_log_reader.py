@@ -207,7 +207,7 @@ def error_of(path, **kwargs) -> str:
 
 def test_bad_files(tmp_path):
     assert "no such file" in error_of(tmp_path / "missing.mcap")
-    assert "not a file" in error_of(tmp_path)
+    assert "is a folder, not a regular file" in error_of(tmp_path)
     (tmp_path / "text.mcap").write_text("hello, this is not an MCAP file\n")
     assert "bad magic" in error_of(tmp_path / "text.mcap")
     (tmp_path / "empty.mcap").write_bytes(b"")

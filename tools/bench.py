@@ -393,7 +393,7 @@ def scaling(joints: list[int], ticks: int, repeat: int, tmp: Path) -> list[dict]
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument(
         "config", nargs="?", default=str(PAPER), help="session config (default: the paper's)"
     )

@@ -186,7 +186,7 @@ def per_tick(config: Path, mode: str, ticks: int, tmp: Path) -> dict[str, float]
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     parser.add_argument(
         "config", nargs="?", type=Path, default=PAPER, help="session config (default: the paper's)"
     )

@@ -79,7 +79,7 @@ def one_process(cfg_path: str, seconds: float, delay_ms: int, sets: list[str]) -
 
 
 def main() -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     p.add_argument(
         "config",
         nargs="?",

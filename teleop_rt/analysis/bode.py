@@ -484,6 +484,26 @@ def run_bounded(
     )
 
 
+# The work per frequency is at least the settling time and three windows, whatever
+# --max-seconds says; beyond this much simulated time (an hour: minutes of computing, a window's
+# arrays of about 100 MB) a frequency is refused before anything is allocated.
+MAX_POINT_SECONDS = 3600.0
+
+
+def point_seconds(
+    omega: float,
+    settle_periods: float = 1.0,
+    measure_periods: float = 2.0,
+    min_settle_s: float = 1.0,
+    min_window_s: float = 0.5,
+) -> float:
+    """The least simulated time ``measure_point`` spends on omega: the settling time and three
+    windows (before a window's length is rounded to the channel's round trip)."""
+    period = 2.0 * math.pi / omega
+    settle = max(settle_periods * period, min_settle_s)
+    return settle + 3.0 * max(measure_periods * period, min_window_s)
+
+
 def measure_displayed_impedance(
     params: ImpedanceParams,
     omegas: Sequence[float] | np.ndarray | None = None,
@@ -518,6 +538,16 @@ def measure_displayed_impedance(
             f"(with 1 % room to fit the window), got {omegas.max():g}"
         )
     delay_ticks(params.delay_s, dt)
+    minima = {k: v for k, v in options.items() if k in ("min_settle_s", "min_window_s")}
+    for omega in omegas:  # before any work: the arrays of one window are sized by it
+        need = point_seconds(float(omega), settle_periods, measure_periods, **minima)
+        if need > MAX_POINT_SECONDS:
+            lowest = 2.0 * math.pi * (settle_periods + 3.0 * measure_periods) / MAX_POINT_SECONDS
+            raise AnalysisParamError(
+                f"frequency {omega:g} rad/s needs at least {need:.3g} s of simulated time "
+                f"(settling and 3 windows of {measure_periods:g} periods), above the limit of "
+                f"{MAX_POINT_SECONDS:g} s per frequency: the lowest is {lowest:.3g} rad/s"
+            )
     points = []
     for i, omega in enumerate(omegas):
         pt = measure_point(

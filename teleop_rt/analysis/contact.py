@@ -72,10 +72,14 @@ def contact_warnings(cfg, to_model) -> list[str]:
         normal[: len(env.normal)] = env.normal
         k_joint = joint_space_stiffness(jacobian, k, normal)
         if k_joint > WARN_FRACTION * limit:
+            # the fraction itself: "above 50 %" read as the share for a wall at 190 %
+            beyond = k_joint > limit
             out.append(
                 f"environment.{i} ({env.kind}, {k:g} N/m) is {k_joint:.0f} N m/rad in joint space "
-                f"at the TO's start pose, above {WARN_FRACTION:.0%} of the sampled contact loop's "
+                f"at the TO's start pose, {k_joint / limit:.0%} of the sampled contact loop's "
                 f"limit {limit:.0f} N m/rad (b (4 T2 - 2 dt) / dt^2, see teleop_rt/analysis/"
-                "contact.py): expect ringing; lower the stiffness or raise b or T2 = M2/c2"
+                f"contact.py; warned above {WARN_FRACTION:.0%}): "
+                + ("beyond it the contact is unstable" if beyond else "expect ringing")
+                + "; lower the stiffness or raise b or T2 = M2/c2"
             )
     return out

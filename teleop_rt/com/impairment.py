@@ -49,13 +49,17 @@ from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from teleop_rt.errors import ConfigError
+from teleop_rt.inputs import read_bounded, shown
+from teleop_rt.schema import StrictModel
 
 # the config's bound on a one-way delay (teleop_rt.config imports this module, not the reverse)
 MAX_DELAY_MS = 10_000.0
 MAX_ARRIVALS = 2  # an original and a duplicate
+# about 1.5 million packets (25 min at 1 kHz; a trace repeats): read whole into lists
+MAX_TRACE_BYTES = 20_000_000
 SQRT2 = math.sqrt(2.0)
 PARETO_SHAPE = 3.0
 _PARETO_MEAN = PARETO_SHAPE / (PARETO_SHAPE - 1.0)
@@ -65,8 +69,7 @@ Percent = Annotated[float, Field(ge=0, le=100, allow_inf_nan=False)]
 DelayMs = Annotated[float, Field(ge=0, le=MAX_DELAY_MS, allow_inf_nan=False)]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+_Strict = StrictModel  # unknown keys refused, no boolean taken as a number
 
 
 class GilbertElliottSpec(_Strict):
@@ -142,10 +145,11 @@ _MODEL_FIELDS = ("delay_ms", "jitter_ms", "distribution", "correlation_percent",
 def load_trace(path: Path, max_delay_ms: float) -> tuple[list[int], list[float]]:
     """A trace CSV as arrivals per tick (0, 1 or 2) and their delays, ms (``MAX_ARRIVALS`` per
     tick, flat); a malformed file is a ``ConfigError`` naming the file and the line."""
+    raw = read_bounded(path, MAX_TRACE_BYTES, "impairment trace ")
     try:
-        lines = path.read_text().splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"impairment trace {path}: cannot be read ({exc})") from None
+        lines = raw.decode().splitlines()
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"impairment trace {shown(path)}: cannot be read ({exc})") from None
     counts: list[int] = []
     delays: list[float] = []
     first: int | None = None

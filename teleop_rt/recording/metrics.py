@@ -160,8 +160,9 @@ def gap_text(gaps: list, missing: int) -> str:
     return f"{missing} ticks missing in {len(gaps)} range(s) ({shown}); figures of the rest"
 
 
-def _empty_window(data: LogData, t_from: float | None, t_to: float | None) -> LogError:
-    """The error of a window without ticks, saying where the log's ticks are."""
+def empty_window(data: LogData, t_from: float | None, t_to: float | None) -> LogError:
+    """The error of a window without ticks, saying where the log's ticks are (metrics and plot
+    say the same)."""
     lo, hi = f"{t_from or 0.0:g} s", "the end" if t_to is None else f"{t_to:g} s"
     ticks = read_log(data.path, ("/timing",)).topics["/timing"]["tick"]
     if len(ticks):
@@ -178,7 +179,7 @@ def metrics_main(
     check_window(t_from, t_to)
     data = read_log(path, TOPICS, t_from, t_to)
     if not data.ticks and (t_from is not None or t_to is not None):
-        raise _empty_window(data, t_from, t_to)
+        raise empty_window(data, t_from, t_to)
     require_ticks(data)
     offset = None
     if data.ticks and int(data.topics["/hsi"]["tick"][0]) != 0:

@@ -17,7 +17,7 @@ from matplotlib.patches import Patch
 
 from teleop_rt.errors import TeleopError
 from teleop_rt.output import check_output, save_figure
-from teleop_rt.recording.reader import LogData, LogError, check_window, read_log
+from teleop_rt.recording.reader import LogData, check_window, read_log, require_ticks
 
 TOPICS = ("/hsi", "/to", "/channel")
 MAX_POINTS = 20_000  # per line; longer signals are drawn as their min / max envelope
@@ -249,11 +249,12 @@ def plot_main(
     target = Path(path).with_suffix(".png") if out is None else Path(out)
     check_output(target, "-o", force=force, image=True, inputs=(path,))  # before reading
     data = read_log(path, TOPICS, t_from, t_to)
-    if not data.ticks:  # an empty figure is no plot
-        why = f"; {data.cut_reason}" if data.truncated and data.cut_reason else ""
-        raise LogError(
-            f"{data.path}: no ticks to plot (the log, or the window asked for, holds no ticks{why})"
-        )
+    if not data.ticks:  # an empty figure is no plot; the same line as metrics
+        from teleop_rt.recording.metrics import empty_window
+
+        if t_from is not None or t_to is not None:
+            raise empty_window(data, t_from, t_to)
+        require_ticks(data)
     plot_log(data, target, force=force)
     if data.truncated:
         print(f"teleop-rt: warning: {data.path}: {data.cut_reason}", file=sys.stderr)

@@ -27,6 +27,7 @@ from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Header, Metadata, Schema
 
 from teleop_rt.errors import TeleopError, quote
+from teleop_rt.inputs import check_regular
 from teleop_rt.recording.schema import CDR_HEADER, SCHEMA_VERSION, SITES, LogLayout, Topic
 
 if TYPE_CHECKING:
@@ -178,10 +179,7 @@ def read_log(
     chunk and flagged ``truncated`` with a ``cut_reason``. Anything else wrong raises LogError.
     """
     path = Path(path)
-    if not path.exists():
-        raise LogError(f"{path}: no such file")
-    if not path.is_file():
-        raise LogError(f"{path}: not a file")
+    check_regular(path, error=LogError)  # before opening: a FIFO would block, a device not end
     with open(path, "rb") as f:
         if path.stat().st_size < len(MAGIC) or f.read(len(MAGIC)) != MAGIC:
             raise LogError(f"{path}: not an MCAP file (bad magic)")

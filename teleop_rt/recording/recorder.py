@@ -102,7 +102,8 @@ def create_log_file(path: Path) -> Path:
         with open(path, "xb"):
             pass
     except FileExistsError:
-        raise LogPathError(f"--log {path}: the file exists; choose another path") from None
+        what = "is a folder; give a file name" if path.is_dir() else "the file exists"
+        raise LogPathError(f"--log {path}: {what}; choose another path") from None
     except OSError as err:
         raise LogPathError(f"--log {path}: cannot create ({err.strerror})") from None
     return path

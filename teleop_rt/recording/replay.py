@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from teleop_rt.config import SessionConfig, apply_overrides, from_dict
+from teleop_rt.errors import ConfigError
 from teleop_rt.model import RobotModel
 from teleop_rt.recording.reader import LogData, LogError, read_log, require_ticks
 from teleop_rt.session import Session
@@ -41,9 +42,39 @@ def replay_config(data: LogData, overrides: list[str]) -> SessionConfig:
     for side in ("hsi", "to"):  # a robot's own backend too (a CAN robot replays simulated)
         if isinstance(raw.get(side), dict):
             raw[side].pop("backend", None)
+    logged = {side: _model_source(raw, side) for side in ("hsi", "to")}
     raw = apply_overrides(raw, overrides)
+    for side in ("hsi", "to"):
+        now = _model_source(raw, side)
+        if now is not None and now != logged[side]:
+            raise ConfigError(
+                f"--set {_override_of(overrides, side)}: a replay re-runs the logged robots (the "
+                "URDFs attached to the log) and cannot change a robot's model; run the config "
+                "with the other robot instead"
+            )
     _restore_urdfs(raw, data)
     return from_dict(raw)
+
+
+_MODEL_KEYS = ("urdf", "example_robot")  # what a robot's model is loaded from
+
+
+def _model_source(raw: dict, side: str) -> tuple | None:
+    """Where ``side``'s robot model comes from in a raw config (None where --set made it
+    something that is not a section: from_dict says what is wrong with that)."""
+    robot = raw.get(side)
+    robot = robot.get("robot") if isinstance(robot, dict) else None
+    return tuple(robot.get(k) for k in _MODEL_KEYS) if isinstance(robot, dict) else None
+
+
+def _override_of(overrides: list[str], side: str) -> str:
+    """The --set key that changed ``side``'s model (it, or a section holding it)."""
+    targets = [f"{side}.robot.{k}" for k in _MODEL_KEYS]
+    for item in overrides:
+        key = item.partition("=")[0]
+        if any(t == key or t.startswith(key + ".") for t in targets):
+            return key
+    return targets[0]
 
 
 def _restore_urdfs(raw: dict, data: LogData) -> None:

@@ -18,9 +18,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 
 from teleop_rt.errors import ConfigError
+from teleop_rt.inputs import file_problem, shown
+from teleop_rt.schema import StrictModel
 
 PositiveFloat = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
@@ -32,8 +34,7 @@ DEFAULT_EDS = Path(__file__).resolve().parent / "od" / "cia402_drive.eds"
 LOCAL_HOP_LIMIT = 0  # udp_multicast: a multicast TTL of 0 never leaves this host
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+_Strict = StrictModel  # unknown keys refused, no boolean taken as a number
 
 
 class CanBusSpec(_Strict):
@@ -138,8 +139,11 @@ class CanSideSpec(_Strict):
     def check_eds(self, key: str) -> None:
         """ConfigError naming the first drive whose EDS file is missing (``key``: 'can.hsi')."""
         for j, d in enumerate(self.drives):
-            if d.eds is not None and not d.eds.is_file():
-                raise ConfigError(f"{key}.drives.{j}.eds: no such file: {d.eds}")
+            problem = None if d.eds is None else file_problem(d.eds)
+            if problem == "no such file":
+                raise ConfigError(f"{key}.drives.{j}.eds: no such file: {shown(d.eds)}")
+            if problem is not None:
+                raise ConfigError(f"{key}.drives.{j}.eds: {shown(d.eds)}: {problem}")
 
 
 _DRIVE_COBS = (
