@@ -37,10 +37,13 @@ def cmd_site(args, load_config, live=None) -> int:
         cfg = cfg.model_copy(update={"link": cfg.link.model_copy(update={"kind": "zenoh"})})
     for line in insecure_warnings(cfg):
         print(f"teleop-rt: warning: {line}", file=sys.stderr)
-    if not args.json:
-        print(f"{args.site} site: {cfg.duration_s:g} s at {cfg.rate_hz} Hz over Zenoh, waiting "
-              f"for the {'to' if args.site == 'hsi' else 'hsi'} site (Ctrl-C stops)",
-              file=sys.stderr)  # fmt: skip
+
+    def waiting() -> None:  # once the handshake runs (a signal ends it from here on)
+        if not args.json:
+            print(f"{args.site} site: {cfg.duration_s:g} s at {cfg.rate_hz} Hz over Zenoh, "
+                  f"waiting for the {'to' if args.site == 'hsi' else 'hsi'} site (Ctrl-C stops)",
+                  file=sys.stderr, flush=True)  # fmt: skip
+
     record = Path(args.record_ticks) if args.record_ticks else None
     log = None
     if not args.no_log:
@@ -62,7 +65,8 @@ def cmd_site(args, load_config, live=None) -> int:
 
     summary = run_site(cfg, args.site, realtime=True, overrun=args.overrun,
                        max_missed=args.max_missed, record=record, on_peer=say, log=log,
-                       live=live, metadata=metadata, on_live=say_live)  # fmt: skip
+                       live=live, metadata=metadata, on_live=say_live,
+                       on_wait=waiting)  # fmt: skip
     if args.json:
         json.dump(summary.to_dict(), sys.stdout, indent=2)
         print()

@@ -99,10 +99,12 @@ def run_site(
     live: LiveAddress | None = None,
     metadata: dict[str, str] | None = None,
     on_live: Callable[[LiveAddress], None] | None = None,
+    on_wait: Callable[[], None] | None = None,
 ) -> SiteSummary:
     """Run site ``name`` ('hsi' or 'to') of ``cfg`` against its peer over the config's link;
     ``log``: record it there (``live``: and serve it, from the log's writer); ``metadata``:
-    further ``teleop_rt`` metadata of the log (the command line's config path and overrides)."""
+    further ``teleop_rt`` metadata of the log (the command line's config path and overrides);
+    ``on_wait()`` when the site starts waiting for its peer (signals now end the wait)."""
     site: Site = (HsiSite if name == "hsi" else ToSite)(cfg, backend)
     site.warm_up()
     ZenohLink.check(cfg, name)
@@ -125,6 +127,8 @@ def run_site(
     shaken = [False]
 
     def handshake() -> None:
+        if on_wait is not None:
+            on_wait()
         start_ns[0] = link.handshake()
         shaken[0] = True
         if recorder is not None:  # log times count from the agreed instant, on both sites
