@@ -293,10 +293,12 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
 def _print_warnings(session) -> None:
     from teleop_rt.analysis.contact import contact_warnings
+    from teleop_rt.cli_sites import insecure_warnings
     from teleop_rt.safety import safety_warnings
 
     cfg = session.cfg
-    lines = [*safety_warnings(cfg), *contact_warnings(cfg, session.to.model)]
+    lines = [*safety_warnings(cfg), *contact_warnings(cfg, session.to.model),
+             *insecure_warnings(cfg)]  # fmt: skip
     if cfg.can is not None and "can" not in cfg.backends.values():
         lines.append(
             f"the config's can section is not used: the backends are {_backends_text(cfg)!r} "

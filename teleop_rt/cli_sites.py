@@ -25,7 +25,7 @@ CHILD_GRACE_S = 30.0  # after the run's duration: handshake, start-up, staged st
 
 def cmd_site(args, load_config, live=None) -> int:
     """One site: real time, its own loop, log and summary; exit as a run's (0, 3, 4, 5, 130,
-    143)."""
+    143: ``site_exit_code``)."""
     from teleop_rt.recording.recorder import create_log_file
     from teleop_rt.recording.site_log import default_pair_base, site_log_path
     from teleop_rt.report import print_site_summary
@@ -35,10 +35,15 @@ def cmd_site(args, load_config, live=None) -> int:
     cfg = load_config(args, extra)
     if cfg.link.kind != "zenoh":
         cfg = cfg.model_copy(update={"link": cfg.link.model_copy(update={"kind": "zenoh"})})
-    if not args.json:
-        print(f"{args.site} site: {cfg.duration_s:g} s at {cfg.rate_hz} Hz over Zenoh, waiting "
-              f"for the {'to' if args.site == 'hsi' else 'hsi'} site (Ctrl-C stops)",
-              file=sys.stderr)  # fmt: skip
+    for line in insecure_warnings(cfg):
+        print(f"teleop-rt: warning: {line}", file=sys.stderr)
+
+    def waiting() -> None:  # once the handshake runs (a signal ends it from here on)
+        if not args.json:
+            print(f"{args.site} site: {cfg.duration_s:g} s at {cfg.rate_hz} Hz over Zenoh, "
+                  f"waiting for the {'to' if args.site == 'hsi' else 'hsi'} site (Ctrl-C stops)",
+                  file=sys.stderr, flush=True)  # fmt: skip
+
     record = Path(args.record_ticks) if args.record_ticks else None
     log = None
     if not args.no_log:
@@ -60,7 +65,8 @@ def cmd_site(args, load_config, live=None) -> int:
 
     summary = run_site(cfg, args.site, realtime=True, overrun=args.overrun,
                        max_missed=args.max_missed, record=record, on_peer=say, log=log,
-                       live=live, metadata=metadata, on_live=say_live)  # fmt: skip
+                       live=live, metadata=metadata, on_live=say_live,
+                       on_wait=waiting)  # fmt: skip
     if args.json:
         json.dump(summary.to_dict(), sys.stdout, indent=2)
         print()
@@ -70,13 +76,37 @@ def cmd_site(args, load_config, live=None) -> int:
     if status is not None and not status["complete"]:
         print(f"teleop-rt: log {summary.log} is incomplete: {status['failure']} "
               f"(ticks dropped: {status['dropped_rows']})", file=sys.stderr)  # fmt: skip
+    if summary.peer_silent:
+        print(f"teleop-rt: error: {summary.peer_silent}", file=sys.stderr)
+    return site_exit_code(summary)
+
+
+def site_exit_code(summary) -> int:
+    """3 a safety stop, 4 an incomplete log, 130 / 143 a signal, 5 a peer that was silent
+    (``SiteSummary.peer_silent``: the run did not really run with it), else 0."""
+    status = summary.recording
     if summary.safety_stop:
         return 3
     if status is not None and not status["complete"]:
         return 4
     if summary.stop_signal:
         return 128 + summary.stop_signal
-    return 130 if summary.stopped_early else 0
+    if summary.stopped_early:
+        return 130
+    return 5 if summary.peer_silent else 0
+
+
+def insecure_warnings(cfg) -> list[str]:
+    """A warning for a link that reaches beyond loopback without TLS, allowed only by
+    ``link.zenoh.allow_insecure`` (config.ZenohSpec refuses it otherwise)."""
+    from teleop_rt.config import insecure_endpoints
+
+    zenoh = cfg.link.zenoh
+    exposed = insecure_endpoints(zenoh)
+    if not exposed or not zenoh.allow_insecure:
+        return []
+    return [f"link.zenoh.allow_insecure: {', '.join(exposed)} without TLS: anyone who reaches "
+            "it can drive the robots"]  # fmt: skip
 
 
 def run_two_sites(args, cfg) -> int:
@@ -89,6 +119,8 @@ def run_two_sites(args, cfg) -> int:
         raise ConfigError("--link zenoh runs two processes in real time: add --realtime")
     if args.can_log is not None:
         raise ConfigError("--can-log records the buses of one process: not with --link zenoh")
+    for line in insecure_warnings(cfg):
+        print(f"teleop-rt: warning: {line}", file=sys.stderr)
     logs = _site_logs(args, cfg)
     lives = _live_addresses(args)
     if lives:

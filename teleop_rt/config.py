@@ -9,6 +9,7 @@ Relative paths (URDFs, drive EDS files) are resolved against the directory of th
 
 from __future__ import annotations
 
+import ipaddress
 import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -342,12 +343,68 @@ class TlsSpec(Strict):
 
 class ZenohSpec(Strict):
     """The Zenoh link (teleop_rt.com.zenoh_link): peer mode by default (client: through a
-    router, for sites behind NAT), multicast scouting always off, explicit endpoints."""
+    router, for sites behind NAT), multicast scouting always off, explicit endpoints.
+
+    Without TLS nobody on the link is authenticated: whoever reaches an endpoint can drive the
+    robots. So an endpoint beyond loopback (127.0.0.0/8, ::1, localhost) needs ``tls`` and a
+    tls/ or quic/ locator, unless ``allow_insecure`` says otherwise (a warning then)."""
 
     mode: Literal["peer", "client"] = "peer"
     hsi: ZenohEndpoints = ZenohEndpoints(listen=["udp/127.0.0.1:7447"])
     to: ZenohEndpoints = ZenohEndpoints(connect=["udp/127.0.0.1:7447"])
     tls: TlsSpec | None = None
+    allow_insecure: bool = False
+
+    @model_validator(mode="after")
+    def _tls_beyond_loopback(self) -> ZenohSpec:
+        exposed = insecure_endpoints(self)
+        if exposed and not self.allow_insecure:
+            raise ValueError(
+                f"{exposed[0].removeprefix('link.zenoh.')} is not a loopback endpoint and the "
+                "link has no TLS: anyone who "
+                "reaches it could drive the robots (use tls/ endpoints with link.zenoh.tls, or "
+                "set link.zenoh.allow_insecure: true)"
+            )
+        return self
+
+
+SECURE_SCHEMES = ("tls", "quic")  # Zenoh's locators that run TLS (with link.zenoh.tls)
+
+
+def locator_host(locator: str) -> tuple[str, str]:
+    """A Zenoh locator's scheme and host: ``udp/[::1]:7447?x#y`` -> ('udp', '::1')."""
+    scheme, _, rest = locator.partition("/")
+    address = rest.split("?", 1)[0].split("#", 1)[0]
+    if address.startswith("["):
+        host = address[1 : address.find("]")] if "]" in address else address[1:]
+    else:
+        host = address.rsplit(":", 1)[0] if ":" in address else address
+    return scheme.lower(), host
+
+
+def is_loopback(host: str) -> bool:
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.split("%", 1)[0]).is_loopback
+    except ValueError:  # a host name: it may resolve anywhere
+        return False
+
+
+def insecure_endpoints(spec: ZenohSpec) -> list[str]:
+    """Each site's endpoints (as ``link.zenoh.<site>.<listen|connect>: LOCATOR``) that reach
+    beyond loopback without TLS (not a tls/ or quic/ locator, or no ``tls`` section)."""
+    out = []
+    for site in ("hsi", "to"):
+        ends: ZenohEndpoints = getattr(spec, site)
+        for kind in ("listen", "connect"):
+            for locator in getattr(ends, kind):
+                scheme, host = locator_host(locator)
+                if scheme == "unixsock-stream" or is_loopback(host):
+                    continue  # this host only
+                if spec.tls is None or scheme not in SECURE_SCHEMES:
+                    out.append(f"link.zenoh.{site}.{kind}: {locator}")
+    return out
 
 
 class LinkSpec(Strict):

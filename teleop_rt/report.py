@@ -189,9 +189,14 @@ def _link_text(link: dict) -> str:
         f"sent {link.get('sent', 0)}; from the peer: received {peer.get('received', 0)}, used "
         f"{peer.get('used', 0)}, lost {peer.get('lost', 0)}, late {peer.get('late', 0)}, "
         f"duplicated {peer.get('duplicated', 0)}, reordered {peer.get('reordered', 0)}, rejected "
-        f"{peer.get('rejected', 0)}; one-way delay p50 {delay.get('p50')} / p99 "
-        f"{delay.get('p99')} / max {delay.get('max')} ticks"
+        f"{peer.get('rejected', 0)}{_by_reason(peer.get('rejected_by_reason'))}; one-way delay "
+        f"p50 {delay.get('p50')} / p99 {delay.get('p99')} / max {delay.get('max')} ticks"
     ) + _stage_text(link)
+
+
+def _by_reason(counts: dict | None) -> str:
+    """' (side 12, ahead 3)' for counters by reason, or ''."""
+    return f" ({', '.join(f'{k} {v}' for k, v in counts.items())})" if counts else ""
 
 
 def _stage_text(link: dict) -> str:
@@ -205,6 +210,9 @@ def _stage_text(link: dict) -> str:
             f"{imp['reordered']}, held {imp.get('held', 0)} (out p99 {late.get('p99', 0):.0f} us "
             f"after their instant), refused {imp.get('overflow', 0)}"
         )
+    hellos = link.get("hellos_ignored")
+    if hellos:  # strangers' hellos during the handshake
+        text += f"; invalid hellos ignored {sum(hellos.values())}{_by_reason(hellos)}"
     drift = link.get("drift")
     if drift and drift["retargets"]:
         text += (
@@ -231,6 +239,8 @@ def print_site_summary(summary, console: Console | None = None) -> None:
                   f"{summary.timing.get('missed_deadlines', 0)}")  # fmt: skip
     if summary.stopped_early:
         table.add_row("stopped early", summary.stopped_early)
+    if summary.peer_silent:
+        table.add_row("peer silent", summary.peer_silent)
     for note in summary.notes:
         table.add_row("note", note)
     if summary.log is not None:
@@ -263,6 +273,8 @@ def print_pair_summary(combined: dict, console: Console | None = None) -> None:
             table.add_row(f"{name} protection", protection_text(s["channel"][name]))
         if s.get("stopped_early"):
             table.add_row(f"{name} stopped", s["stopped_early"])
+        if s.get("peer_silent"):
+            table.add_row(f"{name} peer silent", s["peer_silent"])
         if s.get("log"):
             whole = (s.get("recording") or {}).get("complete")
             table.add_row(f"{name} log", s["log"] + ("" if whole else " (INCOMPLETE)"))

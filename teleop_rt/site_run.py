@@ -20,8 +20,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink
+from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink, wait_until_ns
 from teleop_rt.config import SessionConfig
+from teleop_rt.exit_signals import Terminated
 from teleop_rt.loop import TickClock
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
@@ -61,6 +62,7 @@ class SiteSummary:
     saturated_ticks: int = 0
     log: str | None = None  # this site's log, and whether it holds every tick (``status()``)
     recording: dict | None = None
+    peer_silent: str | None = None  # the peer's packets mostly never came (ZenohLink.silence)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -97,13 +99,15 @@ def run_site(
     live: LiveAddress | None = None,
     metadata: dict[str, str] | None = None,
     on_live: Callable[[LiveAddress], None] | None = None,
+    on_wait: Callable[[], None] | None = None,
 ) -> SiteSummary:
     """Run site ``name`` ('hsi' or 'to') of ``cfg`` against its peer over the config's link;
     ``log``: record it there (``live``: and serve it, from the log's writer); ``metadata``:
-    further ``teleop_rt`` metadata of the log (the command line's config path and overrides)."""
+    further ``teleop_rt`` metadata of the log (the command line's config path and overrides);
+    ``on_wait()`` when the site starts waiting for its peer (signals now end the wait)."""
     site: Site = (HsiSite if name == "hsi" else ToSite)(cfg, backend)
     site.warm_up()
-    ZenohLink.check(cfg)
+    ZenohLink.check(cfg, name)
     # the log's writer is forked before Zenoh starts its threads
     recorder = _site_recorder(site, log, live, metadata) if log is not None else None
     try:
@@ -120,9 +124,13 @@ def run_site(
     period_s = link.period_ns / 1e9  # the site's own clock: off by clock_ppm in a drift test
     ticks = TickRecord(cfg.n_ticks, site.n)
     start_ns = [0]
+    shaken = [False]
 
     def handshake() -> None:
+        if on_wait is not None:
+            on_wait()
         start_ns[0] = link.handshake()
+        shaken[0] = True
         if recorder is not None:  # log times count from the agreed instant, on both sites
             recorder.describe({"session_id": f"{link.session_id:x}"}, start_ns=start_ns[0])
         if on_peer is not None:
@@ -133,9 +141,8 @@ def run_site(
     def at_start() -> None:  # both sites start their clocks at the agreed instant
         if realtime:
             link.transport.raise_priority(SENDER_PRIORITY)
-        delay = (start_ns[0] - time.time_ns()) / 1e9
-        if delay > 0:
-            time.sleep(delay)
+        # a stop signal ends the wait at once (the loop then runs no tick: exit 130 / 143)
+        wait_until_ns(start_ns[0])
         link.start()
         cpu0[0] = time.process_time()
 
@@ -173,6 +180,7 @@ def run_site(
                 safety_stop=out.safety_stop,
                 saturated_ticks=site.guard.saturated_ticks,
                 log=None if recorder is None else str(recorder.path),
+                peer_silent=link.silence(out.stats.count),
             )  # fmt: skip
         )
         return summary[0].to_dict()
@@ -183,8 +191,8 @@ def run_site(
             overrun=overrun, max_missed=max_missed, before_start=handshake, at_start=at_start,
             finish=finish, recorder=recorder, spin_ns=SITE_SPIN_NS,
         )  # fmt: skip
-    except HandshakeError:
-        if recorder is not None:  # no session: no log of one
+    except (HandshakeError, KeyboardInterrupt, Terminated):
+        if recorder is not None and not shaken[0]:  # no session: no log of one
             recorder.discard()
         raise
     finally:

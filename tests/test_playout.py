@@ -229,18 +229,19 @@ def test_the_ring_equals_the_rule_on_random_schedules(d, slack, data) -> None:
 
 # --- with the decoder in front ------------------------------------------------------------
 SESSION_ID = 77
+SENDER = 1  # the TO's packets, at the HSI
 
 
 def wire_of(s: int, session: int = SESSION_ID, x: float | None = None) -> bytes:
     p = sent(s)
     if x is not None:
         p.f[0] = x
-    return bytes(encode_into(WireBuffer(N), p, session, s * 1_000_000))
+    return bytes(encode_into(WireBuffer(N), p, session, s * 1_000_000, SENDER))
 
 
 def test_the_receiver_counts_stale_packets_late_and_foreign_ones_rejected() -> None:
     d = 3
-    rx = Receiver(N, d, SESSION_ID, WireBounds(x=100.0))
+    rx = Receiver(N, d, SESSION_ID, SENDER, WireBounds(x=100.0))
     into = Packet(N)
     for s in range(5):
         rx.arrive(s, wire_of(s))
@@ -262,13 +263,13 @@ def test_the_receiver_counts_stale_packets_late_and_foreign_ones_rejected() -> N
 
 def test_the_receive_path_allocates_nothing_it_keeps() -> None:
     d = 20
-    rx = Receiver(N, d, SESSION_ID)
+    rx = Receiver(N, d, SESSION_ID, SENDER)
     buffer, p, into = WireBuffer(N), sent(0), Packet(N)
     k = [0]
 
     def tick() -> None:
         p.tick = p.seq = k[0]
-        data = encode_into(buffer, p, SESSION_ID, 0)
+        data = encode_into(buffer, p, SESSION_ID, 0, SENDER)
         rx.arrive(k[0], data)
         rx.arrive(k[0], data)  # and a duplicate
         rx.take(k[0], into)

@@ -1,7 +1,8 @@
 """The packet's wire layout and its defensive decoder: the layout as documented (against an
 independent struct/zlib writer), bit-exact round trips, and bad bytes (random, truncated,
-bit-flipped, foreign, non-finite, implausible, stale) rejected and counted by reason without
-ever raising or touching the packet given to the decoder."""
+bit-flipped, foreign, from the receiver's own side, non-finite, implausible, ahead, stale)
+rejected and counted by reason without ever raising or touching the packet given to the
+decoder."""
 
 from __future__ import annotations
 
@@ -14,8 +15,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from teleop_rt.com import wire
-from teleop_rt.com.port import Packet
+from teleop_rt.com.port import HSI, TO, Packet
 from teleop_rt.com.wire import (
+    AHEAD,
     CHECKSUM,
     IMPLAUSIBLE,
     JOINTS,
@@ -23,6 +25,7 @@ from teleop_rt.com.wire import (
     NON_FINITE,
     OK,
     SESSION,
+    SIDE,
     SIZE,
     STALE,
     Decoder,
@@ -34,6 +37,7 @@ from teleop_rt.com.wire import (
 from tests.test_no_allocation import net_blocks
 
 SESSION_ID = 0xFEDC_BA98_7654_3210  # above 2**63: the u64 field's top bit set
+SENDER = TO  # the packets here are the TO's; a decoder at the HSI expects them
 
 
 def packet(n: int, tick: int = 5, values: np.ndarray | None = None) -> Packet:
@@ -44,14 +48,14 @@ def packet(n: int, tick: int = 5, values: np.ndarray | None = None) -> Packet:
     return p
 
 
-def encoded(p: Packet, session: int = SESSION_ID) -> bytes:
-    return bytes(encode_into(WireBuffer(p.n), p, session, 123_456_789))
+def encoded(p: Packet, session: int = SESSION_ID, side: int = SENDER) -> bytes:
+    return bytes(encode_into(WireBuffer(p.n), p, session, 123_456_789, side))
 
 
-def struct_layout(p: Packet, session: int, time_ns: int) -> bytes:
+def struct_layout(p: Packet, session: int, time_ns: int, side: int) -> bytes:
     """The layout of the module's docstring, written field by field with struct and zlib."""
     n = p.n
-    head = struct.pack("<4sHHQQqq", b"TRWV", 2, n, session, p.seq, p.tick, time_ns)
+    head = struct.pack("<4sBBHQQqq", b"TRWV", 3, side, n, session, p.seq, p.tick, time_ns)
     vectors = (p.x, p.wave, p.wave_sum, p.x_sum, p.wave_energy, p.e_in, p.e_out)
     body = head + struct.pack(f"<{7 * n}dd", *np.concatenate(vectors), p.energy)
     return body + struct.pack("<II", zlib.crc32(body), 0)
@@ -74,11 +78,11 @@ def sentinel(n: int) -> Packet:
 
 
 def test_the_layout_is_the_documented_one() -> None:
-    for n in (1, 2, 7):
+    for n, side in ((1, HSI), (2, TO), (7, HSI)):
         p = packet(n, tick=2**40 + 3)
-        raw = bytes(encode_into(WireBuffer(n), p, SESSION_ID, -5))
+        raw = bytes(encode_into(WireBuffer(n), p, SESSION_ID, -5, side))
         assert len(raw) == wire_size(n) == 56 + 56 * n
-        assert raw == struct_layout(p, SESSION_ID, -5)
+        assert raw == struct_layout(p, SESSION_ID, -5, side)
 
 
 finite = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e6, max_value=1e6)
@@ -99,8 +103,8 @@ def test_valid_packets_round_trip_bit_for_bit(n, data, tick, session, time_ns) -
     cumulative = data.draw(st.lists(non_negative, min_size=3 * n, max_size=3 * n))
     values = np.array([*signed, *cumulative, data.draw(finite)])
     p = packet(n, tick, values)
-    raw = bytes(encode_into(WireBuffer(n), p, session, time_ns))
-    decoder, into = Decoder(n), sentinel(n)
+    raw = bytes(encode_into(WireBuffer(n), p, session, time_ns, SENDER))
+    decoder, into = Decoder(n, SENDER), sentinel(n)
     assert decoder.decode(raw, session, into) == OK
     assert np.array_equal(into.f.view(np.int64), p.f.view(np.int64))  # -0.0 and all
     assert np.array_equal(into.i, p.i)
@@ -110,7 +114,7 @@ def test_valid_packets_round_trip_bit_for_bit(n, data, tick, session, time_ns) -
 @settings(max_examples=500, deadline=None)
 @given(raw=st.binary(max_size=400))
 def test_random_bytes_are_rejected_counted_and_never_written(raw) -> None:
-    decoder, into = Decoder(2), sentinel(2)
+    decoder, into = Decoder(2, SENDER), sentinel(2)
     status = decoder.decode(raw, SESSION_ID, into)
     assert status != OK and untouched(into)
     assert decoder.counts.sum() == 1 and decoder.counts[status] == 1
@@ -120,8 +124,8 @@ def test_random_bytes_are_rejected_counted_and_never_written(raw) -> None:
 @given(body=st.binary(min_size=wire_size(2) - 8, max_size=wire_size(2) - 8))
 def test_random_bytes_of_the_right_size_with_a_valid_crc_never_raise(body) -> None:
     """Past the CRC: the header and values of random bytes are still checked."""
-    decoder, into = Decoder(2), sentinel(2)
-    raw = b"TRWV\x02\x00\x02\x00" + body[8:]
+    decoder, into = Decoder(2, SENDER), sentinel(2)
+    raw = b"TRWV\x03\x01\x02\x00" + body[8:]
     status = decoder.decode(reseal(raw + bytes(8)), SESSION_ID, into)
     assert status in (SESSION, NON_FINITE, IMPLAUSIBLE, OK)
     assert status == OK or untouched(into)
@@ -131,7 +135,7 @@ def test_random_bytes_of_the_right_size_with_a_valid_crc_never_raise(body) -> No
 @given(cut=st.integers(0, wire_size(3) - 1), extra=st.binary(min_size=1, max_size=16))
 def test_truncated_or_extended_packets_are_the_wrong_size(cut, extra) -> None:
     raw = encoded(packet(3))
-    decoder, into = Decoder(3), sentinel(3)
+    decoder, into = Decoder(3, SENDER), sentinel(3)
     assert decoder.decode(raw[:cut], SESSION_ID, into) == SIZE
     assert decoder.decode(raw + extra, SESSION_ID, into) == SIZE
     assert untouched(into) and decoder.counts[SIZE] == 2
@@ -145,14 +149,15 @@ def test_any_one_to_three_bit_flips_are_caught(data) -> None:
     bits = data.draw(st.sets(st.integers(0, 8 * len(raw) - 1), min_size=1, max_size=3))
     for b in bits:
         raw[b // 8] ^= 1 << (b % 8)
-    decoder, into = Decoder(2), sentinel(2)
+    decoder, into = Decoder(2, SENDER), sentinel(2)
     status = decoder.decode(bytes(raw), SESSION_ID, into)
     assert status in (MAGIC_VERSION, CHECKSUM) and untouched(into)
 
 
 def test_each_reason_is_counted_under_its_own_name() -> None:
     n = 2
-    decoder, into = Decoder(n, WireBounds(x=[1.0, 2.0], wave=3.0, energy=10.0)), sentinel(n)
+    decoder = Decoder(n, SENDER, WireBounds(x=[1.0, 2.0], wave=3.0, energy=10.0))
+    into = sentinel(n)
     # x, wave, wave integral, x integral, wave energy, E_in, E_out (per joint), energy crossed
     good_values = np.array(
         [0.5, 1.5, 2.0, -2.0, -9.0, 9.0, 8.0, -8.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, -1.0]
@@ -171,10 +176,12 @@ def test_each_reason_is_counted_under_its_own_name() -> None:
     good = encoded(p)
     case(good[:-1], SIZE)
     case(b"XRWV" + good[4:], MAGIC_VERSION)
+    case(reseal(good[:4] + bytes([2]) + good[5:]), MAGIC_VERSION)  # version 2: no side
     case(reseal(good[:4] + struct.pack("<H", 1) + good[6:]), MAGIC_VERSION)  # version 1
     case(good[:-8] + bytes([good[-8] ^ 1]) + good[-7:], CHECKSUM)
     case(reseal(good[:6] + struct.pack("<H", 3) + good[8:]), JOINTS)
     case(encoded(p, session=SESSION_ID - 1), SESSION)
+    case(encoded(p, side=1 - SENDER), SIDE)  # the receiver's own packet, reflected back
     for k, bad in ((0, np.nan), (3, np.inf), (5, np.nan), (7, np.nan), (10, -np.inf),
                    (14, np.nan)):  # fmt: skip
         case(with_value(k, bad), NON_FINITE)
@@ -186,6 +193,12 @@ def test_each_reason_is_counted_under_its_own_name() -> None:
     q = packet(n, values=good_values.copy())
     q.seq = -1  # 2**64 - 1 on the wire
     case(encoded(q), IMPLAUSIBLE)
+    ahead = packet(n, tick=p.tick, values=good_values.copy())
+    ahead.seq = p.tick + 1000  # a forged jump of the sequence: beyond what can play
+    assert decoder.decode(encoded(ahead), SESSION_ID, into, newest=p.tick + 50) == AHEAD
+    ahead = packet(n, tick=p.tick + 51, values=good_values.copy())  # or of the tick
+    assert decoder.decode(encoded(ahead), SESSION_ID, into, newest=p.tick + 50) == AHEAD
+    assert untouched(into) and decoder.used_seq == -1 and decoder.seen_tick == 0
     decoder.used_seq = p.seq
     case(good, STALE)
     older = packet(n, tick=p.seq - 1, values=good_values.copy())
@@ -193,27 +206,27 @@ def test_each_reason_is_counted_under_its_own_name() -> None:
     newer = packet(n, tick=p.seq + 1, values=good_values.copy())
     assert decoder.decode(encoded(newer), SESSION_ID, into) == OK
     assert decoder.counts_by_reason() == {
-        "ok": 1, "size": 1, "magic_version": 2, "checksum": 1, "joints": 1, "session": 1,
-        "non_finite": 6, "implausible": 10, "stale": 2,
+        "ok": 1, "size": 1, "magic_version": 3, "checksum": 1, "joints": 1, "session": 1,
+        "side": 1, "non_finite": 6, "implausible": 10, "ahead": 2, "stale": 2,
     }  # fmt: skip
-    assert decoder.rejected == 24
+    assert decoder.rejected == 28
 
 
 def test_the_bounds_must_be_positive_and_finite() -> None:
     for bounds in (WireBounds(x=0.0), WireBounds(wave=[1.0, np.inf]), WireBounds(energy=-1)):
         with pytest.raises(ValueError, match="wire bound"):
-            Decoder(2, bounds)
+            Decoder(2, SENDER, bounds)
 
 
 def test_encode_and_decode_allocate_nothing_they_keep() -> None:
     n = 2
     buffer, p = WireBuffer(n), packet(n)
-    decoder, into = Decoder(n), Packet(n)
+    decoder, into = Decoder(n, SENDER), Packet(n)
 
     def one() -> None:
         p.seq += 1
-        encode_into(buffer, p, SESSION_ID, 1)
-        decoder.decode(buffer.data, SESSION_ID, into)
+        encode_into(buffer, p, SESSION_ID, 1, SENDER)
+        decoder.decode(buffer.data, SESSION_ID, into, p.seq)
 
     for _ in range(100):
         one()

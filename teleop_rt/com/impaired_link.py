@@ -97,8 +97,8 @@ class ImpairedLink(Link):
         self.impairments = [Impairment(spec, dt, stream=side) for side in (HSI, TO)]
         self._flight = [InFlight(self._wire[0].size, imp.max_delay_ticks)
                         for imp in self.impairments]  # fmt: skip
-        self.receivers = [Receiver(n, delay_ticks, session_id, bounds, early_ticks, playout)
-                          for _ in (HSI, TO)]  # fmt: skip
+        self.receivers = [Receiver(n, delay_ticks, session_id, 1 - side, bounds, early_ticks,
+                                   playout) for side in (HSI, TO)]  # fmt: skip
         self._sent: list[Packet | None] = [None, None]
         self._ticks = [0, 0]  # ticks each side has ended
         self.sent = [0, 0]
@@ -117,7 +117,8 @@ class ImpairedLink(Link):
         if packet is None:
             raise RuntimeError("end_tick before send")
         tick = self._ticks[side]
-        data = encode_into(self._wire[side], packet, self.session_id, tick * self._period_ns)
+        data = encode_into(self._wire[side], packet, self.session_id, tick * self._period_ns,
+                           side)  # fmt: skip
         impairment, flight = self.impairments[side], self._flight[side]
         for k in range(impairment.decide(packet.tick)):
             flight.put(impairment.arrivals[k], data)

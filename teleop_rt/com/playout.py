@@ -28,7 +28,12 @@ sender tick (``early_ticks + 1`` slots): nothing is allocated per packet.
 
 ``Receiver`` puts the wire decoder in front: a packet the decoder drops is counted
 ``rejected`` by reason, except a stale one (its sequence number not newer than the newest used),
-which is a late arrival; using a packet tells the decoder its sequence number.
+which is a late arrival; using a packet tells the decoder its sequence number. The decoder
+rejects (``ahead``) a packet whose sequence number or tick is beyond the early horizon, before
+it can move anything. ``Receiver.fresh`` says whether the last arrival passed every check and
+was new to the playout (stored, or late for its tick): only such an arrival may tell the drift
+follower and the peer timeout that the peer is there (a replayed, duplicated or early copy
+never does).
 """
 
 from __future__ import annotations
@@ -239,20 +244,27 @@ class Receiver:
         n: int,
         delay_ticks: int,
         session_id: int,
+        sender: int,
         bounds: WireBounds | None = None,
         early_ticks: int | None = None,
         policy: str = "fixed",
     ) -> None:
+        """``sender``: the side whose packets this direction carries (0 HSI, 1 TO)."""
         self.session_id = session_id
-        self.decoder = Decoder(n, bounds)
+        self.decoder = Decoder(n, sender, bounds)
         self.playout = Playout(n, delay_ticks, early_ticks, policy=policy)
         self._scratch = Packet(n)
+        self.fresh = False  # the last arrival passed every check and was new to the playout
 
     def arrive(self, k: int, data: bytes | bytearray | memoryview) -> int:
         """Bytes from the network at receiver tick ``k``; returns the decoder's status."""
-        status = self.decoder.decode(data, self.session_id, self._scratch)
+        st = self.playout.st
+        newest = k + int(st[EARLY_TICKS]) - int(st[DELAY]) - int(st[OFFSET])  # playable by k
+        status = self.decoder.decode(data, self.session_id, self._scratch, newest)
+        self.fresh = False
         if status == OK:
-            self.playout.arrive(k, self._scratch)
+            stored = self.playout.arrive(k, self._scratch)
+            self.fresh = stored == STORED or stored == DROPPED_LATE
         elif status == STALE:
             self.playout.late(k, self.decoder.seen_tick)
         return status

@@ -5,7 +5,8 @@ Layout (n joints; 56 + 56 n bytes, every field 8-byte aligned)::
 
     offset      type     field
     0           u32      magic b"TRWV"
-    4           u16      version (2)
+    4           u8       version (3)
+    5           u8       the sender's side: 0 the HSI, 1 the TO
     6           u16      n, the joint count
     8           u64      session id (both sites' handshake agrees on it)
     16          u64      sequence number
@@ -25,12 +26,19 @@ Layout (n joints; 56 + 56 n bytes, every field 8-byte aligned)::
     52 + 56 n   u32      zero
 
 The decoder rejects, and counts by reason, a packet of the wrong size, magic or version, a
-corrupted one (CRC), one for another joint count or session, one holding a non-finite value or
-a magnitude beyond the bounds it was given (the integrals within the energy bound's
-magnitude; the cumulative wave energy, E_in and E_out also >= 0), and one whose sequence
-number is not newer than the newest one the receiver has used (``Decoder.used_seq``, which the
-receiver sets). It never raises on bad bytes and writes nothing into the packet it was given
-unless it accepts.
+corrupted one (CRC), one for another joint count or session, one sent by the receiver's own
+side (``side``: its own packets reflected back, or a second site of its role), one holding a
+non-finite value or a magnitude beyond the bounds it was given (the integrals within the
+energy bound's magnitude; the cumulative wave energy, E_in and E_out also >= 0), one whose
+sequence number or tick is beyond the newest the receiver can play (``ahead``: the playout's
+early horizon; a forged jump of the sequence would otherwise make every genuine packet stale),
+and one whose sequence number is not newer than the newest one the receiver has used
+(``Decoder.used_seq``, which the receiver sets). It never raises on bad bytes and writes
+nothing into the packet it was given unless it accepts.
+
+The CRC and these checks catch corruption, reflection and nonsense, not a forger who writes a
+well-formed packet: only TLS (``link.zenoh.tls``) authenticates the peer (README, "Two sites
+over a network").
 """
 
 from __future__ import annotations
@@ -48,19 +56,21 @@ if sys.byteorder != "little":  # the layout is read through native views
     raise ImportError("teleop_rt.com.wire needs a little-endian host")
 
 MAGIC = int.from_bytes(b"TRWV", "little")
-VERSION = 2  # 2: the integrals, wave energy and E_in/E_out per joint
+VERSION = 3  # 2: the integrals, wave energy and E_in/E_out per joint; 3: the sender's side
+NO_LIMIT = (1 << 63) - 1  # ``decode``'s newest tick when the caller bounds nothing
 HEADER_WORDS = 5  # magic/version/n, session, seq, tick, time
 W_ID, W_SESSION, W_SEQ, W_TICK, W_TIME = range(HEADER_WORDS)
 # the Packet's vectors, then its one scalar; the decoder's checks rely on the cumulative
 # energies (wave energy, E_in, E_out) being its last vectors
 N_FLOATS_PER_JOINT = len(Packet.VECTORS)
 assert len(Packet.SCALARS) == 1 and P_E_OUT == N_FLOATS_PER_JOINT - 1 == P_WAVE_ENERGY + 2
-ID_MASK = (1 << 48) - 1  # magic and version: the low 48 bits of word 0
+ID_MASK = (1 << 40) - 1  # magic and version: the low 40 bits of word 0 (then side, n)
 
 # decode's status codes, each also the index of its counter
-OK, SIZE, MAGIC_VERSION, CHECKSUM, JOINTS, SESSION, NON_FINITE, IMPLAUSIBLE, STALE = range(9)
-REASONS = ("ok", "size", "magic_version", "checksum", "joints", "session", "non_finite",
-           "implausible", "stale")  # fmt: skip
+(OK, SIZE, MAGIC_VERSION, CHECKSUM, JOINTS, SESSION, SIDE, NON_FINITE, IMPLAUSIBLE, AHEAD,
+ STALE) = range(11)  # fmt: skip
+REASONS = ("ok", "size", "magic_version", "checksum", "joints", "session", "side", "non_finite",
+           "implausible", "ahead", "stale")  # fmt: skip
 USED_SEQ, SENDER_TIME, SEEN_TICK, COUNTS = range(4)  # the decoder's state, then its counters
 
 
@@ -113,15 +123,17 @@ def encode_into(
     packet: Packet,
     session_id: int,
     time_ns: int,
+    side: int,
 ) -> memoryview:
-    """``packet`` (its tick and seq as they are) into ``buffer``; returns ``buffer.data``.
-    No allocation (session_id and time_ns below 2**63 pass as they are)."""
+    """``packet`` (its tick and seq as they are) of the site on ``side`` (0 HSI, 1 TO) into
+    ``buffer``; returns ``buffer.data``. No allocation (session_id and time_ns below 2**63
+    pass as they are)."""
     n = buffer.n
     if packet.n != n:
         raise ValueError(f"a {packet.n}-joint packet into a {n}-joint wire buffer")
     if session_id >= 1 << 63:
         session_id = _as_i64(session_id)
-    _encode(buffer.words, n, packet.f, packet.i, session_id, time_ns)
+    _encode(buffer.words, n, packet.f, packet.i, session_id, time_ns, side)
     return buffer.data
 
 
@@ -130,10 +142,11 @@ I_TICK, I_SEQ = Packet.tick.k, Packet.seq.k
 
 @jit
 def _encode(
-    words: np.ndarray, n: int, pf: np.ndarray, pi: np.ndarray, session: int, time_ns: int
-) -> None:
+    words: np.ndarray, n: int, pf: np.ndarray, pi: np.ndarray, session: int, time_ns: int,
+    side: int,
+) -> None:  # fmt: skip
     floats = words.view(np.float64)  # (fewer array arguments: each costs ~80 ns a call)
-    words[W_ID] = MAGIC | (VERSION << 32) | (n << 48)
+    words[W_ID] = MAGIC | (VERSION << 32) | ((side & 0xFF) << 40) | (n << 48)
     words[W_SESSION] = session
     words[W_SEQ] = pi[I_SEQ]
     words[W_TICK] = pi[I_TICK]
@@ -169,14 +182,17 @@ class WireBounds:
 
 
 class Decoder:
-    """The receiving side's defensive decoder for one peer: bounds, counters by reason (indexed
-    by the status codes), the newest used sequence number, and the last accepted packet's
+    """The receiving side's defensive decoder for one peer (the site on side ``sender``):
+    bounds, counters by reason (indexed by the status codes), the newest used sequence
+    number, and the last accepted packet's
     sender time (``sender_time_ns``). ``seen_tick`` is the sender tick of the last
     packet whose header was intact and ours (accepted or stale): what the playout needs to
     count a stale packet as late."""
 
-    def __init__(self, n: int, bounds: WireBounds | None = None) -> None:
-        self.n, self.size = n, wire_size(n)
+    def __init__(self, n: int, sender: int, bounds: WireBounds | None = None) -> None:
+        if sender not in (0, 1):
+            raise ValueError(f"a packet's sender is side 0 (HSI) or 1 (TO), not {sender}")
+        self.n, self.size, self.sender = n, wire_size(n), sender
         self.bounds = (bounds or WireBounds()).array(n)
         self._rx = WireBuffer(n)
         self._rx_data = self._rx.data
@@ -212,10 +228,12 @@ class Decoder:
         return {name: int(c) for name, c in zip(REASONS, self.counts, strict=True)}
 
     def decode(
-        self, data: bytes | bytearray | memoryview, expect_session: int, into: Packet
-    ) -> int:
+        self, data: bytes | bytearray | memoryview, expect_session: int, into: Packet,
+        newest: int = NO_LIMIT,
+    ) -> int:  # fmt: skip
         """``data`` checked and, if accepted, into ``into`` (valid = 1); returns the status
-        (``OK`` or the reason it was dropped)."""
+        (``OK`` or the reason it was dropped). ``newest``: the highest sequence number and
+        sender tick the receiver can play now (beyond: ``AHEAD``)."""
         if into.n != self.n:
             raise ValueError(f"a {self.n}-joint decoder into a {into.n}-joint packet")
         if len(data) != self.size:
@@ -224,8 +242,8 @@ class Decoder:
         self._rx_data[:] = data
         if expect_session >= 1 << 63:
             expect_session = _as_i64(expect_session)
-        return _decode(self._rx.words, self.n, expect_session, self.bounds, self.state, into.f,
-                       into.i)  # fmt: skip
+        return _decode(self._rx.words, self.n, expect_session, self.sender, newest, self.bounds,
+                       self.state, into.f, into.i)  # fmt: skip
 
 
 I_VALID = Packet.valid.k
@@ -233,11 +251,11 @@ I_VALID = Packet.valid.k
 
 @jit
 def _decode(
-    words: np.ndarray, n: int, session: int, bounds: np.ndarray, state: np.ndarray,
-    pf: np.ndarray, pi: np.ndarray,
+    words: np.ndarray, n: int, session: int, sender: int, newest: int, bounds: np.ndarray,
+    state: np.ndarray, pf: np.ndarray, pi: np.ndarray,
 ) -> int:  # fmt: skip
     floats = words.view(np.float64)
-    status = _check(words, floats, n, session, bounds, state)
+    status = _check(words, floats, n, session, sender, newest, bounds, state)
     state[COUNTS + status] += 1
     if status == OK:
         for k in range(N_FLOATS_PER_JOINT * n + 1):
@@ -251,8 +269,8 @@ def _decode(
 
 @jit
 def _check(
-    words: np.ndarray, floats: np.ndarray, n: int, session: int, bounds: np.ndarray,
-    state: np.ndarray,
+    words: np.ndarray, floats: np.ndarray, n: int, session: int, sender: int, newest: int,
+    bounds: np.ndarray, state: np.ndarray,
 ) -> int:  # fmt: skip
     w = words[W_ID]
     if (w & ID_MASK) != (MAGIC | (VERSION << 32)):
@@ -264,6 +282,8 @@ def _check(
         return JOINTS
     if words[W_SESSION] != session:
         return SESSION
+    if ((w >> 40) & 0xFF) != sender:  # our own packets reflected back, or a second of our role
+        return SIDE
     if words[W_SEQ] < 0:  # beyond 2**63: no sender counts that far
         return IMPLAUSIBLE
     m = N_FLOATS_PER_JOINT * n
@@ -285,6 +305,8 @@ def _check(
         e = floats[HEADER_WORDS + k]
         if e < 0.0 or e > e_max:
             return IMPLAUSIBLE
+    if words[W_SEQ] > newest or words[W_TICK] > newest:  # beyond what can play yet: a jump
+        return AHEAD
     state[SEEN_TICK] = words[W_TICK]  # intact and ours: the playout may count it late
     if words[W_SEQ] <= state[USED_SEQ]:
         return STALE

@@ -6,17 +6,33 @@ peer's arrive on Zenoh's thread into the playout buffer (``teleop_rt.com.playout
 the peer sent at tick k - D is used at tick k if it has arrived, else a passive zero packet).
 
 Before any motor is enabled the two sites shake hands (``handshake``): each publishes what it
-runs (joints, rate, delay, the channel, a hash of these) until it hears the other; a mismatch is
-a refusal naming the field. The HSI site chooses the session id and a start time on the wall
-clock; the TO starts only once it has heard the HSI (its robot is not enabled before) and both
-start their tick clocks at that instant, so that their tick counts agree (on one host exactly;
-across hosts as well as their clocks agree: see README, "Two sites over a network").
+runs (joints, rate, delay, the channel, a hash of these, its peer timeout) until it hears the
+other; a mismatch is a refusal naming the field. The HSI site chooses the session id and a start
+time on the wall clock; the TO starts only once it has heard the HSI (its robot is not enabled
+before) and both start their tick clocks at that instant, so that their tick counts agree (on
+one host exactly; across hosts as well as their clocks agree: see README, "Two sites over a
+network"). A hello is checked like a packet (``parse_hello``): anything but a JSON object of
+the expected fields, a session id in [1, 2**63) and a start instant at most
+``START_AHEAD_MAX_S`` ahead is ignored and counted by reason, never a traceback; a SIGINT or
+SIGTERM ends the wait at once (``KeyboardInterrupt`` / ``Terminated``: exit 130 / 143).
+
+Who may speak: without TLS nobody is authenticated, and the checks above only catch nonsense,
+reflection and replay (README: anyone who reaches the endpoint can drive the robots). With
+``link.zenoh.tls`` each site's certificate must name its role in its subject CN
+(``role_name``: ``hsi.<key>`` / ``to.<key>``, checked when the site starts), and the site's
+Zenoh session runs an access-control list (``role_acl``) that denies, message by message,
+everything but the peer role's certificate publishing the peer's keys: a certificate of the
+same CA for the other role (or any other name) can neither feed this site nor read it.
 
 Per tick the link can say which of the peer's packets it handed the site (``Arrival``: its
 sender tick, the tick it arrived at, its one-way delay, or none): a site's log records it.
 
 A site that hears nothing from its peer for ``link.peer_timeout_ms`` stops its robot: the
-silence is a ``SafetyStop`` raised at the tick that notices it (the staged stop follows).
+silence is a ``SafetyStop`` raised at the tick that notices it (the staged stop follows). It
+counts from the start plus a grace of max(peer timeout, ``STARTUP_GRACE_S``): the first packet
+may take longer on a loaded host. Only an arrival that passed every check and was new to the
+playout (``Receiver.fresh``) counts as hearing the peer, and only such arrivals feed the drift
+follower.
 
 Clocks that drift: across hosts the two tick clocks run at rates that differ by tens of ppm.
 The receiver follows the sender's (``teleop_rt.com.drift``): it tracks the floor of the
@@ -39,6 +55,8 @@ import hashlib
 import json
 import math
 import random
+import signal
+import ssl
 import threading
 import time
 from typing import TYPE_CHECKING, Any
@@ -51,16 +69,25 @@ from teleop_rt.com.impairment import MAX_ARRIVALS, Impairment
 from teleop_rt.com.link import Link
 from teleop_rt.com.playout import Receiver
 from teleop_rt.com.port import HSI, Packet
-from teleop_rt.com.wire import OK, STALE, WireBuffer, encode_into, wire_size
+from teleop_rt.com.wire import OK, WireBuffer, encode_into, wire_size
 from teleop_rt.com.zenoh_transport import ZenohTransport, zenoh_config
 from teleop_rt.errors import ConfigError, SafetyStop, TeleopError
+from teleop_rt.exit_signals import Terminated
 from teleop_rt.flat import Block, Scalar
+from teleop_rt.loop import StopSignals
 
 if TYPE_CHECKING:
     from teleop_rt.config import SessionConfig
 
 NAMES = ("hsi", "to")
 ARRIVAL_SLOTS = 4096  # arrivals remembered by sender tick (at least 2 (D + early slack) + 1)
+HELLO_MAX_BYTES = 4096  # a hello is a few hundred bytes; more is not one of ours
+SESSION_ID_END = 1 << 63  # session ids are in [1, 2**63): what the wire's u64 carries as i64
+START_LEAD_S = 0.3  # the HSI starts both sites this long after the TO answered
+START_AHEAD_MAX_S = 10.0  # a hello's start instant further ahead is refused (a forged one)
+STARTUP_GRACE_S = 0.5  # the peer timeout counts from start + max(this, the timeout)
+WAIT_SLICE_S = 0.02  # the longest a wait sleeps before it looks for a stop signal
+SILENT_FRACTION = 0.5  # a run that used fewer of the peer's packets due did not really run
 
 
 class Arrival(Block):
@@ -85,6 +112,110 @@ class HandshakeError(TeleopError):
     """The peer site never appeared, or runs another session (exit code 5)."""
 
     exit_code = 5
+
+
+def raise_if_stopped() -> None:
+    """A SIGINT / SIGTERM caught by the running loop's handler ends a wait before the loop:
+    ``KeyboardInterrupt`` / ``Terminated``, which the CLI turns into exit 130 / 143."""
+    for stop in StopSignals.installed:
+        if stop.requested:
+            if stop.signum == signal.SIGTERM:
+                raise Terminated(signal.SIGTERM)
+            raise KeyboardInterrupt
+
+
+def wait_until_ns(wall_ns: int) -> bool:
+    """Sleep until the wall-clock instant ``wall_ns`` in short slices; False as soon as a stop
+    signal is pending (the caller then starts no tick)."""
+    while True:
+        if StopSignals.pending():
+            return False
+        left = (wall_ns - time.time_ns()) / 1e9
+        if left <= 0:
+            return True
+        time.sleep(min(left, WAIT_SLICE_S))
+
+
+def _short(value: Any, limit: int = 80) -> str:
+    """A peer's value for a one-line message: its repr, cut in the middle when long."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[: limit // 2]}...{text[-limit // 2 :]}"
+
+
+def _plain_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def parse_hello(raw: bytes, past_ns: int, now_ns: int | None = None) -> dict | str:
+    """A peer's hello as a dict, or the reason it is not a valid one (its counter's name):
+    a JSON object of at most ``HELLO_MAX_BYTES``, ``site`` hsi or to, ``session_id`` (required
+    from the HSI) an int in [1, 2**63), ``start_ns`` an int no more than ``START_AHEAD_MAX_S``
+    ahead of now nor ``past_ns`` behind it. The fields both sites must agree on are compared
+    afterwards (a mismatch is a refusal naming the field)."""
+    if len(raw) > HELLO_MAX_BYTES:
+        return "size"
+    try:
+        hello = json.loads(raw)
+    except (ValueError, RecursionError):  # (UnicodeDecodeError is a ValueError)
+        return "not_json"
+    if not isinstance(hello, dict):
+        return "not_an_object"
+    site = hello.get("site")
+    if site not in NAMES:
+        return "site"
+    session = hello.get("session_id")
+    if session is not None or site == "hsi":
+        if not (_plain_int(session) and 1 <= session < SESSION_ID_END):
+            return "session_id"
+    start = hello.get("start_ns")
+    if start is not None:
+        now = time.time_ns() if now_ns is None else now_ns
+        if not _plain_int(start):
+            return "start_ns"
+        if not now - past_ns <= start <= now + round(START_AHEAD_MAX_S * 1e9):
+            return "start_ns_window"
+    return hello
+
+
+def role_name(key: str, site: str) -> str:
+    """The name site ``site``'s TLS certificate carries as its subject CN: ``hsi.<key>`` or
+    ``to.<key>`` (the link's key, '/' written as '.')."""
+    return f"{site}.{key.replace('/', '.')}"
+
+
+def role_acl(base: str, me: str, peer: str, peer_cn: str) -> dict:
+    """Zenoh's access control for site ``me`` (default deny): only a session whose certificate
+    CN is ``peer_cn`` may publish the peer's keys to it, subscribe to this site's keys, or
+    receive what it publishes. Zenoh applies it to every message of every link."""
+    own = [f"{base}/{me}/waves", f"{base}/{me}/hello"]
+    theirs = [f"{base}/{peer}/waves", f"{base}/{peer}/hello"]
+    rules = [
+        ("from the peer", "ingress", ["put"], theirs),
+        ("the peer subscribes", "ingress", ["declare_subscriber"], own),
+        ("to the peer", "egress", ["put"], own),
+        ("this site subscribes", "egress", ["declare_subscriber"], theirs),
+    ]
+    allow = [{"id": rid, "permission": "allow", "flows": [flow], "messages": messages,
+              "key_exprs": keys} for rid, flow, messages, keys in rules]  # fmt: skip
+    return {
+        "enabled": True,
+        "default_permission": "deny",
+        "rules": allow,
+        "subjects": [{"id": "peer", "cert_common_names": [peer_cn]}],
+        "policies": [{"rules": [r[0] for r in rules], "subjects": ["peer"]}],
+    }
+
+
+def certificate_names(path: Any) -> tuple[list[str], list[str]]:
+    """A PEM certificate's subject CNs and subjectAltName DNS names (ConfigError if it cannot
+    be read). The standard library's own decoder: no extra dependency."""
+    try:
+        info = ssl._ssl._test_decode_cert(str(path))  # type: ignore[attr-defined]
+    except (OSError, ssl.SSLError, AttributeError) as err:
+        raise ConfigError(f"link.zenoh.tls: cannot read the certificate {path} ({err})") from None
+    cns = [v for rdn in info.get("subject", ()) for k, v in rdn if k == "commonName"]
+    dns = [v for kind, v in info.get("subjectAltName", ()) if kind == "DNS"]
+    return cns, dns
 
 
 def shared_parts(cfg: SessionConfig, joints: int) -> dict:
@@ -112,12 +243,13 @@ class ZenohLink(Link):
         self.base = f"{spec.key}/{cfg.name}"
         ends = getattr(spec.zenoh, self.name)
         tls = spec.zenoh.tls
-        files = None
+        files = acl = None
         if tls is not None:
             own = getattr(tls, self.name)
             files = {"root_ca": tls.root_ca, "certificate": own.certificate,
                      "private_key": own.private_key}  # fmt: skip
-        config = zenoh_config(ends.listen, ends.connect, files, spec.zenoh.mode)
+            acl = role_acl(self.base, self.name, self.peer, role_name(spec.key, self.peer))
+        config = zenoh_config(ends.listen, ends.connect, files, spec.zenoh.mode, acl)
         # this direction's impairment and the hold its surviving copies wait in
         self.impairment: Impairment | None = None
         hold = None
@@ -138,7 +270,10 @@ class ZenohLink(Link):
         self.receiver: Receiver | None = None
         self.session_id = 0
         self.timeout_ns = round(spec.peer_timeout_ms * 1e6)
+        self.grace_ns = max(0, round(STARTUP_GRACE_S * 1e9) - self.timeout_ns)
         self.last_arrival_ns = 0
+        self.heard = False  # a fresh packet of the peer has arrived since the start
+        self.hellos_ignored: dict[str, int] = {}  # invalid hellos by reason
         self.sent = 0
         # one-way delay of every accepted packet, ns (sender and receiver on one host share
         # CLOCK_MONOTONIC: across hosts this is meaningless and only ticks compare)
@@ -151,58 +286,83 @@ class ZenohLink(Link):
         self._warm_up()
 
     @staticmethod
-    def check(cfg: SessionConfig) -> None:
-        """ConfigError if ``cfg`` cannot run over a network (before anything is opened)."""
+    def check(cfg: SessionConfig, site: str | None = None) -> None:
+        """ConfigError if ``cfg`` cannot run over a network (before anything is opened); with
+        TLS, site ``site``'s certificate must name its role (``role_name``)."""
         if cfg.delay_ticks < 1:
             raise ConfigError(
                 "channel.delay_ms: a link between processes needs a delay of at least one tick "
                 f"({1000.0 / cfg.rate_hz:g} ms): the packets take time"
             )
+        tls = cfg.link.zenoh.tls
+        if tls is not None and site is not None:
+            path = getattr(tls, site).certificate
+            cns, _ = certificate_names(path)
+            want = role_name(cfg.link.key, site)
+            if cns != [want]:
+                found = ", ".join(cns) or "none"
+                raise ConfigError(
+                    f"link.zenoh.tls.{site}.certificate: {path} names {found} as its subject CN; "
+                    f"the {site} site's certificate must name its role: CN={want} (the peer "
+                    "accepts only that name for this role)"
+                )
 
     def _warm_up(self) -> None:
         """Load (or compile) the codec's and the playout's kernels now, not at the first tick:
         one packet through a scratch receiver."""
         scratch, into = Packet(self.n), Packet(self.n)
         scratch.seq = scratch.tick = 1
-        receiver = Receiver(self.n, self.cfg.delay_ticks, 1)
-        receiver.arrive(1, encode_into(WireBuffer(self.n), scratch, 1, 0))
+        receiver = Receiver(self.n, self.cfg.delay_ticks, 1, self.side)
+        receiver.arrive(1, encode_into(WireBuffer(self.n), scratch, 1, 0, self.side))
         receiver.take(1 + self.cfg.delay_ticks, into)
 
     # --- before the loop --------------------------------------------------------------------
     def handshake(self, timeout_s: float | None = None) -> int:
         """Agree with the peer on the session; the wall-clock time (ns) to start at. Raises
-        ``HandshakeError`` on a mismatch or when the peer does not appear in time."""
+        ``HandshakeError`` on a mismatch or when the peer does not appear in time, and
+        ``KeyboardInterrupt`` / ``Terminated`` at once on a stop signal."""
         timeout_s = self.cfg.link.handshake_timeout_s if timeout_s is None else timeout_s
         session = self.transport.session
-        mine = {"site": self.name, **shared_parts(self.cfg, self.n)}
+        mine = {"site": self.name, **shared_parts(self.cfg, self.n),
+                "peer_timeout_ms": self.cfg.link.peer_timeout_ms}  # fmt: skip
         if self.side == HSI:
             mine["session_id"] = random.getrandbits(63) or 1
-        heard: dict[str, Any] = {}
+        heard: list[dict] = []  # the newest valid hello (a later one replaces it, never merges)
+        past_ns = round(timeout_s * 1e9)
+        ignored = self.hellos_ignored
 
-        def on_hello(sample: Any) -> None:
+        def on_hello(sample: Any) -> None:  # on Zenoh's thread: never raises
             try:
-                heard.update(json.loads(sample.payload.to_bytes()))
-            except ValueError:
-                pass  # not a hello of ours: ignored (the waves' decoder counts its own)
+                hello = parse_hello(sample.payload.to_bytes(), past_ns)
+            except Exception:  # noqa: BLE001 - whatever a stranger sends, never a traceback
+                hello = "unreadable"
+            if isinstance(hello, str):
+                ignored[hello] = ignored.get(hello, 0) + 1
+            elif hello["site"] == self.name:  # our own role: reflected, or a second site
+                ignored["own_site"] = ignored.get("own_site", 0) + 1
+            else:
+                heard[:] = [hello]
 
         hello = session.declare_publisher(f"{self.base}/{self.name}/hello")
         listener = session.declare_subscriber(f"{self.base}/{self.peer}/hello", on_hello)
         deadline = time.monotonic() + timeout_s
         try:
             while True:
+                raise_if_stopped()
                 hello.put(json.dumps(mine))
-                if heard:
-                    self._check_compatible(mine, heard)
+                theirs = heard[0] if heard else None
+                if theirs is not None:
+                    self._check_compatible(mine, theirs)
                     if self.side == HSI:
                         if "start_ns" not in mine:  # the TO is there: when both start
-                            mine["start_ns"] = time.time_ns() + 300_000_000
-                        elif heard.get("start_ns") == mine["start_ns"]:
+                            mine["start_ns"] = time.time_ns() + round(START_LEAD_S * 1e9)
+                        elif (theirs.get("start_ns"), theirs.get("session_id")) == (
+                            mine["start_ns"], mine["session_id"]
+                        ):  # fmt: skip
                             break  # the TO has it
-                    elif "start_ns" in heard:
-                        mine["session_id"], mine["start_ns"] = (
-                            heard["session_id"],
-                            heard["start_ns"],
-                        )
+                    elif "start_ns" in theirs:
+                        mine["session_id"] = theirs["session_id"]
+                        mine["start_ns"] = theirs["start_ns"]
                         for _ in range(5):  # the HSI may miss one
                             hello.put(json.dumps(mine))
                             time.sleep(0.01)
@@ -211,28 +371,37 @@ class ZenohLink(Link):
                     raise HandshakeError(
                         f"link: the {self.peer} site did not answer within {timeout_s:g} s "
                         f"(key {self.base}/{self.peer}, endpoints "
-                        f"{self._endpoints_text()})"
+                        f"{self._endpoints_text()}){self.hellos_text()}"
                     )
-                time.sleep(0.02)
+                time.sleep(WAIT_SLICE_S)
         finally:
             listener.undeclare()
             hello.undeclare()
         self.session_id = int(mine["session_id"])
         self.receiver = Receiver(
-            self.n, self.cfg.delay_ticks, self.session_id, policy=self.cfg.link.playout
-        )
+            self.n, self.cfg.delay_ticks, self.session_id, 1 - self.side,
+            policy=self.cfg.link.playout,
+        )  # fmt: skip
         self.drift = DriftFollower(self.receiver.playout, self.cfg.link.max_drift_ppm)
         self.transport.listen(f"{self.base}/{self.peer}/waves", self._arrive)
         return int(mine["start_ns"])
 
+    def hellos_text(self) -> str:
+        """'; ignored N invalid hellos (reason n, ...)' or ''."""
+        ignored = dict(self.hellos_ignored)
+        if not ignored:
+            return ""
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(ignored.items()))
+        return f"; ignored {sum(ignored.values())} invalid hellos ({reasons})"
+
     def _check_compatible(self, mine: dict, theirs: dict) -> None:
-        if theirs.get("site") != self.peer:
-            raise HandshakeError(f"link: a second {self.name} site answers on {self.base}")
-        for key in ("joints", "rate_hz", "delay_ticks", "channel", "config_hash"):
+        for key in ("joints", "rate_hz", "delay_ticks", "channel", "peer_timeout_ms",
+                    "config_hash"):  # fmt: skip
             if theirs.get(key) != mine[key]:
+                name = "link.peer_timeout_ms" if key == "peer_timeout_ms" else key
                 raise HandshakeError(
-                    f"link: the {self.peer} site runs another session: {key} is "
-                    f"{theirs.get(key)!r} there, {mine[key]!r} here"
+                    f"link: the {self.peer} site runs another session: {name} is "
+                    f"{_short(theirs.get(key))} there, {mine[key]!r} here"
                 )
 
     def _endpoints_text(self) -> str:
@@ -241,30 +410,36 @@ class ZenohLink(Link):
                           *(f"connect {e}" for e in ends.connect)]) or "none"  # fmt: skip
 
     def start(self) -> None:
-        """The loop starts now: the peer's silence is counted from here, and the arrivals'
-        times in ticks of this site's clock."""
-        self.start_ns = self.last_arrival_ns = time.monotonic_ns()
+        """The loop starts now: the arrivals' times count in ticks of this site's clock from
+        here, and the peer's silence from here plus the start-up grace."""
+        self.start_ns = time.monotonic_ns()
+        self.last_arrival_ns = self.start_ns + self.grace_ns
 
     # --- the Link interface -------------------------------------------------------------------
-    def _arrive(self, data: bytes) -> None:  # on Zenoh's thread
+    def _arrive(self, data: bytes, now_ns: int | None = None) -> None:  # on Zenoh's thread
+        """Bytes from the peer's key (``now_ns``: their instant, CLOCK_MONOTONIC; tests)."""
         receiver = self.receiver
         if receiver is None:
             return
         with self._lock:  # the playout's kernels release the GIL: one thread at a time
             k = self._tick()
             status = receiver.arrive(k, data)
-            now = time.monotonic_ns()
+            fresh = receiver.fresh
+            now = time.monotonic_ns() if now_ns is None else now_ns
             delay = now - receiver.decoder.sender_time_ns
             if status == OK:
                 s = receiver.decoder.seen_tick
                 row = self._arrived[s % len(self._arrived)]
                 if row[0] != s:  # the first copy's
                     row[0], row[1], row[2] = s, k, delay
-            if (status == OK or status == STALE) and self.start_ns:  # intact and ours
+            # only an arrival that passed every check and was new to the playout tells where
+            # the peer's clock is (replayed or duplicated copies would move the playout)
+            if fresh and self.start_ns:
                 ticks = (now - self.start_ns) / self.period_ns
                 self.drift.arrival(ticks, receiver.decoder.seen_tick)  # type: ignore[union-attr]
-        if status == OK:
+        if fresh:
             self.last_arrival_ns = now
+            self.heard = True
             if self.n_delays < self.delays_ns.size:
                 self.delays_ns[self.n_delays] = delay
                 self.n_delays += 1
@@ -276,9 +451,12 @@ class ZenohLink(Link):
         k = self._tick()
         silent = time.monotonic_ns() - self.last_arrival_ns
         if silent > self.timeout_ns:
+            since = "" if self.heard else " since the start"
+            silent += 0 if self.heard else self.grace_ns
             raise SafetyStop(
-                f"tick {k}: link: nothing from the {self.peer} site for {silent / 1e6:.0f} ms "
-                f"(link.peer_timeout_ms = {self.cfg.link.peer_timeout_ms:g})"
+                f"tick {k}: link: nothing from the {self.peer} site{since} for "
+                f"{silent / 1e6:.0f} ms (link.peer_timeout_ms = "
+                f"{self.cfg.link.peer_timeout_ms:g})"
             )
         with self._lock:
             used = self.receiver.take(k, into)
@@ -300,7 +478,7 @@ class ZenohLink(Link):
     def end_tick(self, side: int) -> None:
         now = time.monotonic_ns()
         packet = self._packet
-        data = encode_into(self._wire, packet, self.session_id, now)
+        data = encode_into(self._wire, packet, self.session_id, now, self.side)
         impairment = self.impairment
         if impairment is None:
             self.transport.send(data, now)
@@ -311,6 +489,22 @@ class ZenohLink(Link):
         self.sent += 1
 
     # --- afterwards -----------------------------------------------------------------------------
+    def silence(self, ticks: int) -> str | None:
+        """Why a run of ``ticks`` did not really run with its peer, or None: it used fewer than
+        ``SILENT_FRACTION`` of the peer's packets due (those sent after the start-up grace and
+        the playout delay); a peer timeout longer than the run never fires, this does."""
+        if self.receiver is None:
+            return None
+        grace_ticks = round(max(self.timeout_ns, STARTUP_GRACE_S * 1e9) / (self.cfg.dt * 1e9))
+        due = ticks - self.cfg.delay_ticks - grace_ticks
+        used = self.receiver.playout.counters()["used"]
+        if due <= 0 or used >= SILENT_FRACTION * due:
+            return None
+        return (
+            f"link: the {self.peer} site was silent: {used} of its {due} packets due were "
+            f"used here (fewer than {SILENT_FRACTION:.0%})"
+        )
+
     def stats(self) -> dict:
         """What the link did: this site's packets sent, and the peer's as received here."""
         received = self.receiver.stats() if self.receiver is not None else {}
@@ -331,6 +525,8 @@ class ZenohLink(Link):
         }
         if self.drift is not None:
             out["drift"] = self.drift.stats()
+        if self.hellos_ignored:  # what strangers said during the handshake
+            out["hellos_ignored"] = dict(self.hellos_ignored)
         imp = self.impairment
         if imp is not None:  # what this site's impairment stage did to its own packets
             out["impairment"] = {"decided": imp.decided, "lost": imp.lost,

@@ -60,9 +60,11 @@ def zenoh_config(
     connect: list[str],
     tls: dict[str, Path] | None = None,
     mode: str = "peer",
+    acl: dict | None = None,
 ) -> Any:
     """A Zenoh config: ``mode`` (peer, or client of a router), no scouting, these endpoints;
-    with ``tls`` (root_ca, certificate, private_key) mutual TLS on tls/ endpoints."""
+    with ``tls`` (root_ca, certificate, private_key) mutual TLS on tls/ endpoints; ``acl``:
+    Zenoh's ``access_control`` section (``zenoh_link.role_acl``)."""
     import zenoh
 
     c = zenoh.Config()
@@ -82,6 +84,8 @@ def zenoh_config(
             "connect_certificate": str(tls["certificate"]),
         }
         c.insert_json5("transport/link/tls", json.dumps(link))
+    if acl:
+        c.insert_json5("access_control", json.dumps(acl))
     return c
 
 
