@@ -68,9 +68,7 @@ def check_output(
     return out
 
 
-def _check_output_path(
-    out: Path, option: str, force: bool, inputs: tuple[str | Path, ...]
-) -> None:
+def _check_output_path(out: Path, option: str, force: bool, inputs: tuple[str | Path, ...]) -> None:
     if out.is_dir():
         raise OutputError(f"{option} {out}: is a folder; give a file name")
     folder = out.parent

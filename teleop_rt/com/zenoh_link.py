@@ -56,12 +56,13 @@ import json
 import math
 import random
 import signal
-import ssl
 import threading
 import time
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from cryptography import x509
+from cryptography.x509.oid import NameOID
 
 from teleop_rt.com.drift import DriftFollower
 from teleop_rt.com.hold import HeldPackets
@@ -74,6 +75,7 @@ from teleop_rt.com.zenoh_transport import ZenohTransport, zenoh_config
 from teleop_rt.errors import ConfigError, SafetyStop, TeleopError
 from teleop_rt.exit_signals import Terminated
 from teleop_rt.flat import Block, Scalar
+from teleop_rt.inputs import read_bounded
 from teleop_rt.loop import StopSignals
 
 if TYPE_CHECKING:
@@ -206,15 +208,23 @@ def role_acl(base: str, me: str, peer: str, peer_cn: str) -> dict:
     }
 
 
+CERTIFICATE_MAX_BYTES = 1 << 20  # a PEM certificate (chain) is a few KiB
+
+
 def certificate_names(path: Any) -> tuple[list[str], list[str]]:
     """A PEM certificate's subject CNs and subjectAltName DNS names (ConfigError if it cannot
-    be read). The standard library's own decoder: no extra dependency."""
+    be read), parsed with ``cryptography``'s X.509 decoder."""
+    pem = read_bounded(path, CERTIFICATE_MAX_BYTES, "link.zenoh.tls: certificate ")
     try:
-        info = ssl._ssl._test_decode_cert(str(path))  # type: ignore[attr-defined]
-    except (OSError, ssl.SSLError, AttributeError) as err:
+        cert = x509.load_pem_x509_certificate(pem)
+    except ValueError as err:
         raise ConfigError(f"link.zenoh.tls: cannot read the certificate {path} ({err})") from None
-    cns = [v for rdn in info.get("subject", ()) for k, v in rdn if k == "commonName"]
-    dns = [v for kind, v in info.get("subjectAltName", ()) if kind == "DNS"]
+    cns = [str(a.value) for a in cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)]
+    try:
+        san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
+        dns = san.get_values_for_type(x509.DNSName)
+    except x509.ExtensionNotFound:
+        dns = []
     return cns, dns
 
 
