@@ -20,6 +20,7 @@ from pathlib import Path
 from teleop_rt import __version__
 from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop, TeleopError
 from teleop_rt.exit_signals import Terminated, exit_on_signals
+from teleop_rt.std_streams import guarded
 
 EXIT_INTERRUPTED = 130
 
@@ -728,7 +729,9 @@ def _print_bode(result, info: dict) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    with exit_on_signals():  # from the start; a running session has its own (exit_signals.py)
+    # a closed stdout (`| head`, a killed parent) never changes the exit code (std_streams.py);
+    # signals from the start: a running session has its own (exit_signals.py)
+    with guarded(), exit_on_signals():
         try:
             return _main(argv)
         except Terminated as stop:
@@ -757,9 +760,6 @@ def _main(argv: Sequence[str] | None) -> int:
     except TeleopError as err:
         print(f"teleop-rt: error: {err}", file=sys.stderr)
         return err.exit_code
-    except BrokenPipeError:  # e.g. `teleop-rt metrics LOG --json | head`
-        sys.stderr.close()  # nothing more can be said; keep Python from complaining at exit
-        return 0
 
 
 if __name__ == "__main__":  # pragma: no cover
