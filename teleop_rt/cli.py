@@ -367,8 +367,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         can_status = can_log.close() if can_log is not None else None
     _print_summary(summary, args.json, recorder, can_status)
     code = exit_code(summary, recorder)
-    if can_status is not None and not can_status["complete"] and code != SafetyStop.exit_code:
-        return RecordingFailure.exit_code  # as for the session's log: before 130 / 143
+    if can_status is not None and not can_status["complete"]:
+        return RecordingFailure.exit_code  # as for the session's log: before 3 and 130 / 143
     return code
 
 
@@ -467,12 +467,20 @@ def _say_if_incomplete(recorder) -> None:
 
 
 def exit_code(summary, recorder=None) -> int:
-    """0 for a complete run and log; 3 for a safety stop; 4 if the log is incomplete; 128 +
-    the signal number for a run a signal ended (130, 143)."""
+    """The exit code of a run or replay that recorded with ``recorder`` (``ending_code``)."""
+    return ending_code(summary, recorder.status() if recorder is not None else None)
+
+
+def ending_code(summary, log_status: dict | None) -> int:
+    """How a run (a session's, a site's, a replay's) ended, as its exit code: 4 if its log is
+    incomplete, whatever else happened (the summary and stderr still say a safety stop or a
+    signal: a lost log is what a script must not miss, and it may have lost the record of
+    the rest); else 3 for a safety stop; 128 + the signal number for a run a signal ended
+    (129, 130, 143); 0 for a complete run and log."""
+    if log_status is not None and not log_status["complete"]:
+        return RecordingFailure.exit_code
     if summary.safety_stop:
         return SafetyStop.exit_code
-    if recorder is not None and not recorder.status()["complete"]:
-        return RecordingFailure.exit_code
     if summary.stop_signal:
         return 128 + summary.stop_signal
     return EXIT_INTERRUPTED if summary.stopped_early else 0
