@@ -397,9 +397,12 @@ def _closed_on_error(recorder):
     the process does not wait at exit for a writer nobody will close."""
     try:
         yield
-    except BaseException:
+    except BaseException as exc:
         if recorder is not None and not recorder.closed:
-            recorder.close(None)
+            # a readable log of no tick that says why (info: "never started"), rather than
+            # one that reads as killed
+            why = str(exc) if isinstance(exc, Terminated) else f"{type(exc).__name__}: {exc}"
+            recorder.close({"ticks": 0, "stopped_early": f"{why} before the first tick"})
         raise
 
 
