@@ -19,6 +19,7 @@ from pathlib import Path
 
 from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop, TeleopError
 from teleop_rt.exit_signals import Terminated, exit_on_signals
+from teleop_rt.std_streams import guarded
 from teleop_rt.version import software_version
 
 EXIT_INTERRUPTED = 130
@@ -377,8 +378,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
         can_status = can_log.close() if can_log is not None else None
     _print_summary(summary, args.json, recorder, can_status)
     code = exit_code(summary, recorder)
-    if can_status is not None and not can_status["complete"] and code != SafetyStop.exit_code:
-        return RecordingFailure.exit_code  # as for the session's log: before 130 / 143
+    if can_status is not None and not can_status["complete"]:
+        return RecordingFailure.exit_code  # as for the session's log: before 3 and 130 / 143
     return code
 
 
@@ -407,9 +408,12 @@ def _closed_on_error(recorder):
     the process does not wait at exit for a writer nobody will close."""
     try:
         yield
-    except BaseException:
+    except BaseException as exc:
         if recorder is not None and not recorder.closed:
-            recorder.close(None)
+            # a readable log of no tick that says why (info: "never started"), rather than
+            # one that reads as killed
+            why = str(exc) if isinstance(exc, Terminated) else f"{type(exc).__name__}: {exc}"
+            recorder.close({"ticks": 0, "stopped_early": f"{why} before the first tick"})
         raise
 
 
@@ -477,12 +481,20 @@ def _say_if_incomplete(recorder) -> None:
 
 
 def exit_code(summary, recorder=None) -> int:
-    """0 for a complete run and log; 3 for a safety stop; 4 if the log is incomplete; 128 +
-    the signal number for a run a signal ended (130, 143)."""
+    """The exit code of a run or replay that recorded with ``recorder`` (``ending_code``)."""
+    return ending_code(summary, recorder.status() if recorder is not None else None)
+
+
+def ending_code(summary, log_status: dict | None) -> int:
+    """How a run (a session's, a site's, a replay's) ended, as its exit code: 4 if its log is
+    incomplete, whatever else happened (the summary and stderr still say a safety stop or a
+    signal: a lost log is what a script must not miss, and it may have lost the record of
+    the rest); else 3 for a safety stop; 128 + the signal number for a run a signal ended
+    (129, 130, 143); 0 for a complete run and log."""
+    if log_status is not None and not log_status["complete"]:
+        return RecordingFailure.exit_code
     if summary.safety_stop:
         return SafetyStop.exit_code
-    if recorder is not None and not recorder.status()["complete"]:
-        return RecordingFailure.exit_code
     if summary.stop_signal:
         return 128 + summary.stop_signal
     return EXIT_INTERRUPTED if summary.stopped_early else 0
@@ -742,7 +754,9 @@ def _print_bode(result, info: dict) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    with exit_on_signals():  # from the start; a running session has its own (exit_signals.py)
+    # a closed stdout (`| head`, a killed parent) never changes the exit code (std_streams.py);
+    # signals from the start: a running session has its own (exit_signals.py)
+    with guarded(), exit_on_signals():
         try:
             return _main(argv)
         except Terminated as stop:
@@ -771,9 +785,6 @@ def _main(argv: Sequence[str] | None) -> int:
     except TeleopError as err:
         print(f"teleop-rt: error: {err}", file=sys.stderr)
         return err.exit_code
-    except BrokenPipeError:  # e.g. `teleop-rt metrics LOG --json | head`
-        sys.stderr.close()  # nothing more can be said; keep Python from complaining at exit
-        return 0
 
 
 if __name__ == "__main__":  # pragma: no cover

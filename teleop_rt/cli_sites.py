@@ -9,6 +9,8 @@ ones, chosen here and announced before the sites start)."""
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import json
 import os
 import signal
@@ -19,6 +21,12 @@ import time
 from pathlib import Path
 
 from teleop_rt.errors import ConfigError
+from teleop_rt.exit_signals import Terminated
+
+# which exit code of the two sites the run gives (cmd_site's codes; README, "Using it"): a
+# log that is not whole first, then a safety stop, a bad config, a peer that never answered,
+# an error, the signals; 0 only if both sites ended well
+EXIT_PRECEDENCE = (4, 3, 2, 5, 1, 129, 143, 130, 0)
 
 CHILD_GRACE_S = 30.0  # after the run's duration: handshake, start-up, staged stop
 
@@ -82,18 +90,13 @@ def cmd_site(args, load_config, live=None) -> int:
 
 
 def site_exit_code(summary) -> int:
-    """3 a safety stop, 4 an incomplete log, 130 / 143 a signal, 5 a peer that was silent
-    (``SiteSummary.peer_silent``: the run did not really run with it), else 0."""
-    status = summary.recording
-    if summary.safety_stop:
-        return 3
-    if status is not None and not status["complete"]:
-        return 4
-    if summary.stop_signal:
-        return 128 + summary.stop_signal
-    if summary.stopped_early:
-        return 130
-    return 5 if summary.peer_silent else 0
+    """A run's exit code (``teleop_rt.cli.ending_code``: 4, 3, a signal's), and 5 for a run
+    that ended otherwise well with a silent peer (``SiteSummary.peer_silent``: the run did not
+    really run with it)."""
+    from teleop_rt.cli import ending_code
+
+    code = ending_code(summary, summary.recording)
+    return 5 if code == 0 and summary.peer_silent else code
 
 
 def insecure_warnings(cfg) -> list[str]:
@@ -129,32 +132,20 @@ def run_two_sites(args, cfg) -> int:
               flush=True)  # fmt: skip
     cpus = sorted(os.sched_getaffinity(0))
     with tempfile.TemporaryDirectory(prefix="teleop-rt-sites-") as tmp:
-        children = {}
-        for index, site in enumerate(("hsi", "to")):
-            cmd = [sys.executable, "-m", "teleop_rt", "site", site, str(args.config), "--json",
-                   "--record-ticks", str(Path(tmp) / f"{site}.npz")]  # fmt: skip
-            for o in args.overrides:
-                cmd += ["--set", o]
-            for side, name in args.backend:
-                if side in ("", site):
-                    cmd += ["--backend", name]
-            if args.duration is not None:
-                cmd += ["--duration", str(args.duration)]
-            cmd += ["--log", str(logs[site])] if logs else ["--no-log"]
-            if lives:
-                cmd += ["--live", str(lives[site])]
-            if args.max_missed is not None:
-                cmd += ["--max-missed", str(args.max_missed)]
-            cmd += ["--overrun", args.overrun]
-            # a CPU each where there are two (the real-time grant pins a loop to the last CPU it
-            # may use: two spinning SCHED_FIFO loops on one CPU would take turns)
-            cpu = {cpus[index % len(cpus)]} if len(cpus) > 1 else None
-            children[site] = subprocess.Popen(
-                cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                start_new_session=True,  # a Ctrl-C here is passed on, once, below
-                preexec_fn=(lambda c=cpu: os.sched_setaffinity(0, c)) if cpu else None,
-            )  # fmt: skip
-        outs = _wait(children, cfg.duration_s + cfg.link.handshake_timeout_s + CHILD_GRACE_S)
+        children: dict[str, subprocess.Popen] = {}
+        stop: int | None = None  # a signal that came while the children were being started
+        try:
+            for index, site in enumerate(("hsi", "to")):
+                # a CPU each where there are two (the real-time grant pins a loop to the last
+                # CPU it may use: two spinning SCHED_FIFO loops on one CPU would take turns)
+                cpu = {cpus[index % len(cpus)]} if len(cpus) > 1 else None
+                children[site] = _start_site(_site_command(args, site, tmp, logs, lives), cpu)
+        except Terminated as sig:
+            stop = sig.signum
+        except KeyboardInterrupt:
+            stop = signal.SIGINT
+        outs = _wait(children, cfg.duration_s + cfg.link.handshake_timeout_s + CHILD_GRACE_S,
+                     stop)  # fmt: skip
         summaries, codes = {}, {}
         for site, (code, out, err) in outs.items():
             codes[site] = code
@@ -177,7 +168,66 @@ def run_two_sites(args, cfg) -> int:
         print()
     else:
         print_pair_summary(combined)
-    return max(codes.values(), key=lambda c: (c != 0, c))
+    if stop is not None and len(children) < 2:
+        return 128 + stop  # stopped before both sites were started
+    return worst_exit(codes.values())
+
+
+def worst_exit(codes) -> int:
+    """The exit code of two sites' run: the one a script must see first (``EXIT_PRECEDENCE``);
+    a code not listed there (a child killed: negative) ranks after them, as 1."""
+    ranked = [c if c in EXIT_PRECEDENCE else 1 for c in codes]
+    return min(ranked, key=EXIT_PRECEDENCE.index, default=0)
+
+
+def _site_command(args, site: str, tmp: str, logs, lives) -> list[str]:
+    cmd = [sys.executable, "-m", "teleop_rt", "site", site, str(args.config), "--json",
+           "--record-ticks", str(Path(tmp) / f"{site}.npz")]  # fmt: skip
+    for o in args.overrides:
+        cmd += ["--set", o]
+    for side, name in args.backend:
+        if side in ("", site):
+            cmd += ["--backend", name]
+    if args.duration is not None:
+        cmd += ["--duration", str(args.duration)]
+    cmd += ["--log", str(logs[site])] if logs else ["--no-log"]
+    if lives:
+        cmd += ["--live", str(lives[site])]
+    if args.max_missed is not None:
+        cmd += ["--max-missed", str(args.max_missed)]
+    return [*cmd, "--overrun", args.overrun]
+
+
+def _start_site(cmd: list[str], cpu: set[int] | None) -> subprocess.Popen:
+    """A site process in a session of its own (a terminal's Ctrl-C reaches this process only,
+    which passes it on once: ``_wait``) that stops as on SIGTERM when this process dies, even
+    by SIGKILL: the kernel's parent-death signal (Linux). Started from the main thread: the
+    signal follows the death of the thread that forked, not of the process."""
+    parent = os.getpid()
+
+    def in_child() -> None:  # after fork, before exec: no Python objects of the parent's
+        if cpu:
+            os.sched_setaffinity(0, cpu)
+        if _LIBC is not None:
+            _LIBC.prctl(PR_SET_PDEATHSIG, signal.SIGTERM, 0, 0, 0)  # kept across exec
+        if os.getppid() != parent:  # the parent died before prctl: it would never fire
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    return subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            start_new_session=True, preexec_fn=in_child)  # fmt: skip
+
+
+def _libc() -> ctypes.CDLL | None:
+    if not sys.platform.startswith("linux"):
+        return None  # pragma: no cover - elsewhere only the signals this process sees pass on
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    except OSError:  # pragma: no cover
+        return None
+
+
+PR_SET_PDEATHSIG = 1  # <sys/prctl.h>
+_LIBC = _libc()  # loaded before any fork: the child only calls it
 
 
 def _site_logs(args, cfg) -> dict[str, Path] | None:
@@ -231,31 +281,35 @@ def _free_ports(host: str, count: int) -> list[int]:
             s.close()
 
 
-def _wait(children: dict, timeout_s: float) -> dict:
-    """Wait for every child; on Ctrl-C pass SIGINT on once (each stops at a tick boundary);
-    past the timeout, SIGTERM then SIGKILL."""
+def _wait(children: dict, timeout_s: float, stop: int | None = None) -> dict:
+    """Wait for every child. A terminating signal here (SIGINT, SIGTERM, SIGHUP; ``stop``: one
+    that came while they were being started) is passed on to each, once: each stops at a tick
+    boundary, brings its robot to rest, finishes its log and exits 128 + the signal; later
+    ones are ignored (``exit_on_signals``). Past the timeout, SIGTERM, then SIGKILL."""
     deadline = time.monotonic() + timeout_s
-    interrupted = False
+    passed_on = False
+    killing = False
     while any(p.poll() is None for p in children.values()):
+        if stop is not None and not passed_on:
+            passed_on = True
+            for p in children.values():
+                _signal(p, stop)
         try:
             time.sleep(0.05)
+        except Terminated as sig:
+            stop = stop or sig.signum
         except KeyboardInterrupt:
-            if not interrupted:
-                interrupted = True
-                for p in children.values():
-                    _signal(p, signal.SIGINT)
+            stop = stop or signal.SIGINT
         if time.monotonic() > deadline:
+            if killing:
+                for p in children.values():
+                    _signal(p, signal.SIGKILL)
+                break
             for p in children.values():
                 _signal(p, signal.SIGTERM)
             deadline = time.monotonic() + 5.0
-            timeout_s = 0.0
-            if all(p.poll() is not None for p in children.values()):
-                break
-            for p in children.values():
-                if p.poll() is None and interrupted:
-                    _signal(p, signal.SIGKILL)
-            interrupted = True
-    return {site: (p.returncode, *p.communicate()) for site, p in children.items()}
+            killing = True
+    return {site: (p.wait(), *p.communicate()) for site, p in children.items()}
 
 
 def _signal(p: subprocess.Popen, signum: int) -> None:

@@ -1,10 +1,12 @@
-"""SIGTERM and SIGINT outside a running session: a clean exit (143 / 130), never a traceback.
+"""SIGTERM, SIGINT and SIGHUP outside a running session: a clean exit (143 / 130 / 129), never a
+traceback.
 
-Python's default SIGTERM kills the process where it stands (exit -15). While the CLI imports,
-loads kernels or builds a session, SIGTERM raises ``Terminated`` here instead and SIGINT, as
-by default, ``KeyboardInterrupt``, each once, for ``main`` to turn into one line and 128 + the
-signal number. A running session installs its own handlers (``loop.StopSignals``, a stop at
-the next tick boundary) and puts these back when it ends.
+Python's default SIGTERM (and SIGHUP: a closed terminal) kills the process where it stands
+(exit -15). While the CLI imports, loads kernels or builds a session, SIGTERM and SIGHUP raise
+``Terminated`` here instead and SIGINT, as by default, ``KeyboardInterrupt``, each once, for
+``main`` to turn into one line and 128 + the signal number. A running session installs its
+own handlers (``loop.StopSignals``, a stop at the next tick boundary) and puts these back when
+it ends.
 """
 
 from __future__ import annotations
@@ -13,6 +15,10 @@ import signal
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
+
+# what ends a process that is not told otherwise, short of SIGKILL: each is a stop at a tick
+# boundary in a running loop (``loop.StopSignals``), and passed on to a run's site processes
+TERMINATING = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 
 
 class Terminated(BaseException):
@@ -30,10 +36,10 @@ class Terminated(BaseException):
 
 @contextmanager
 def exit_on_signals() -> Iterator[None]:
-    """Within: the first SIGTERM raises ``Terminated``, the first SIGINT ``KeyboardInterrupt``;
-    later ones are ignored (the process is already on its way out, through ``except`` and
-    ``finally`` blocks a second exception would cut short). The previous handlers come back
-    on leaving."""
+    """Within: the first SIGTERM or SIGHUP raises ``Terminated``, the first SIGINT
+    ``KeyboardInterrupt``; later ones are ignored (the process is already on its way out,
+    through ``except`` and ``finally`` blocks a second exception would cut short). The
+    previous handlers come back on leaving."""
     if threading.current_thread() is not threading.main_thread():
         yield  # only the main thread may install handlers (and receives the signals)
         return
@@ -45,7 +51,7 @@ def exit_on_signals() -> Iterator[None]:
             raised = True
             raise KeyboardInterrupt if signum == signal.SIGINT else Terminated(signum)
 
-    sigs = (signal.SIGTERM, signal.SIGINT)
+    sigs = TERMINATING
     previous = {sig: signal.signal(sig, handle) for sig in sigs}
     try:
         yield

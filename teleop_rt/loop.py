@@ -283,12 +283,12 @@ def _lock_memory(notes: list[str]) -> bool:
 
 
 class StopSignals:
-    """Turns SIGINT and SIGTERM into a flag the loop checks at each tick boundary, so a run
+    """Turns SIGINT, SIGTERM and SIGHUP into a flag the loop checks at each tick boundary, so a run
     stops between ticks (never halfway through one) and the log matches the summary.
 
     Only the main thread can install signal handlers; elsewhere it is a no-op flag."""
 
-    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+    SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
     installed: ClassVar[list[StopSignals]] = []  # lets a wait elsewhere (the log) see a stop
 
     @classmethod

@@ -153,6 +153,30 @@ def run_ticks(summary: dict) -> tuple[int, int]:
     return summary["ticks"], summary["timing"]["missed_deadlines"]
 
 
+def test_a_client_that_leaves_leaves_stderr_clean(tmp_path):
+    """A client subscribes, receives and disconnects mid-run, as Foxglove's "close connection"
+    does; a second one comes, is sent the URDF again, and leaves too. The SDK calls the
+    listener's on_unsubscribe once per channel of each: stderr holds only the live line (no
+    "Callback failed"), exit 0. (A connection dropped without a close handshake is one line of
+    the SDK's: "Connection reset without closing handshake".)"""
+    run = LiveRun(tmp_path / "leave.mcap", duration=8.0)
+    for _ in range(2):
+        client = FoxgloveClient(run.port)
+        try:
+            client.wait_for_topics(TOPICS)
+            client.subscribe(TOPICS)
+            client.receive(lambda ms: {"/robot_description", "/hsi"} <= {m.topic for m in ms})
+        finally:
+            client.ws.close_timeout = 1.0  # not 10 s behind the messages queued for it
+            client.close()
+        time.sleep(0.5)  # the server handles the disconnect while the session runs
+    code, summary = run.finish()
+    err = "".join(run.stderr)
+    assert code == 0 and summary["recording"]["complete"], err
+    assert "Callback failed" not in err and "Error" not in err, err
+    assert [x for x in err.splitlines() if x.strip()] == [run.stderr[0].strip()], err
+
+
 def test_no_client_and_a_client_that_never_reads_do_not_hold_the_loop(tmp_path):
     """A ring of 0.5 s: a writer held by the server for longer would drop ticks (exit 4). The
     whole experiment (12 s, about 7 MB of messages: more than the kernel's socket buffers of 4

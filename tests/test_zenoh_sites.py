@@ -131,3 +131,70 @@ def test_a_peer_that_never_appears_is_one_line_and_exit_5(tmp_path: Path) -> Non
     text = err.read_text()
     assert "teleop-rt: error: link: the hsi site did not answer within 1 s" in text
     assert "Traceback" not in text
+
+
+def _gone(pid: int) -> bool:
+    """No process, or a zombie nobody reaped yet (it runs no more)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return True
+    return state in ("Z", "X")
+
+
+def _site_children(parent: int) -> list[int]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        try:
+            stat = (entry / "stat").read_text()
+            argv = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == parent and b"site" in argv:
+            found.append(int(entry.name))
+    return found
+
+
+@pytest.mark.parametrize("signum", [signal.SIGKILL, signal.SIGTERM, signal.SIGHUP])
+def test_a_killed_parent_leaves_no_site_running(signum: int, tmp_path: Path) -> None:
+    """``run --link zenoh`` signalled while both sites tick: SIGTERM / SIGHUP are passed on,
+    SIGKILL (nothing can be passed on) reaches them as the kernel's parent-death signal. Both
+    sites stop at once, far before their 60 s, and their logs are finished (``info``: complete,
+    stopped by SIGTERM, or SIGHUP when that was passed on); a parent that lived prints the
+    pair's summary and exits 128 + the signal."""
+    base = tmp_path / "pair.mcap"
+    cmd = [sys.executable, "-m", "teleop_rt", "run", str(PAPER), "--link", "zenoh", "--realtime",
+           "--duration", "60", "--json", "--set", "channel.delay_ms=20", "--log", str(base),
+           *endpoints(free_port())]  # fmt: skip
+    parent = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    logs = [tmp_path / f"pair.{s}.mcap" for s in ("hsi", "to")]
+    sites: list[int] = []
+    try:
+        deadline = time.monotonic() + 120
+        while not (all(p.exists() and p.stat().st_size > 30_000 for p in logs)):  # ticking
+            sites = sites if len(sites) == 2 else _site_children(parent.pid)
+            assert time.monotonic() < deadline and parent.poll() is None, "the sites never ran"
+            time.sleep(0.1)
+        assert len(sites) == 2, sites
+        os.kill(parent.pid, signum)
+        out, _ = parent.communicate(timeout=60)
+        deadline = time.monotonic() + 20  # the staged stop and the log's close, on a busy host
+        while not all(_gone(pid) for pid in sites):
+            assert time.monotonic() < deadline, "a site runs on after its parent went"
+            time.sleep(0.1)
+    finally:
+        for pid in [parent.pid, *sites]:
+            if not _gone(pid):
+                os.kill(pid, signal.SIGKILL)
+    passed = signal.SIGHUP if signum == signal.SIGHUP else signal.SIGTERM
+    if signum != signal.SIGKILL:
+        assert parent.returncode == 128 + signum
+        assert json.loads(out)["exit_codes"] == {"hsi": 128 + passed, "to": 128 + passed}
+    for log in logs:
+        done = subprocess.run([sys.executable, "-m", "teleop_rt", "info", str(log), "--json"],
+                              capture_output=True, text=True, timeout=120)  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        held = json.loads(done.stdout)
+        assert held["status"] == "complete", held
+        assert held["summary"]["stopped_early"] == f"stopped by {passed.name}"
+        assert 0 < held["ticks"] < 50_000

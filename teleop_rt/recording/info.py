@@ -53,7 +53,9 @@ def log_info(data: LogData) -> dict:
         "operator": meta.get("operator"),
         "environment": [e.get("kind") for e in (cfg or {}).get("environment", [])],
         "status": _status(data),
-        "cut_reason": data.cut_reason,
+        "cut_reason": _loss(data),
+        "missing_ticks": data.missing_ticks,
+        "gaps": [list(g) for g in data.gaps],
         "summary": _headline(data.summary),
     }
 
@@ -105,11 +107,34 @@ def _backends(meta: dict[str, str], cfg: dict | None) -> dict[str, str]:
 
 
 def _status(data: LogData) -> str:
-    if not data.truncated:
-        return "complete"
-    if data.footer and data.summary is None:
-        return "incomplete"  # finished by the writer, but the session never handed its summary
-    return "cut short"
+    if data.truncated:
+        if data.footer and data.summary is None:
+            return "incomplete"  # finished by the writer; the session never handed its summary
+        return "cut short"
+    recording = (data.summary or {}).get("recording") or {}
+    if data.gaps or recording.get("complete") is False:
+        return "incomplete"  # ticks the session ran are missing (``_loss`` says which)
+    if not data.ticks:
+        return "never started"
+    return "complete"
+
+
+def _loss(data: LogData) -> str | None:
+    """What a finished log lacks, or why it holds no tick, in words (None: nothing)."""
+    summary = data.summary or {}
+    recording = summary.get("recording") or {}
+    dropped = recording.get("dropped_rows")
+    missing = dropped if isinstance(dropped, int) and dropped else data.missing_ticks
+    if data.truncated:
+        return data.cut_reason
+    if data.gaps or recording.get("complete") is False:
+        gaps = ", ".join(f"{a}-{b}" for a, b in data.gaps[:5]) + (" ..." * (len(data.gaps) > 5))
+        why = recording.get("failure")
+        return (f"{missing} ticks dropped" + (f" (ticks {gaps})" if gaps else "")
+                + (f": {why}" if why else ""))  # fmt: skip
+    if not data.ticks:
+        return f"0 ticks: {summary.get('stopped_early') or 'the run ended before its first tick'}"
+    return None
 
 
 def _headline(summary: dict | None) -> dict | None:

@@ -53,7 +53,7 @@ class LiveServer:
         import foxglove
 
         self.resend = threading.Event()
-        listener = _Listener(self.resend, once_topics)
+        listener = _listener(self.resend, once_topics)
         self.server = foxglove.start_server(
             name=SERVER_NAME,
             host=address.host,
@@ -72,12 +72,22 @@ class LiveServer:
         closing.join(STOP_WAIT_S)
 
 
-class _Listener:
-    """foxglove ServerListener: called on the SDK's threads, so it only sets a flag."""
+def _listener(resend: threading.Event, once_topics: set[str]):
+    """A foxglove ``ServerListener`` (imported here: the CLI parses --live without the SDK).
 
-    def __init__(self, resend: threading.Event, once_topics: set[str]) -> None:
-        self.resend, self.once = resend, once_topics
+    Subclassed, not duck-typed: the SDK calls every callback the protocol declares (an
+    ``on_unsubscribe`` per channel when a client unsubscribes or disconnects, the client
+    channel and parameter callbacks, ...), and a missing one is a "Callback failed:
+    AttributeError" line on stderr per call; the protocol's defaults do nothing. Called on the
+    SDK's threads, so it only sets a flag."""
+    from foxglove.websocket import ServerListener
 
-    def on_subscribe(self, client, channel) -> None:
-        if channel.topic in self.once:
-            self.resend.set()
+    class Listener(ServerListener):
+        def on_subscribe(self, client, channel) -> None:
+            if channel.topic in once_topics:
+                resend.set()
+
+        def on_unsubscribe(self, client, channel) -> None:
+            pass  # what is sent once goes again to whoever subscribes next (on_subscribe)
+
+    return Listener()

@@ -287,6 +287,7 @@ class _Reader:
     ) -> LogData:
         self.scan()
         layout, meta = self._layout()
+        self.layout_topics = layout.topics
         wanted = {t.name: t for t in layout.topics}
         names = list(wanted) if topics is None else list(topics)
         unknown = [n for n in names if n not in wanted]
@@ -467,7 +468,11 @@ class _Reader:
     def _decode(self, topic: Topic, parts: list[np.ndarray]) -> np.ndarray:
         channels = [c for c in self.channels.values() if c.topic == topic.name]
         if not channels:
-            if self.cut is None:
+            # the writer declares a channel with its first message: a log finished before the
+            # first tick (a stop at tick 0) has none of its topics, and holds no ticks
+            own = {t.name for t in self.layout_topics}
+            never_ran = not own & {c.topic for c in self.channels.values()}
+            if self.cut is None and not never_ran:
                 present = ", ".join(sorted({c.topic for c in self.channels.values()})) or "none"
                 raise self.fail(f"required topic {topic.name} is missing (topics: {present})")
             return np.empty(0, topic.dtype)

@@ -21,6 +21,7 @@ makes none for ``CLOSE_STALL_S`` (or a second Ctrl-C) is killed and the log repo
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import errno
 import math
@@ -151,6 +152,13 @@ class Recorder:
     ) -> None:
         cfg = session.cfg
         self.path = create_log_file(Path(path))
+        try:
+            self._open(session, cfg, capacity, wait_for_room, metadata, live)
+        except BaseException:  # a signal (Terminated) or an error while starting: no session
+            self._abandon()
+            raise
+
+    def _open(self, session, cfg, capacity, wait_for_room, metadata, live) -> None:
         parts = session.log_parts() if hasattr(session, "log_parts") else session_parts(session)
         self.layout = parts.layout
         self.session = session
@@ -228,6 +236,24 @@ class Recorder:
         self.live: LiveAddress | None = None  # where the live view listens
         if live is not None:
             self._await_live(live, live_rx)
+
+    def _abandon(self) -> None:
+        """Undo a start that did not finish (a SIGTERM while the kernel loads or the writer
+        starts): no writer left behind, no ring, and no file, which holds no session (an
+        empty or half-written file would be no log and block a rerun on the same path)."""
+        self.closed = True
+        process = getattr(self, "process", None)
+        if process is not None and process.pid is not None and process.exitcode is None:
+            process.kill()  # it ignores SIGINT and SIGTERM
+            process.join(5.0)
+        shm = getattr(self, "shm", None)
+        if shm is not None:
+            self.buf = self.ring = self.ctrl = None
+            with contextlib.suppress(OSError, BufferError):
+                shm.close()
+            with contextlib.suppress(OSError):
+                shm.unlink()
+        self.path.unlink(missing_ok=True)
 
     def _await_live(self, asked: LiveAddress, conn) -> None:
         """Wait (before the session starts) for the writer's server to listen; one line and
