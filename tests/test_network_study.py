@@ -86,6 +86,10 @@ def test_quick_run_writes_the_report_and_figures_into_out(tmp_path: Path) -> Non
                     assert math.isfinite(float(cell)), (head, cell)
                     checked += 1
     assert checked >= runs * len(NUMERIC)
+    # the quick run is long enough for the paper task (its last waypoint at 11.5 s): with no
+    # network it is done, a time, not "not done"
+    reference = [r for r in found[1] if r["network"].startswith("no network")]
+    assert reference and all(re.fullmatch(r"\d+\.\d\d", r["task time (s)"]) for r in reference)
     # the unprotected hold is the one channel whose balance goes below zero here
     balances = {}
     for row in found[0] + found[2]:
