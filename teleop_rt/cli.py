@@ -651,6 +651,13 @@ def _cmd_bode(args: argparse.Namespace) -> int:
     cfg = _load_config(args)
     env, env_source, env_elements = _bode_environment(cfg, args)
     setup = setup_from_config(cfg, args.joint, *env)
+    p = setup.params
+    if p.delay_s == 0 and p.env_mass == p.env_damping == p.env_stiffness == 0:
+        raise ConfigError(
+            "bode: free space at T_d = 0 displays Z_h = 0 at every frequency (eq 29: "
+            "Z_h = G_tau b T_d s), nothing to plot: give a delay (--set channel.delay_ms=50) or "
+            "an environment (--env-stiffness K)"
+        )
     setup.info["environment_source"] = env_source
     setup.info["environment_elements"] = env_elements
     columns = (

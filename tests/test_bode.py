@@ -273,3 +273,29 @@ def test_bode_bad_input_is_one_line_exit_2(
     assert main(["bode", str(CONFIGS / "free_space.yaml"), *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("teleop-rt: error: ") and named in err[0]
+
+
+def test_bode_of_free_space_without_delay_is_one_line_not_an_empty_plot(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # issue 28: every |Z| was 0 (eq 29 at T_d = 0), the log-scaled magnitude panel empty
+    image = tmp_path / "bode_free.png"
+    argv = ["bode", str(CONFIGS / "free_space.yaml"), "--points", "6", "--plot", str(image)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "displays Z_h = 0 at every frequency (eq 29" in err[0]
+    assert not image.exists()
+    # with a delay it is the channel's mass b T_d, a plot with a legend that matches its title
+    assert main([*argv, "--set", "channel.delay_ms=20", "--set", "channel.wave_filter_hz=null",
+                 "--max-seconds", "5"]) == 0  # fmt: skip
+    assert image.stat().st_size > 10_000
+
+
+def test_bode_legend_names_the_filter_only_when_there_is_one() -> None:
+    # issue 28: the legend said "matched filter" where the title said "filter off"
+    from teleop_rt.analysis.bode import _filter_text, continuous_label
+
+    for filter_hz in (None, 30.0):
+        p = ImpedanceParams(**BASE, delay_s=0.02, wave_filter_hz=filter_hz)
+        label, title = continuous_label(p, 1e-3), _filter_text(p, 1e-3)
+        assert ("matched" in label) == ("matched" in title) == (filter_hz is not None)

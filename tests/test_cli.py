@@ -287,11 +287,21 @@ def test_bode_uses_the_configs_environment_and_says_how(
     assert p["env_stiffness_nm_per_rad"] > 10 and p["env_mass_kg_m2"] == 0.0
     assert p["environment_source"].startswith("the config's environment at the TO's start pose")
     assert p["environment_elements"][0].startswith("environment.0 (wall): ")
-    # as shipped the wall is out of reach at q0: free space, and the distance is said
+    stiffness_at_q0 = p["env_stiffness_nm_per_rad"]
+    # as shipped the wall is out of reach at q0 (issue 28: it was taken as free space): the
+    # nearest contact is taken as touched, with the Jacobian at q0, and the distance is said
     assert main([*argv, "--max-seconds", "5"]) == 0
     p = json.loads(capsys.readouterr().out)["params"]
-    assert p["env_stiffness_nm_per_rad"] == 0.0
-    assert "not in contact at q0 (55.2 mm away)" in p["environment_source"]
+    assert p["env_stiffness_nm_per_rad"] == pytest.approx(stiffness_at_q0)
+    assert (
+        "not in contact at q0 (55.2 mm away), the nearest contact: taken as touched"
+        in (p["environment_source"])
+    )
+    # with the foam in front of it (the paper experiment) only the nearest one counts
+    paper = ["bode", str(CONFIGS / "paper_experiment.yaml"), "--omegas", "5", "--json", "-"]
+    assert main([*paper, "--max-seconds", "5"]) == 0
+    p = json.loads(capsys.readouterr().out)["params"]
+    assert sum("taken as touched" in e for e in p["environment_elements"]) == 1
     # --env-* replaces it, and says so
     assert main([*argv, "--env-stiffness", "3", "--max-seconds", "5"]) == 0
     p = json.loads(capsys.readouterr().out)["params"]

@@ -597,8 +597,9 @@ def plot_bode(
     fig = Figure(figsize=(8, 6.5), layout="constrained")
     ax_m = fig.add_subplot(2, 1, 1)
     ax_p = fig.add_subplot(2, 1, 2, sharex=ax_m)
+    continuous = continuous_label(result.params, result.dt)
     for ax, f, label in ((ax_m, np.abs, "|Z_h| (N m s/rad)"), (ax_p, _phase_deg, "phase (deg)")):
-        ax.plot(dense, f(ana), "-", color="C0", label="continuous (eq 20, matched filter)")
+        ax.plot(dense, f(ana), "-", color="C0", label=continuous)
         ax.plot(dense, f(dis), "--", color="C1", label="discrete (1 kHz, exact)")
         if ok.any():
             ax.plot(w[ok], f(meas[ok]), "o", color="k", mfc="none", label="measured")
@@ -618,6 +619,13 @@ def plot_bode(
         f"{p.env_damping:g} + {p.env_stiffness:g}/s"
     )
     save_figure(fig, path, "--plot", force)
+
+
+def continuous_label(p: ImpedanceParams, dt: float) -> str:
+    """The continuous model's legend entry: it names the matched filter only when there is one
+    (as the title's ``_filter_text`` does)."""
+    filtered = continuous_params(p, dt).wave_filter_hz is not None
+    return "continuous (eq 20, matched filter)" if filtered else "continuous (eq 20)"
 
 
 def _filter_text(p: ImpedanceParams, dt: float) -> str:

@@ -4,10 +4,12 @@ The environment acts at the TO's tool in Cartesian space (``teleop_rt.world``); 
 of ``teleop_rt.analysis.bode`` loads one joint with Z_e = m s + d + k/s. Linearised at the TO's
 start pose q0, an element along the unit normal n contributes through the tool Jacobian's column
 of that joint, J_j: a stiffness k (n . J_j)^2 N m/rad, a damping d (n . J_j)^2, an attached mass
-m (n . J_j)^2 kg m^2. Walls and foam are unilateral: they count only if the tool touches them at
-q0 (a wall out of reach is free space for the small motion the sweep makes; how far away it is
-is said). A free mass behind a contact spring is not of the form m s + d + k/s and is left out,
-said so. Every element gets one line saying how it was used.
+m (n . J_j)^2 kg m^2. Walls and foam are unilateral: they count if the tool touches them at q0;
+if it touches none, the nearest one is taken as touched (with the Jacobian at q0, and how far
+away it is said): a config that has a wall is about the wall, and the displayed wall (eq 30) is
+what its Bode plot should show, not the free space before it. A free mass behind a contact
+spring is not of the form m s + d + k/s and is left out, said so. Every element gets one line
+saying how it was used.
 """
 
 from __future__ import annotations
@@ -49,6 +51,8 @@ def joint_environment(cfg, joint: int, to_model=None) -> JointEnvironment:
     model.update_ee(q0, [0.0] * n)
     tool = np.array(model.ee_pos, dtype=float)
     column = np.array(model.ee_jac, dtype=float)[:3, joint] if joint < n else np.zeros(3)
+    away: list[tuple[float, int, int, float]] = []  # out of reach: gap, note, element, lever
+    touched = False
     for i, env in enumerate(cfg.environment):
         normal = np.zeros(3)
         normal[: len(env.normal)] = env.normal
@@ -59,8 +63,10 @@ def joint_environment(cfg, joint: int, to_model=None) -> JointEnvironment:
         gap = float(np.dot(tool - point, normal))  # > 0: the tool is on the free side
         name = f"environment.{i} ({env.kind})"
         if env.kind in ("wall", "foam") and gap > 0:
+            away.append((gap, len(out.elements), i, lever2))
             out.elements.append(f"{name} not in contact at q0 ({gap * 1000:.1f} mm away): free")
             continue
+        touched = touched or env.kind in ("wall", "foam")
         if env.kind == "mass" and not env.attached:
             out.elements.append(f"{name}: a free mass behind a contact spring, not used")
             continue
@@ -75,4 +81,16 @@ def joint_environment(cfg, joint: int, to_model=None) -> JointEnvironment:
                 f"{env.damping_n_s_per_m * lever2:.4g} N m s/rad"
             )
         out.elements.append(f"{name}: {what} on joint {joint} (n . J_j = {np.sqrt(lever2):.3g} m)")
+    if away and not touched:  # the nearest contact, as if touched
+        gap, at, i, lever2 = min(away)
+        env = cfg.environment[i]
+        name = f"environment.{i} ({env.kind})"
+        out.stiffness += env.stiffness_n_per_m * lever2
+        out.damping += env.damping_n_s_per_m * lever2
+        out.elements[at] = (
+            f"{name} not in contact at q0 ({gap * 1000:.1f} mm away), the nearest contact: taken "
+            f"as touched, {env.stiffness_n_per_m * lever2:.4g} N m/rad, "
+            f"{env.damping_n_s_per_m * lever2:.4g} N m s/rad on joint {joint} "
+            f"(n . J_j = {np.sqrt(lever2):.3g} m at q0)"
+        )
     return out
