@@ -270,7 +270,9 @@ def test_bode_json_has_null_for_unsettled(capsys: pytest.CaptureFixture[str]) ->
 def test_bode_bad_input_is_one_line_exit_2(
     extra: list[str], named: str, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["bode", str(CONFIGS / "free_space.yaml"), *extra]) == 2
+    # (with a delay: free space at T_d = 0 is itself refused, tested below)
+    base = ["bode", str(CONFIGS / "free_space.yaml"), "--set", "channel.delay_ms=20"]
+    assert main([*base, *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("teleop-rt: error: ") and named in err[0]
 
