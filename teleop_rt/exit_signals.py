@@ -21,6 +21,21 @@ from contextlib import contextmanager
 TERMINATING = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 
 
+# the signals this module's handler took while its context is open. Python ignores (prints and
+# drops) an exception raised in a signal handler that runs inside a finaliser or a logging lock
+# release; the run would then go on as if never asked to stop. A loop that starts checks here
+# (``unanswered``) and stops at once.
+_received: list[int] = []
+
+
+def unanswered() -> int | None:
+    """The first signal taken here whose exception may have been dropped (None if none); it
+    is answered by the caller from now on, so it is returned once."""
+    signum = _received[0] if _received else None
+    _received.clear()
+    return signum
+
+
 class Terminated(BaseException):
     """A signal ended the process outside a session's run (BaseException: no ``except
     Exception`` on the way swallows it)."""
@@ -47,6 +62,7 @@ def exit_on_signals() -> Iterator[None]:
 
     def handle(signum: int, frame: object) -> None:
         nonlocal raised
+        _received.append(signum)
         if not raised:
             raised = True
             raise KeyboardInterrupt if signum == signal.SIGINT else Terminated(signum)
@@ -58,3 +74,4 @@ def exit_on_signals() -> Iterator[None]:
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        _received.clear()

@@ -31,6 +31,7 @@ from typing import BinaryIO, ClassVar
 import numpy as np
 
 from teleop_rt.errors import SafetyStop
+from teleop_rt.exit_signals import unanswered
 
 OVERRUN_POLICIES = ("catch_up", "skip", "stop")
 MCL_CURRENT, MCL_FUTURE = 1, 2  # <sys/mman.h>
@@ -318,6 +319,9 @@ class StopSignals:
         for sig in self.SIGNALS:
             self._previous[sig] = signal.signal(sig, self._handle)
         StopSignals.installed.append(self)
+        signum = unanswered()  # a signal before the loop whose exception Python dropped
+        if signum is not None:
+            self.requested, self.signum = True, signum
 
     def uninstall(self) -> None:
         for sig, handler in self._previous.items():

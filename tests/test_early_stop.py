@@ -100,3 +100,38 @@ def test_sigterm_before_the_first_tick_leaves_a_log_or_none(tmp_path: Path, mome
         assert "SIGTERM" in held["cut_reason"], held
     else:  # the first ticks ran before the signal came
         assert held["status"] == "complete", held
+
+
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")  # the drop itself
+def test_a_signal_whose_exception_python_dropped_still_stops_the_loop() -> None:
+    """Python ignores an exception raised in a signal handler that runs inside a finaliser
+    (seen: SIGTERM landing in logging's lock release, 'Exception ignored in: _releaseLock'; the
+    run went on for 30 s and exited 0). The loop's handlers, once installed, take it up."""
+    import gc
+    import os
+    import signal
+
+    from teleop_rt.exit_signals import exit_on_signals
+    from teleop_rt.loop import StopSignals
+
+    class SignalledWhileFinalised:
+        def __del__(self) -> None:
+            os.kill(os.getpid(), signal.SIGTERM)  # the handler runs here: its raise is dropped
+
+    stop = StopSignals()
+    with exit_on_signals():
+        obj = SignalledWhileFinalised()
+        del obj
+        gc.collect()
+        stop.install()  # the loop starts: not a tick may run
+        try:
+            assert stop.requested and stop.signum == signal.SIGTERM
+        finally:
+            stop.uninstall()
+    fresh = StopSignals()  # answered once: a later loop is not stopped by it again
+    with exit_on_signals():
+        fresh.install()
+        try:
+            assert not fresh.requested
+        finally:
+            fresh.uninstall()
