@@ -182,7 +182,9 @@ def test_a_signal_ends_the_wait_for_the_start_instant(tmp_path: Path) -> None:
     assert "Traceback" not in err.read_text()
 
 
-@pytest.mark.parametrize("signum, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+@pytest.mark.parametrize(
+    "signum, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143), (signal.SIGHUP, 129)]
+)
 def test_a_signal_ends_a_sites_wait_for_its_peer(signum: int, code: int, tmp_path: Path) -> None:
     """Issue 28: SIGINT (or SIGTERM) 2 s into an HSI's wait for its TO ends it within a
     second (it waited out its handshake timeout, 20 s here, and exited 5)."""

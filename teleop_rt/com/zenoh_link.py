@@ -117,13 +117,14 @@ class HandshakeError(TeleopError):
 
 
 def raise_if_stopped() -> None:
-    """A SIGINT / SIGTERM caught by the running loop's handler ends a wait before the loop:
-    ``KeyboardInterrupt`` / ``Terminated``, which the CLI turns into exit 130 / 143."""
+    """A SIGINT, SIGTERM or SIGHUP caught by the running loop's handler ends a wait before the
+    loop: ``KeyboardInterrupt`` / ``Terminated``, which the CLI turns into exit 130 / 143 /
+    129."""
     for stop in StopSignals.installed:
         if stop.requested:
-            if stop.signum == signal.SIGTERM:
-                raise Terminated(signal.SIGTERM)
-            raise KeyboardInterrupt
+            if stop.signum in (None, signal.SIGINT):
+                raise KeyboardInterrupt
+            raise Terminated(stop.signum)
 
 
 def wait_until_ns(wall_ns: int) -> bool:
