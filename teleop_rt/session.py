@@ -250,7 +250,10 @@ class Session:
         if fused:
             code = pair.before()
         else:
-            hsi.backend.read()  # into hsi.feedback
+            try:
+                hsi.backend.read()  # into hsi.feedback
+            except SafetyStop as exc:
+                raise self._read_to_after(exc) from None
             to.backend.read()
             code = lockstep_before(f, i, o, self._at, n)
         if code:
@@ -278,7 +281,10 @@ class Session:
         """One tick of both sites through a link stepped from Python (an impaired one): each
         site's own entry points, then the two-port's monitor and the metrics."""
         hsi, to = self.hsi, self.to
-        hsi.sense(link)
+        try:
+            hsi.sense(link)
+        except SafetyStop as exc:
+            raise self._read_to_after(exc) from None
         to.sense(link)
         hsi.update(link)
         to.update(link)
@@ -288,6 +294,16 @@ class Session:
             self.pair.saturated_ticks += 1
         accumulate(met.f, met.i, n, hsi.feedback.q, to.feedback.q, hsi.signals.tau, to.signals.tau)
         self.tick += 1
+
+    def _read_to_after(self, exc: SafetyStop) -> SafetyStop:
+        """The HSI's read (or its checks) stopped the tick: the TO's backend reads all the
+        same, so its bus gets this period's SYNC (a CAN drive watches it by the wall clock);
+        a fault that read finds joins the HSI's."""
+        try:
+            self.to.backend.read()
+        except SafetyStop as other:
+            return SafetyStop(f"{exc}; {other}")
+        return exc
 
     def link_stats(self) -> dict | None:
         """What an impaired link did, per receiving site (None for the plain in-process one)."""

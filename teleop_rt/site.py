@@ -239,6 +239,20 @@ class Site:
         self._stop_tau[:] = 0.0
         self.backend.write(self._stop_tau)
 
+    def zero_torque_period(self) -> str | None:
+        """A period of the staged stop for a robot on zero torque: its backend still reads
+        (a CAN bus gets its SYNC: the drives watch it by the wall clock and act on the last
+        command until it comes) and is commanded zero torque. What the read measures is not
+        used, and a fault it finds is returned, not raised: this robot is already on zero
+        torque, and the others' stop goes on."""
+        fault = None
+        try:
+            self.backend.read()
+        except SafetyStop as exc:
+            fault = str(exc)
+        self.write_zero_torque()
+        return fault
+
     def stop_note(self) -> str:
         """What the staged stop did without the TO's torque sensor ('' when nothing)."""
         if self.side != TO or self._force_trusted:
@@ -259,10 +273,13 @@ def bring_to_rest(sites: list[Site], until: Site, wait: Callable[[], object], li
     clock's, in real time): every site's ``rest_step`` until ``until`` is at rest, at most
     ``limit`` ticks; what happened, for the summary's notes (zero torque follows, the backends'
     stop). A site whose sensors become unusable is commanded zero torque from then on while
-    the others go on stopping; a further fault ends it at once."""
+    the others go on stopping, its backend still read every period (a CAN bus keeps its SYNC,
+    whatever the other robot does); a further fault of a robot still stopping ends it at
+    once."""
     for site in sites:
         site.begin_rest()
     stopping = list(sites)
+    faulted: list[Site] = []  # on zero torque, and a further fault said
     said: list[str] = []
     ending = f"{until.name.upper()} not at rest after {limit} ticks; zero torque"
     try:
@@ -271,13 +288,16 @@ def bring_to_rest(sites: list[Site], until: Site, wait: Callable[[], object], li
             resting = False
             for site in sites:
                 if site not in stopping:
-                    site.write_zero_torque()
+                    fault = site.zero_torque_period()
+                    if fault is not None and site not in faulted:
+                        faulted.append(site)
+                        said.append(f"{site.name.upper()} on zero torque: {fault}")
                     continue
                 try:
                     at_rest = site.rest_step()
                 except SensorsUnusable:
                     stopping.remove(site)
-                    site.write_zero_torque()
+                    site.write_zero_torque()  # its read this period was rest_step's
                     said.append(f"{site.name.upper()}'s sensors unusable after {k} ticks: "
                                 "zero torque from then on")  # fmt: skip
                     continue

@@ -253,3 +253,80 @@ def test_a_pdo_longer_than_its_mapping_is_read_counted_and_noted() -> None:
         "mapping (4 bytes): the mapped leading bytes were used (CiA 301)"
     ) in summary.notes
     assert [d.state for d in backend.emulator.drives] == [SOD, SOD]  # stopped as usual
+
+
+class _PacedStop:
+    """``teleop_rt.hal.stopping``'s clock in the SYNC-gap test: a deadline always ahead, so
+    each period of ``stop_all`` sleeps once, and the sleep marks the period."""
+
+    def __init__(self, mark) -> None:
+        self.sleep = lambda _s: mark()
+
+    @staticmethod
+    def perf_counter_ns() -> int:
+        return 0
+
+
+@pytest.mark.parametrize("lost", ["hsi", "to"])
+def test_every_bus_gets_its_sync_every_period_through_a_node_loss_on_either(
+    lost: str, monkeypatch
+) -> None:
+    """A drive node on one bus goes silent (no TPDO, no heartbeat: unplugged). Its robot's
+    backend stops the session within ``missed_feedback_ticks``; the staged stop, then both
+    backends' stops follow. Through all of it, every period (a loop tick, a tick of the staged
+    stop, a period of ``stop_all``) each bus gets exactly one SYNC until its NMT
+    pre-operational: a drive watches its SYNC by the wall clock, so a period without one is a
+    period the drive runs on a stale command, whatever the other bus does. Counted in periods,
+    not in wall time (what this test guards is the sequence; in real time each period is
+    paced by the same clock)."""
+    from teleop_rt import loop
+    from teleop_rt.hal import stopping
+
+    cfg = config.load(CAN, [*FAST, "duration_s=1"])
+    session = Session(cfg)
+    events: list[str] = []  # "|" a period begins; "hsi" / "to": a SYNC; "hsi NMT" / "to NMT"
+    mark = lambda: events.append("|")  # noqa: E731
+    wait = loop.TickClock.wait
+    monkeypatch.setattr(loop.TickClock, "wait", lambda clock: (mark(), wait(clock))[1])
+    monkeypatch.setattr(stopping, "time", _PacedStop(mark))
+
+    def logged(name, handle):
+        def log(msg) -> None:
+            if msg.arbitration_id == 0x080:
+                events.append(name)
+            elif msg.arbitration_id == 0x000:
+                events.append(f"{name} NMT")
+            handle(msg)
+
+        return log
+
+    def watch(s: Session) -> None:
+        if s.tick == 1:
+            for name, site in (("hsi", s.hsi), ("to", s.to)):
+                emu = site.backend.emulator
+                emu.handle = logged(name, emu.handle)
+        if s.tick == 300:  # node 1 of the lost bus unplugged from the next SYNC on
+            emu = getattr(s, lost).backend.emulator
+            emu.inject(Fault("drop_tpdo", 1))
+            emu.inject(Fault("stop_heartbeat", 1))
+
+    summary = session.run(observer=watch)
+    assert summary.safety_stop and f"{lost} joint 0 (drive node 1): no feedback" in (
+        summary.stopped_early
+    ), summary.stopped_early
+    assert 300 < summary.ticks <= 300 + cfg.can.missed_feedback_ticks + 1
+    periods: list[list[str]] = []
+    for e in events[events.index("hsi") :]:  # from the first period whose SYNCs were seen
+        if e == "|":
+            periods.append([])
+        elif periods:
+            periods[-1].append(e)
+    for name in ("hsi", "to"):
+        end = next(k for k, p in enumerate(periods) if f"{name} NMT" in p)
+        counts = [p.count(name) for p in periods[: end + 1]]
+        gaps = [k for k, c in enumerate(counts) if c != 1]
+        assert not gaps, (
+            f"{name} bus: periods without exactly one SYNC at {gaps[:10]} of {len(counts)} "
+            f"(loop ticks {summary.ticks}; {sum(c == 0 for c in counts)} without SYNC)"
+        )
+        assert end > summary.ticks  # the periods after the loop (the stops) were counted
