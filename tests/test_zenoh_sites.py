@@ -198,3 +198,29 @@ def test_a_killed_parent_leaves_no_site_running(signum: int, tmp_path: Path) -> 
         assert held["status"] == "complete", held
         assert held["summary"]["stopped_early"] == f"stopped by {passed.name}"
         assert 0 < held["ticks"] < 50_000
+
+
+@pytest.mark.parametrize("proto", ["udp", "tcp"])
+def test_an_endpoint_in_use_is_one_line_naming_it_and_exit_2(proto: str, tmp_path: Path) -> None:
+    """Another program already listens on the site's endpoint (a plain socket here; a second
+    session on the default endpoint is the same to Zenoh): one line that names the endpoint
+    and the --set that moves it, without Zenoh's Rust source places, exit 2 (set-up)."""
+    kind = socket.SOCK_DGRAM if proto == "udp" else socket.SOCK_STREAM
+    with socket.socket(socket.AF_INET, kind) as holder:
+        holder.bind(("127.0.0.1", 0))
+        if proto == "tcp":
+            holder.listen()
+        port = holder.getsockname()[1]
+        at = f"{proto}/127.0.0.1:{port}"
+        cmd = [sys.executable, "-m", "teleop_rt", "site", "hsi", str(PAPER), "--no-log",
+               "--set", "channel.delay_ms=20", "--set", f"link.zenoh.hsi.listen=[{at}]",
+               "--set", f"link.zenoh.to.connect=[{at}]"]  # fmt: skip
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert done.returncode == 2, done.stderr
+    lines = [x for x in done.stderr.splitlines() if x.startswith("teleop-rt")]
+    assert lines == [
+        f"teleop-rt: error: link.zenoh.hsi.listen: {at} is in use (another session or program "
+        f"listens there); give this site another, e.g. --set link.zenoh.hsi.listen="
+        f"[{proto}/127.0.0.1:{port + 1}], and the peer's connect the same"
+    ], done.stderr
+    assert ".rs:" not in done.stderr and "…" not in done.stderr and "Traceback" not in done.stderr

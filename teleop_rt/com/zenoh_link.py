@@ -269,7 +269,10 @@ class ZenohLink(Link):
             slack = 64  # ticks the sender thread may fall behind before packets are refused
             slots = MAX_ARRIVALS * (self.impairment.max_delay_ticks + slack)
             hold = HeldPackets(wire_size(n), slots)
-        self.transport = ZenohTransport(config, f"{self.base}/{self.name}/waves", hold=hold)
+        listening = (ends.listen, f"link.zenoh.{self.name}.listen")  # named if in use
+        self.transport = ZenohTransport(
+            config, f"{self.base}/{self.name}/waves", hold=hold, listen=listening
+        )
         # this site's tick period in real time: a clock clock_ppm fast counts its ticks sooner
         self.period_ns = cfg.dt * 1e9 / (1.0 + ends.clock_ppm * 1e-6)
         self.start_ns = 0

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -53,6 +54,30 @@ class TransportError(TeleopError):
     """The transport cannot be set up (bad endpoint, certificates, port in use)."""
 
     exit_code = 2
+
+
+# where in Zenoh's Rust source an error was raised: " at /root/.cargo/.../unicast.rs:418."
+_SOURCE_PLACE = re.compile(r"\s+at \S+\.rs:\d+\.?")
+_IN_USE = ("Address already in use", "os error 98")
+_ENDPOINT = re.compile(r"^(?P<proto>[a-z0-9-]+)/(?P<addr>.*):(?P<port>\d+)(?P<rest>[#?].*)?$")
+
+
+def open_failure(err: object, listen: list[str], key: str) -> str:
+    """One line for a Zenoh session that would not open: for an address in use, the endpoint
+    and the ``--set`` that moves it (``key``: the config key of the ``listen`` list);
+    otherwise Zenoh's words without its source file places."""
+    text = _SOURCE_PLACE.sub("", str(err)).strip()
+    if any(mark in text for mark in _IN_USE):
+        named = [e for e in listen if e in text] or listen[:1]
+        if named:
+            at = named[0]
+            m = _ENDPOINT.match(at)
+            other = (f"{m['proto']}/{m['addr']}:{int(m['port']) + 1}{m['rest'] or ''}"
+                     if m and int(m["port"]) < 65535 else "PROTO/HOST:PORT")  # fmt: skip
+            return (f"{key}: {at} is in use (another session or program listens there); give "
+                    f"this site another, e.g. --set {key}=[{other}], and the peer's connect "
+                    "the same")  # fmt: skip
+    return f"link: cannot open the Zenoh session ({text})"
 
 
 def zenoh_config(
@@ -94,15 +119,21 @@ class ZenohTransport:
     peer's key; ``session`` serves the handshake too."""
 
     def __init__(
-        self, config: Any, key_out: str, max_bytes: int = 4096, hold: HeldPackets | None = None
+        self,
+        config: Any,
+        key_out: str,
+        max_bytes: int = 4096,
+        hold: HeldPackets | None = None,
+        listen: tuple[list[str], str] = ([], "link.zenoh listen"),
     ) -> None:
-        """``hold``: where ``send_at`` keeps packets until they are due (None: no hold)."""
+        """``hold``: where ``send_at`` keeps packets until they are due (None: no hold);
+        ``listen``: the config's listen endpoints and their key, for an endpoint in use."""
         import zenoh
 
         try:
             self.session = zenoh.open(config)
         except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, TLS
-            raise TransportError(f"link: cannot open the Zenoh session ({err})") from None
+            raise TransportError(open_failure(err, *listen)) from None
         self.publisher = self.session.declare_publisher(
             key_out,
             congestion_control=zenoh.CongestionControl.DROP,
