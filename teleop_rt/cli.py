@@ -159,7 +159,9 @@ def _build_parser() -> argparse.ArgumentParser:
     plot = sub.add_parser(
         "plot", help="plot HSI vs TO angles and torques, tool paths and the channel energy"
     )
-    plot.add_argument("log", help="an MCAP log")
+    plot.add_argument(
+        "log", nargs="+", help="an MCAP log, or the two logs of one session's sites (HSI, TO)"
+    )
     plot.add_argument(
         "-o",
         "--output",
@@ -523,7 +525,12 @@ def _cmd_info(args: argparse.Namespace) -> int:
 def _cmd_plot(args: argparse.Namespace) -> int:
     from teleop_rt.recording.plot import plot_main
 
-    return plot_main(args.log, args.output, args.force, args.t_from, args.t_to)
+    if len(args.log) > 2:
+        raise ConfigError(
+            f"plot takes one log or the two logs of one session's sites, not {len(args.log)}"
+        )
+    partner = args.log[1] if len(args.log) == 2 else None
+    return plot_main(args.log[0], args.output, args.force, args.t_from, args.t_to, partner)
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
@@ -580,7 +587,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         if args.plot:
             from teleop_rt.recording.plot import plot_log
 
-            plot_log(read_log(recorder.path), args.plot, force=args.force, option="--plot")
+            plot_log(read_log(recorder.path), args.plot, force=args.force, option="--plot",
+                     original=data)  # fmt: skip
     finally:
         if scratch is not None:
             scratch.cleanup()

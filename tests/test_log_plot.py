@@ -109,3 +109,56 @@ def test_tool_paths_in_the_plane_with_the_environment(tmp_path):
     labels = [t.get_text() for t in fig.legends[0].get_texts()]
     assert "foam 300 N/m" in labels and "wall 5000 N/m" in labels
     assert ax.get_ylim()[0] < -0.06 < ax.get_ylim()[1]  # the wall is inside the view
+
+
+def _captured_figures(monkeypatch) -> list:
+    """The figures ``plot_log`` draws (make_figure wrapped), to look into what the CLI drew."""
+    figures = []
+    draw = plot.make_figure
+
+    def keep(*args, **kwargs):
+        figures.append(draw(*args, **kwargs))
+        return figures[-1]
+
+    monkeypatch.setattr(plot, "make_figure", keep)
+    return figures
+
+
+def test_replay_plot_draws_the_original_run_under_the_replay(tmp_path, monkeypatch, capsys):
+    """``replay LOG --set ... --plot IMG``: every angle and torque axis holds the original
+    run's HSI and TO (wide, faint: ``ORIGINAL_STYLE``) under the replay's, each with its own
+    data; the channel energy both; the legend names the four."""
+    from teleop_rt.cli import main
+    from tests.conftest import CONFIGS
+
+    log, out = tmp_path / "run.mcap", tmp_path / "replay.png"
+    argv = ["run", str(CONFIGS / "paper_experiment.yaml"), "--duration", "1", "--log", str(log)]
+    assert main([*argv, "--set", "channel.delay_ms=10"]) == 0
+    figures = _captured_figures(monkeypatch)
+    code = main(["replay", str(log), "--set", "channel.delay_ms=60", "--plot", str(out),
+                 "--no-log", "--json"])  # fmt: skip
+    assert code == 0 and out.stat().st_size > 20_000
+    capsys.readouterr()
+    (fig,) = figures
+    original = read_log(log)
+    n = original.layout.n
+    for j in range(n):
+        angle, torque = fig.axes[2 * j], fig.axes[2 * j + 1]
+        for ax, field, sign in ((angle, "q", 1.0), (torque, "tau_ext", None)):
+            was_to, was_hsi, now_to, now_hsi = ax.get_lines()
+            for line in (was_to, was_hsi):
+                assert line.get_alpha() == plot.ORIGINAL_STYLE["alpha"]
+                assert line.get_linewidth() == plot.ORIGINAL_STYLE["lw"]
+            assert now_hsi.get_alpha() is None and now_hsi.get_linestyle() == "--"
+            to_sign = -1.0 if sign is None else 1.0
+            np.testing.assert_array_equal(was_hsi.get_ydata(), original.topics["/hsi"][field][:, j])
+            np.testing.assert_array_equal(
+                was_to.get_ydata(), to_sign * original.topics["/to"][field][:, j]
+            )
+            assert not np.array_equal(now_hsi.get_ydata(), was_hsi.get_ydata())  # 60 ms, not 10
+    energy_axis = fig.axes[2 * n + 1]  # after the tool paths
+    assert energy_axis.get_ylabel() == "channel energy (J)" and len(energy_axis.get_lines()) == 2
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert labels[:4] == ["HSI (q_h, tau_h)", "TO (q_t, tau_e)", "HSI, original run",
+                          "TO, original run"]  # fmt: skip
+    assert "replay of" in fig.get_suptitle()

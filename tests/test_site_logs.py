@@ -339,3 +339,44 @@ def test_run_link_zenoh_refuses_a_log_pair_that_exists(tmp_path) -> None:
     lines = out.stderr.strip().splitlines()
     assert len(lines) == 1 and "x.to.mcap exists" in lines[0], lines
     assert not (tmp_path / "x.hsi.mcap").exists()
+
+
+def test_plot_draws_the_two_site_logs_as_one_session(run: PairRun, tmp_path, capsys,
+                                                     monkeypatch) -> None:  # fmt: skip
+    """``plot HSI.mcap TO.mcap`` (either order) pairs the logs by tick as ``metrics`` does:
+    each angle and torque axis holds the HSI's and the TO's own logged values, the channel
+    energy is the two ports' sum; a site log alone, or with a session's, is one line, exit 2."""
+    from test_log_plot import _captured_figures
+
+    figures = _captured_figures(monkeypatch)
+    logs = {s: read_log(p) for s, p in run.logs.items()}
+    for k, order in enumerate(((run.logs["hsi"], run.logs["to"]),
+                               (run.logs["to"], run.logs["hsi"]))):  # fmt: skip
+        out = tmp_path / f"pair{k}.png"
+        assert main(["plot", *map(str, order), "-o", str(out)]) == 0
+        assert out.stat().st_size > 20_000 and f"wrote {out}" in capsys.readouterr().out
+    for fig in figures:
+        h, t = logs["hsi"].topics["/hsi"], logs["to"].topics["/to"]
+        for j in range(logs["hsi"].layout.n):
+            to_q, hsi_q = fig.axes[2 * j].get_lines()
+            np.testing.assert_array_equal(hsi_q.get_ydata(), h["q"][:, j])
+            np.testing.assert_array_equal(to_q.get_ydata(), t["q"][:, j])
+            tau_e, tau_h = fig.axes[2 * j + 1].get_lines()
+            np.testing.assert_array_equal(tau_h.get_ydata(), h["tau_ext"][:, j])
+            np.testing.assert_array_equal(tau_e.get_ydata(), -t["tau_ext"][:, j])
+        (energy,) = [a for a in fig.axes if a.get_ylabel() == "channel energy (J)"][0].get_lines()
+        ports = (logs["hsi"].topics["/port"]["total_energy"]
+                 + logs["to"].topics["/port"]["total_energy"])  # fmt: skip
+        np.testing.assert_array_equal(energy.get_ydata(), ports)
+        assert "two site logs paired by tick" in fig.get_suptitle()
+        assert any(a.get_title().startswith("tool paths") for a in fig.axes)
+    session = write_synthetic_log(tmp_path / "session.mcap", 50).path
+    for argv, words in (
+        ([str(run.logs["hsi"])], "is the hsi site's log, one robot: plot it with its partner's"),
+        ([str(run.logs["hsi"]), str(session)], "plot takes it alone"),
+        ([str(run.logs["hsi"])] * 3, "plot takes one log or the two logs"),
+    ):
+        assert main(["plot", *argv, "-o", str(tmp_path / "no.png")]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], err
+    assert not (tmp_path / "no.png").exists()

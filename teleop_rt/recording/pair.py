@@ -16,6 +16,7 @@ line and exit code 2.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -24,17 +25,19 @@ import numpy as np
 
 from teleop_rt.recording.metrics import _timing, gap_text, transparency_sums
 from teleop_rt.recording.reader import LogData, LogError, check_window, read_log, require_ticks
+from teleop_rt.recording.schema import LogLayout
 
 SAME = ("session_id", "start_time_ns", "rate_hz", "joints", "delay_ticks", "config_hash")
 
 
-def read_pair(a: str | Path, b: str | Path) -> tuple[LogData, LogData]:
-    """The HSI's and the TO's log (in either order), refused unless they pair."""
+def read_pair(a: str | Path, b: str | Path, command: str = "metrics") -> tuple[LogData, LogData]:
+    """The HSI's and the TO's log (in either order), refused unless they pair (``command``:
+    who asks, for the message)."""
     logs = [read_log(p) for p in (a, b)]
     for data in logs:
         if not data.site:
             raise LogError(
-                f"{data.path} is {data.what()}: metrics takes it alone; two logs must be the "
+                f"{data.path} is {data.what()}: {command} takes it alone; two logs must be the "
                 "two site logs of one session (teleop-rt site, run --link zenoh)"
             )
         if "replay_of" in data.meta:
@@ -58,27 +61,59 @@ def read_pair(a: str | Path, b: str | Path) -> tuple[LogData, LogData]:
     return hsi, to
 
 
-def pair_metrics(
+def _common_ticks(
     hsi: LogData, to: LogData, t_from: float | None = None, t_to: float | None = None
-) -> dict:
-    """The pair's figures over the ticks both logs hold (in the window ``t_from <= k dt <
-    t_to``, if given), and each site's own."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ticks both logs hold (in the window ``t_from <= k dt < t_to``, if given) and their
+    rows in each log."""
     dt = hsi.dt
     ticks, ih, it = np.intersect1d(
         hsi.topics["/hsi"]["tick"], to.topics["/to"]["tick"], assume_unique=True,
         return_indices=True,
     )  # fmt: skip
-    h, t = hsi.topics["/hsi"], to.topics["/to"]
-    offset = None  # alpha from tick 0, where both logs hold it (a window keeps it)
-    if len(ticks) and ticks[0] == 0:
-        offset = h["q"][ih[0]] - t["q"][it[0]]
     k = ticks.astype(np.int64)
     keep = np.ones(len(k), dtype=bool)
     if t_from is not None:
         keep &= k >= np.ceil(round(t_from / dt, 6))
     if t_to is not None:
         keep &= k < np.ceil(round(t_to / dt, 6))
-    ih, it, k = ih[keep], it[keep], k[keep]
+    return k[keep], ih[keep], it[keep]
+
+
+def paired_log(
+    hsi: LogData, to: LogData, t_from: float | None = None, t_to: float | None = None
+) -> LogData:
+    """The two site logs as one session's log for ``teleop-rt plot``: /hsi and /to at the
+    ticks both hold (in the window), /channel's energy the two ports' sum (eq 7, 8); the HSI
+    log's metadata and attachments (the config and both URDFs: each site attaches both)."""
+    k, ih, it = _common_ticks(hsi, to, t_from, t_to)
+    channel = np.zeros(len(k), dtype=[("t", "f8"), ("total_energy", "f8")])
+    channel["t"] = hsi.topics["/hsi"]["t"][ih]
+    channel["total_energy"] = (hsi.topics["/port"]["total_energy"][ih]
+                               + to.topics["/port"]["total_energy"][it])  # fmt: skip
+    return dataclasses.replace(
+        hsi,
+        meta={**hsi.meta, "paired_with": to.path.name},
+        layout=LogLayout(hsi.layout.n, to.layout.n_env),
+        topics={"/hsi": hsi.topics["/hsi"][ih], "/to": to.topics["/to"][it], "/channel": channel},
+        truncated=hsi.truncated or to.truncated,
+        cut_reason="; ".join(d.cut_reason for d in (hsi, to) if d.cut_reason) or None,
+        gaps=[],
+    )
+
+
+def pair_metrics(
+    hsi: LogData, to: LogData, t_from: float | None = None, t_to: float | None = None
+) -> dict:
+    """The pair's figures over the ticks both logs hold (in the window ``t_from <= k dt <
+    t_to``, if given), and each site's own."""
+    dt = hsi.dt
+    h, t = hsi.topics["/hsi"], to.topics["/to"]
+    offset = None  # alpha from tick 0, where both logs hold it (a window keeps it)
+    every, first_h, first_t = _common_ticks(hsi, to)
+    if len(every) and every[0] == 0:
+        offset = h["q"][first_h[0]] - t["q"][first_t[0]]
+    k, ih, it = _common_ticks(hsi, to, t_from, t_to)
     t_p, t_tau = transparency_sums(h["q"][ih], t["q"][it], h["tau_ext"][ih], -t["tau_ext"][it],
                                    dt, offset)  # fmt: skip
     energy = hsi.topics["/port"]["total_energy"][ih] + to.topics["/port"]["total_energy"][it]

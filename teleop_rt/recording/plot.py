@@ -2,6 +2,11 @@
 Fig 6, both tools' paths in the plane with the environment drawn (walls, foam, springs, the
 mass at rest), and the channel energy. matplotlib without pyplot (no display); the format
 comes from the output's extension (``teleop_rt.output``).
+
+The two site logs of one session (``plot HSI.mcap TO.mcap``) are drawn as one session's log,
+paired by tick as ``metrics`` pairs them (``teleop_rt.recording.pair.paired_log``). A replay's
+plot (``replay --plot``) draws the original run under it: the same colours and dashes, wide
+and faint.
 """
 
 from __future__ import annotations
@@ -17,7 +22,13 @@ from matplotlib.patches import Patch
 
 from teleop_rt.errors import TeleopError
 from teleop_rt.output import check_output, save_figure
-from teleop_rt.recording.reader import LogData, check_window, read_log, require_ticks
+from teleop_rt.recording.reader import (
+    LogData,
+    LogError,
+    check_window,
+    read_log,
+    require_ticks,
+)
 
 TOPICS = ("/hsi", "/to", "/channel")
 MAX_POINTS = 20_000  # per line; longer signals are drawn as their min / max envelope
@@ -25,15 +36,18 @@ PATH_POINTS = 4_000  # tool path samples (forward kinematics per sample)
 HSI_STYLE = {"ls": "--", "color": "C0"}
 TO_STYLE = {"ls": "-", "color": "C1"}
 ENV_COLORS = {"wall": "0.35", "foam": "C8", "spring": "C2", "damper": "C2", "mass": "C5"}
+ORIGINAL_STYLE = {"lw": 4.0, "alpha": 0.3}  # a replay's original run, under the replay
 
 
-def make_figure(data: LogData, title: str | None = None) -> Figure:
+def make_figure(data: LogData, title: str | None = None, original: LogData | None = None) -> Figure:
     """Rows: one per joint (angles left, torques middle), the tool paths to the right of them,
-    the channel energy below (left out when it is zero throughout, as without delay)."""
+    the channel energy below (left out when it is zero throughout, as without delay).
+    ``original``: the run ``data`` replays, drawn under it (``ORIGINAL_STYLE``)."""
     hsi, to, channel = (data.topics[name] for name in TOPICS)
     n = data.layout.n
     energy = channel["total_energy"]
-    show_energy = bool(np.any(energy[~np.isnan(energy)] != 0))
+    show_energy = _nonzero(energy) or (original is not None and _nonzero(
+        original.topics["/channel"]["total_energy"]))  # fmt: skip
     paths, why_no_path = tool_paths(data)
     cols = 3 if paths is not None else 2
     height = 2.0 * n + (1.5 if show_energy else 0.0) + 1.2
@@ -41,13 +55,18 @@ def make_figure(data: LogData, title: str | None = None) -> Figure:
     ratios = [1.0] * n + ([0.75] if show_energy else [])
     grid = fig.add_gridspec(len(ratios), cols, height_ratios=ratios)
     t = hsi["t"]
+    if original is not None and original.layout.n != n:
+        original = None  # not the same robots: nothing to draw under (replays keep them)
     for j in range(n):
         ax = fig.add_subplot(grid[j, 0])
+        ax_tau = fig.add_subplot(grid[j, 1])
+        if original is not None:
+            _draw_original(ax, ax_tau, original, j)
         # TO first: the dashed HSI line stays visible where the two coincide
         ax.plot(*_envelope(t, to["q"][:, j]), **TO_STYLE, label="TO q_t")
         ax.plot(*_envelope(t, hsi["q"][:, j]), **HSI_STYLE, label="HSI q_h")
         ax.set_ylabel(f"q{j + 1} (rad)")
-        ax = fig.add_subplot(grid[j, 1])
+        ax = ax_tau
         ax.plot(*_envelope(t, -to["tau_ext"][:, j]), **TO_STYLE, label="TO tau_e")
         ax.plot(*_envelope(t, hsi["tau_ext"][:, j]), **HSI_STYLE, label="HSI tau_h")
         ax.set_ylabel(f"tau{j + 1} (N m)")
@@ -57,10 +76,18 @@ def make_figure(data: LogData, title: str | None = None) -> Figure:
         Line2D([], [], **HSI_STYLE, label="HSI (q_h, tau_h)"),
         Line2D([], [], **TO_STYLE, label="TO (q_t, tau_e)"),
     ]
+    if original is not None:
+        handles += [
+            Line2D([], [], **HSI_STYLE, **ORIGINAL_STYLE, label="HSI, original run"),
+            Line2D([], [], **TO_STYLE, **ORIGINAL_STYLE, label="TO, original run"),
+        ]
     if paths is not None:
         handles += _draw_paths(fig.add_subplot(grid[:, 2]), paths)
     if show_energy:
         ax = fig.add_subplot(grid[n, :2])
+        if original is not None:
+            was = original.topics["/channel"]
+            ax.plot(*_envelope(was["t"], was["total_energy"]), "-", color="C2", **ORIGINAL_STYLE)
         ax.plot(*_envelope(channel["t"], energy), "-", color="C2")
         ax.set_ylabel("channel energy (J)")
         ax.set_xlabel("t (s)")
@@ -72,6 +99,19 @@ def make_figure(data: LogData, title: str | None = None) -> Figure:
         title = default_title(data, show_energy, why_no_path)
     fig.suptitle(title)
     return fig
+
+
+def _nonzero(energy: np.ndarray) -> bool:
+    return bool(np.any(energy[~np.isnan(energy)] != 0))
+
+
+def _draw_original(ax_q, ax_tau, original: LogData, j: int) -> None:
+    """Joint ``j`` of the run a replay replays, wide and faint, under the replay's lines."""
+    hsi, to = original.topics["/hsi"], original.topics["/to"]
+    for rows, style, sign in ((to, TO_STYLE, -1.0), (hsi, HSI_STYLE, 1.0)):
+        ax_q.plot(*_envelope(rows["t"], rows["q"][:, j]), **style, **ORIGINAL_STYLE)
+        ax_tau.plot(*_envelope(rows["t"], sign * rows["tau_ext"][:, j]), **style,
+                    **ORIGINAL_STYLE)  # fmt: skip
 
 
 def default_title(data: LogData, show_energy: bool = True, why_no_path: str | None = None) -> str:
@@ -93,6 +133,8 @@ def default_title(data: LogData, show_energy: bool = True, why_no_path: str | No
         lines.append(f"replay of {meta['replay_of']}{via}; " + (overrides or "no overrides"))
     elif overrides:
         lines.append(overrides)
+    if "paired_with" in meta:
+        lines.append(f"two site logs paired by tick: {data.path.name} and {meta['paired_with']}")
     notes = [] if show_energy else ["channel energy 0 throughout (not drawn)"]
     if why_no_path:
         notes.append(f"no tool path: {why_no_path}")
@@ -229,11 +271,13 @@ def plot_log(
     title: str | None = None,
     force: bool = False,
     option: str = "-o",
+    original: LogData | None = None,
 ) -> Path:
-    """Draw the log to ``out`` (format by its extension); an existing file only with
-    ``force``, and never the log itself. Return the path."""
-    check_output(out, option, force=force, image=True, inputs=(data.path,))
-    return save_figure(make_figure(data, title), out, option, force)
+    """Draw the log to ``out`` (format by its extension), ``original`` under it (a replay's);
+    an existing file only with ``force``, and never a log drawn. Return the path."""
+    inputs = (data.path,) if original is None else (data.path, original.path)
+    check_output(out, option, force=force, image=True, inputs=inputs)
+    return save_figure(make_figure(data, title, original), out, option, force)
 
 
 def plot_main(
@@ -242,13 +286,26 @@ def plot_main(
     force: bool = False,
     t_from: float | None = None,
     t_to: float | None = None,
+    partner: str | Path | None = None,
 ) -> int:
-    """``teleop-rt plot LOG [-o OUT] [--force] [--from S] [--to S]`` (default output: the
-    log's path with .png); exit code."""
+    """``teleop-rt plot LOG [TO_LOG] [-o OUT] [--force] [--from S] [--to S]`` (default output:
+    the (first) log's path with .png); ``partner``: the other site's log of a site log, the
+    two drawn as one session's; exit code."""
     check_window(t_from, t_to)
     target = Path(path).with_suffix(".png") if out is None else Path(out)
-    check_output(target, "-o", force=force, image=True, inputs=(path,))  # before reading
-    data = read_log(path, TOPICS, t_from, t_to)
+    inputs = (path,) if partner is None else (path, partner)
+    check_output(target, "-o", force=force, image=True, inputs=inputs)  # before reading
+    if partner is not None:
+        from teleop_rt.recording.pair import paired_log, read_pair
+
+        data = paired_log(*read_pair(path, partner, "plot"), t_from, t_to)
+    else:
+        data = read_log(path, None, t_from, t_to)  # a session's, or a site's (refused)
+        if data.site:
+            raise LogError(
+                f"{data.path} is the {data.site} site's log, one robot: plot it with its "
+                "partner's (teleop-rt plot HSI.mcap TO.mcap)"
+            )
     if not data.ticks:  # an empty figure is no plot; the same line as metrics
         from teleop_rt.recording.metrics import empty_window
 
