@@ -10,6 +10,7 @@ import argparse
 import importlib.util
 import re
 import shlex
+import subprocess
 import sys
 from pathlib import Path
 
@@ -162,6 +163,32 @@ def test_every_tool_command_parses(
             main_fn(words[2:])  # type: ignore[operator]
         except TypeError:  # main() without argv reads sys.argv
             main_fn()  # type: ignore[operator]
+
+
+def test_the_fast_subset_deselects_exactly_the_marked_tests() -> None:
+    """The README's fast subset names registered markers, and collecting it leaves out the
+    marked tests and nothing else."""
+    readme = bash_commands(ROOT / "README.md")
+    subset = next(c for c in readme if "pytest -m " in c)
+    expression = shlex.split(subset)[-1]
+    markers = set(re.findall(r"not (\w+)", expression))
+    assert markers == {"slow", "realtime", "zenoh", "can"}
+    text = (ROOT / "pyproject.toml").read_text()
+    for m in markers:
+        assert re.search(rf'"{m}: ', text), m
+    assert "--strict-markers" in text
+
+    def collect(*extra: str) -> set[str]:
+        out = subprocess.run(
+            [sys.executable, "-m", "pytest", "--collect-only", "-p", "no:cacheprovider",
+             *extra, str(ROOT / "tests")],
+            capture_output=True, text=True, cwd=ROOT, check=True,
+        ).stdout
+        return {ln for ln in out.split("\n") if "::" in ln}
+
+    everything, fast = collect(), collect("-m", expression)
+    marked = collect("-m", " or ".join(sorted(markers)))
+    assert fast and marked and fast | marked == everything and not fast & marked
 
 
 LINK = re.compile(r"\]\(([^)\s]+)\)")
