@@ -23,7 +23,7 @@ from pathlib import Path
 from teleop_rt.errors import ConfigError
 from teleop_rt.exit_signals import Terminated
 
-# which exit code of the two sites the run gives (cmd_site's codes; README, "Using it"): a
+# which exit code of the two sites the run gives (cmd_site's codes; docs/usage.md): a
 # log that is not whole first, then a safety stop, a bad config, a peer that never answered,
 # an error, the signals; 0 only if both sites ended well
 EXIT_PRECEDENCE = (4, 3, 2, 5, 1, 129, 143, 130, 0)

@@ -131,7 +131,7 @@ class ChannelSpec(Strict):
     wave_reconstruction: Literal["bounded", "zero", "hold", "integral"] = "bounded"
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
-    # README, Passive over any network). None, the default, switches it off.
+    # docs/passivity.md). None, the default, switches it off.
     tdpa_drift_time_s: PositiveFloat | None = None
 
 

@@ -35,7 +35,7 @@ SENDER_PRIORITY = 81  # the link's sender thread: above the loop's SCHED_FIFO 80
 # A site's loop spins 50 us before each deadline, not the one-process loop's 200 us: the
 # sleep here overshoots by about 40-60 us, so a tick still starts on time at p50 (p99 about
 # 100 us late, well within the network's own jitter), and the spin costs ~5 us per tick
-# instead of ~150 (15 % of a core: a third of a site's CPU; see README, Performance).
+# instead of ~150 (15 % of a core: a third of a site's CPU; see docs/benchmarks.md).
 SITE_SPIN_NS = 50_000
 
 

@@ -29,3 +29,49 @@ def lock_in(signal: np.ndarray, omega: float, dt: float) -> complex:
     """Complex amplitude of the omega component of a sampled signal (whole periods assumed)."""
     t = np.arange(len(signal)) * dt
     return 2.0 / len(signal) * complex(np.sum(signal * np.exp(-1j * omega * t)))
+
+
+# The markers (registered in pyproject.toml), declared here once per test file rather than in
+# each file: what a test needs decides whether the README's fast subset runs it.
+MARKS_BY_FILE = {
+    "test_zenoh_attacks.py": ("zenoh",),
+    "test_zenoh_impairment.py": ("zenoh", "realtime"),
+    "test_zenoh_sites.py": ("zenoh", "realtime"),
+    "test_zenoh_tls.py": ("zenoh",),
+    "test_site_logs.py": ("zenoh", "realtime"),
+    "test_can_backend.py": ("can",),
+    "test_can_codec.py": ("can",),
+    "test_can_log.py": ("can",),
+    "test_can_session.py": ("can",),
+    "test_can_tools.py": ("can",),
+    "test_live.py": ("realtime",),
+    "test_missed_deadlines.py": ("realtime",),
+    "test_recording_failures.py": ("realtime",),
+    "test_reproduce_paper.py": ("slow",),
+    "test_network_study.py": ("slow",),
+    "test_bench_instructions.py": ("slow",),
+    "test_passive_channels.py": ("slow",),
+    "test_backend_entry_points.py": ("slow",),  # pip-installs a package into a new venv
+}
+# single tests of otherwise fast files (the function's name, without parameters)
+MARKS_BY_TEST = {
+    "test_recording.py::test_a_signal_stops_a_realtime_run_with_a_complete_log": ("realtime",),
+    "test_recording.py::test_a_hard_kill_leaves_a_readable_log": ("realtime",),
+    "test_early_stop.py::test_sigterm_before_the_first_tick_leaves_a_log_or_none": ("realtime",),
+    "test_closed_output.py::test_a_site_keeps_its_exit_code": ("zenoh", "realtime"),
+    # each starts fresh interpreters that load every kernel: over a minute on a loaded host
+    "test_cli.py::test_python_dash_m_teleop_rt": ("slow",),
+    "test_cli.py::test_bode_piped_is_not_cut_at_80_columns": ("slow",),
+    "test_cli.py::test_console_script_check": ("slow",),
+    "test_closed_output.py::test_a_safety_stop_stays_exit_3": ("slow",),
+    "test_bad_input.py::test_a_fifo_is_refused_without_blocking": ("slow",),
+    "test_bad_input.py::test_a_broken_urdf_is_one_line_with_urdfdoms_reason": ("slow",),
+}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        name = item.path.name
+        function = getattr(item, "originalname", item.name)
+        for mark in MARKS_BY_FILE.get(name, ()) + MARKS_BY_TEST.get(f"{name}::{function}", ()):
+            item.add_marker(mark)

@@ -159,7 +159,7 @@ def test_an_empty_window_is_no_result(real_log, argv, named, tmp_path, capsys) -
     path.write_bytes(real_log)
     assert_refused(["metrics", str(path), *argv], capsys, named, "ticks run from 0 to 1.199 s")
     assert_refused(["metrics", str(path), "--json", *argv], capsys, named)
-    # plot says the same line as metrics (and the README)
+    # plot says the same line as metrics (and docs/logs.md)
     out = str(tmp_path / "p.png")
     assert_refused(["plot", str(path), "-o", out, *argv], capsys, named, "ticks run from 0 to")
 

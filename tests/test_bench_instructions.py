@@ -1,5 +1,5 @@
 """tools/bench_instructions.py: the callgrind output parser (valgrind itself is not run here:
-a run takes minutes; the tool's figures are in the README)."""
+a run takes minutes; the tool's figures are in docs/benchmarks.md)."""
 
 from __future__ import annotations
 

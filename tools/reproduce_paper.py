@@ -757,7 +757,7 @@ def slowest_mode(p: ImpedanceParams) -> float:
 
 
 def summarise(results: dict) -> dict:
-    """Per-figure headline numbers (also what the README table quotes)."""
+    """Per-figure headline numbers (also what docs/reproduction.md quotes)."""
     out: dict = {}
     for fig in ("fig3", "fig4"):
         cases = _cases(results, fig)

@@ -37,8 +37,8 @@ and one whose sequence number is not newer than the newest one the receiver has 
 nothing into the packet it was given unless it accepts.
 
 The CRC and these checks catch corruption, reflection and nonsense, not a forger who writes a
-well-formed packet: only TLS (``link.zenoh.tls``) authenticates the peer (README, "Two sites
-over a network").
+well-formed packet: only TLS (``link.zenoh.tls``) authenticates the peer
+(docs/network.md).
 """
 
 from __future__ import annotations

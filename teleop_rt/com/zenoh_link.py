@@ -10,14 +10,14 @@ runs (joints, rate, delay, the channel, a hash of these, its peer timeout) until
 other; a mismatch is a refusal naming the field. The HSI site chooses the session id and a start
 time on the wall clock; the TO starts only once it has heard the HSI (its robot is not enabled
 before) and both start their tick clocks at that instant, so that their tick counts agree (on
-one host exactly; across hosts as well as their clocks agree: see README, "Two sites over a
-network"). A hello is checked like a packet (``parse_hello``): anything but a JSON object of
+one host exactly; across hosts as well as their clocks agree: see docs/network.md). A hello is
+checked like a packet (``parse_hello``): anything but a JSON object of
 the expected fields, a session id in [1, 2**63) and a start instant at most
 ``START_AHEAD_MAX_S`` ahead is ignored and counted by reason, never a traceback; a SIGINT or
 SIGTERM ends the wait at once (``KeyboardInterrupt`` / ``Terminated``: exit 130 / 143).
 
 Who may speak: without TLS nobody is authenticated, and the checks above only catch nonsense,
-reflection and replay (README: anyone who reaches the endpoint can drive the robots). With
+reflection and replay (docs/network.md: anyone who reaches the endpoint can drive the robots). With
 ``link.zenoh.tls`` each site's certificate must name its role in its subject CN
 (``role_name``: ``hsi.<key>`` / ``to.<key>``, checked when the site starts), and the site's
 Zenoh session runs an access-control list (``role_acl``) that denies, message by message,
