@@ -7,6 +7,7 @@ cannot be passive, and that the links carry nothing for a tick it does not send.
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import numpy as np
@@ -257,3 +258,44 @@ def test_a_codec_mismatch_between_the_sites_is_a_refusal_naming_it() -> None:
         link._check_compatible(mine, theirs)
     a, b = {"x": 1, "d": {"w": 0.1, "m": 3}}, {"x": 1, "d": {"w": 0.2, "m": 3}}
     assert _first_difference(a, b, "channel") == ("channel.d.w", 0.1, 0.2)
+
+
+def test_over_zenoh_a_silent_codec_is_no_lost_peer_and_a_lost_peer_still_stops() -> None:
+    """The peer timeout (50 ms) counts from the end of the codec's maximum interval (100 ms):
+    100 ms of nothing after a packet is a codec's silence, 200 ms a lost peer. A tick the
+    codec does not send never reaches the transport."""
+    from teleop_rt.com.drift import DriftFollower
+    from teleop_rt.com.playout import Receiver
+    from teleop_rt.errors import SafetyStop
+    from tests.test_zenoh_attacks import SID, wire
+
+    at = "udp/127.0.0.1:17670"
+    sets = ["channel.delay_ms=20", "channel.codec=deadband", f"link.zenoh.hsi.listen=[{at}]",
+            f"link.zenoh.to.connect=[{at}]"]  # fmt: skip
+    cfg = config.load(CONFIGS / "paper_experiment.yaml", sets)
+    link = ZenohLink(cfg, HSI, 2, lambda: 0)
+    try:
+        link.session_id = SID
+        link.receiver = Receiver(2, cfg.delay_ticks, SID, TO)
+        link.drift = DriftFollower(link.receiver.playout, cfg.link.max_drift_ppm)
+        into, mine = Packet(2), Packet(2)
+        link.start()
+        link._arrive(wire(0))
+        time.sleep(0.1)
+        link.receive(HSI, into)  # within the interval plus the timeout: no stop
+        time.sleep(0.1)
+        with pytest.raises(SafetyStop, match="after the codec's maximum interval of 100 ticks"):
+            link.receive(HSI, into)
+        mine.unsent = 1
+        link.send(HSI, mine)
+        link.end_tick(HSI)
+        assert link.sent == 0 and link.not_sent == 1 and link.transport.sent == 0
+        assert link.stats()["not_sent"] == 1
+        # a live codec sends a packet per maximum interval: 45 used of 4500 ticks is no silence
+        for k in range(45):
+            link.receiver.arrive(100 * k, wire(100 * k))
+        for k in range(4600):
+            link.receiver.take(k, into)
+        assert link.silence(4600) is None
+    finally:
+        link.close()

@@ -518,6 +518,7 @@ class ZenohLink(Link):
 
     def end_tick(self, side: int) -> None:
         packet = self._packet
+        assert packet is not None  # (send before end_tick)
         if packet.unsent:  # the codec sends nothing: the sender thread is not woken
             self.not_sent += 1
             return
