@@ -43,7 +43,10 @@ energy it declared. What keeps that passive is the port's own rule, unchanged:
   room is there; docs/codec.md has the trade-off measured).
 - TDPA: the held velocity or torque through the passivity controller, against the peer's
   E_in of its last packet: the controller dissipates whatever the held value would emit
-  beyond it (Xu et al. 2016: the observers' energy travels with the samples).
+  beyond it (Xu et al. 2016: the observers' energy travels with the samples). Since that
+  E_in is stale between packets, a port also sends once its E_in has grown by
+  ``ENERGY_STEP_J`` since its last packet (``by_energy``): less for the controller to
+  dissipate that the peer had put in. (Xu et al. predict the energy instead; not done here.)
 
 Past the maximum interval the peer should have sent: the tick is a loss (``expired``) and the
 port's own loss rule applies (the bounded hold, TDPA's hold then zero); the peer timeout
@@ -85,6 +88,7 @@ NONE, DEADBAND = 0, 1
 # 1 / (1 + weber): the true wave is still inside the band around it)
 RESERVE = 0.8
 ROOM_TICKS = 5.0  # ... while the room after it would not hold it this many ticks
+ENERGY_STEP_J = 1e-4  # TDPA: a port whose E_in grew by this since its last packet sends
 CODECS = {"none": NONE, "deadband": DEADBAND}
 
 C_REF, C_RX, C_SIM_USED, C_SIM_DECLARED = (
@@ -92,6 +96,7 @@ C_REF, C_RX, C_SIM_USED, C_SIM_DECLARED = (
 )  # fmt: skip
 C_WEBER, C_FLOOR, C_GAIN = Port.codec_weber.k, Port.codec_floor.k, Port.codec_velocity_gain.k
 C_RESERVE, C_ROOM_TICKS = Port.codec_reserve.k, Port.codec_room_ticks.k
+C_E_SENT, C_ENERGY_STEP = Port.codec_e_sent.k, Port.codec_energy_step.k
 C_CODEC, C_MIN, C_MAX, C_SINCE, C_AGE = (
     Port.codec.k, Port.codec_min.k, Port.codec_max.k, Port.codec_since.k, Port.codec_age.k
 )  # fmt: skip
@@ -116,6 +121,7 @@ def configure(
     port.codec_weber, port.codec_floor, port.codec_velocity_gain = weber, floor, velocity_gain
     port.codec_min, port.codec_max = min_ticks, max_ticks
     port.codec_reserve, port.codec_room_ticks = RESERVE, ROOM_TICKS
+    port.codec_energy_step = ENERGY_STEP_J
 
 
 def figures(port: Port) -> dict:
@@ -186,6 +192,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
     half_dt = 0.5 * dt
     weber, floor, gain = f[s + C_WEBER], f[s + C_FLOOR], f[s + C_GAIN]
     reserve, room_ticks = f[s + C_RESERVE], f[s + C_ROOM_TICKS]
+    step = f[s + C_ENERGY_STEP]
     since = i[C_SINCE] + 1
     crossed = short = False
     for j in range(n):
@@ -193,6 +200,8 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
         k = weber * (1.0 + gain * abs(f[FLOW * n + j]))
         if abs(x - ref) > k * abs(ref) + floor:
             crossed = True
+        if not wave and step > 0.0 and tx[P_E_IN * n + j] - f[C_E_SENT * n + j] > step:
+            short = True  # the peer's controller would dissipate what it has not been told
         if wave:
             # would the peer's bound cut the held wave this tick (the room declared so far)?
             if f[C_SIM_USED * n + j] + ref * ref * half_dt > f[C_SIM_DECLARED * n + j]:
@@ -223,6 +232,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
                 f[C_SIM_DECLARED * n + j] = declared
                 _peer_uses(f, n, j, w, half_dt)
             f[C_REF * n + j] = w
+            f[C_E_SENT * n + j] = tx[P_E_IN * n + j]
     else:
         tx_i[P_UNSENT] = 1
         i[C_SILENT] += 1
