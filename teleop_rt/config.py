@@ -44,6 +44,7 @@ MAX_TICKS = 100_000_000  # timing statistics are preallocated per tick (16 bytes
 TickCount = Annotated[int, Field(ge=0, le=MAX_TICKS)]
 MAX_STOP_TICKS = 100_000  # a staged stop that long is no stop (100 s at 1 kHz)
 MAX_SEED = 2**63 - 1
+MAX_CODEC_INTERVAL = 10_000  # ticks: a codec silent longer than 10 s at 1 kHz is a lost peer
 
 
 class Strict(StrictModel):
@@ -113,6 +114,34 @@ class SideSpec(Strict):
     backend: str | None = None  # this robot's backend; default: the session's ``backend``
 
 
+class DeadbandSpec(Strict):
+    """The perceptual deadband codec's parameters (``channel.codec: deadband``): a site sends
+    when its signal (a wave channel's outgoing wave; TDPA's velocity at the HSI, torque at the
+    TO) leaves ``weber * |last sent| + floor`` on any joint, no sooner than ``min_interval_ticks``
+    and no later than ``max_interval_ticks`` after its last packet."""
+
+    weber_hsi: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = 0.10
+    weber_to: Annotated[float, Field(gt=0, lt=1, allow_inf_nan=False)] = 0.10
+    # absolute floor, in the signal's units (a wave's sqrt(W); rad/s at a TDPA HSI, N m at its
+    # TO): near zero a relative band alone would send at every sign change
+    floor_hsi: NonNegFloat = 0.01
+    floor_to: NonNegFloat = 0.01
+    min_interval_ticks: Annotated[int, Field(ge=1, le=MAX_CODEC_INTERVAL)] = 1
+    max_interval_ticks: Annotated[int, Field(ge=1, le=MAX_CODEC_INTERVAL)] = 100
+    # velocity-adaptive deadband (Kammerl et al., Presence 2010): the Weber fraction grows
+    # with the port's velocity, weber * (1 + gain |omega|); 0 keeps it constant
+    velocity_gain_s_per_rad: NonNegFloat = 0.0
+
+    @model_validator(mode="after")
+    def _intervals(self) -> DeadbandSpec:
+        if self.min_interval_ticks > self.max_interval_ticks:
+            raise ValueError(
+                f"min_interval_ticks = {self.min_interval_ticks} is above max_interval_ticks "
+                f"= {self.max_interval_ticks}"
+            )
+        return self
+
+
 class ChannelSpec(Strict):
     """The COM (teleop_rt.com.port): a wave-variable (scattering) channel, the time-domain
     passivity approach (tdpa: delayed velocity forward, torque back, with passivity observers
@@ -133,6 +162,11 @@ class ChannelSpec(Strict):
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # docs/passivity.md). None, the default, switches it off.
     tdpa_drift_time_s: PositiveFloat | None = None
+    # Haptic data reduction (teleop_rt.com.codec): none sends a packet every tick; deadband
+    # sends one only when the signal leaves its perceptual deadband (or the maximum interval
+    # is up), the receiver holding the last one passively in between (docs/codec.md)
+    codec: Literal["none", "deadband"] = "none"
+    deadband: DeadbandSpec = DeadbandSpec()
 
 
 class FaultSpec(Strict):
@@ -478,6 +512,29 @@ class SessionConfig(Strict):
             raise ValueError(
                 f"channel.delay_ms = {self.channel.delay_ms} is not a whole number of "
                 f"{1000.0 / self.rate_hz:g} ms ticks at rate_hz = {self.rate_hz}"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _codec_fits(self) -> SessionConfig:
+        ch = self.channel
+        if ch.codec == "none":
+            return self
+        if ch.mode == "direct":
+            raise ValueError(
+                "channel.codec: the deadband codec needs a passive channel (mode wave or "
+                "tdpa); direct force feedback has no reconstruction to keep passive"
+            )
+        if self.delay_ticks < 1:
+            raise ValueError(
+                "channel.codec: the deadband codec needs channel.delay_ms of at least one tick "
+                "(with no delay the ports couple directly, every tick)"
+            )
+        if ch.mode == "wave" and ch.wave_reconstruction != "bounded":
+            raise ValueError(
+                "channel.codec: the deadband codec holds a wave channel's waves within the "
+                f"energy bound; channel.wave_reconstruction must be bounded, not "
+                f"{ch.wave_reconstruction}"
             )
         return self
 

@@ -90,6 +90,8 @@ def print_summary(summary: Summary, console: Console | None = None) -> None:
         table.add_row("channel", channel_kind(summary.channel))
         for site in ("hsi", "to"):
             table.add_row(f"protection at the {site}", protection_text(summary.channel[site]))
+        for site, figures in codec_sites(summary.channel):
+            table.add_row(f"codec at the {site}", codec_text(figures))
     console.print(table)
 
 
@@ -111,6 +113,23 @@ def preemption_note(compute_us: dict) -> str | None:
 def channel_kind(channel: dict) -> str:
     how = f", {channel['reconstruction']} reconstruction" if "reconstruction" in channel else ""
     return f"{channel['mode']}{how}, {channel['playout']} playout"
+
+
+def codec_sites(channel: dict) -> list[tuple[str, dict]]:
+    """The codec's figures per site in a summary's channel (none without a codec)."""
+    codec = channel.get("codec") or {}
+    return [(site, codec[site]) for site in ("hsi", "to") if site in codec]
+
+
+def codec_text(figures: dict) -> str:
+    """A site's codec figures (``teleop_rt.com.codec.figures``) in words."""
+    return (
+        f"sent {figures['sent']} packets ({figures['rate_hz']:.0f} /s, "
+        f"{100 * figures['reduction']:.1f} % fewer): deadband {figures['by_threshold']}, "
+        f"max interval {figures['by_max_interval']}, energy room {figures['by_energy']}; "
+        f"peer's silences held {figures['peer_held_ticks']} ticks, lost "
+        f"{figures['peer_expired_ticks']}"
+    )
 
 
 def protection_text(figures: dict) -> str:
@@ -233,6 +252,8 @@ def print_site_summary(summary, console: Console | None = None) -> None:
     table.add_row("energy into the channel here", f"{summary.port_energy_j:.6g} J")
     table.add_row("channel", channel_kind(summary.channel))
     table.add_row("protection here", protection_text(summary.channel[summary.site]))
+    for _, figures in codec_sites(summary.channel):
+        table.add_row("codec here", codec_text(figures))
     table.add_row("link", _link_text(summary.link))
     late = summary.timing.get("lateness_us", {})
     table.add_row("deadline lateness", f"p99 {late.get('p99', 0):.1f} us, missed "
@@ -271,6 +292,8 @@ def print_pair_summary(combined: dict, console: Console | None = None) -> None:
         table.add_row(f"{name} link", _link_text(s["link"]))
         if "channel" in s:
             table.add_row(f"{name} protection", protection_text(s["channel"][name]))
+            for _, figures in codec_sites(s["channel"]):
+                table.add_row(f"{name} codec", codec_text(figures))
         if s.get("stopped_early"):
             table.add_row(f"{name} stopped", s["stopped_early"])
         if s.get("peer_silent"):

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
+from teleop_rt.com import codec
 from teleop_rt.com.channel import make_port
 from teleop_rt.com.link import Link
 from teleop_rt.com.port import HSI, TO, Packet, Port
@@ -340,8 +341,14 @@ def port_for(cfg: SessionConfig, n: int, side: int) -> Port:
     """Site ``side``'s port of the config's channel."""
     ch = cfg.channel
     b = per_joint(ch.wave_impedance, n, "channel.wave_impedance")
-    return make_port(side, ch.mode, b, cfg.delay_ticks, cfg.dt, ch.wave_filter_hz,
+    port = make_port(side, ch.mode, b, cfg.delay_ticks, cfg.dt, ch.wave_filter_hz,
                      ch.wave_reconstruction, ch.tdpa_drift_time_s)  # fmt: skip
+    if ch.codec != "none":
+        db, own = ch.deadband, "hsi" if side == HSI else "to"
+        codec.configure(port, getattr(db, f"weber_{own}"), getattr(db, f"floor_{own}"),
+                        db.min_interval_ticks, db.max_interval_ticks,
+                        db.velocity_gain_s_per_rad)  # fmt: skip
+    return port
 
 
 def channel_figures(cfg: SessionConfig, ports: dict[str, Port]) -> dict:
@@ -350,4 +357,8 @@ def channel_figures(cfg: SessionConfig, ports: dict[str, Port]) -> dict:
     kind = {"mode": ch.mode, "playout": cfg.link.playout}
     if ch.mode == "wave":
         kind["reconstruction"] = ch.wave_reconstruction
-    return {**kind, **{name: port.protection() for name, port in ports.items()}}
+    out = {**kind, **{name: port.protection() for name, port in ports.items()}}
+    if ch.codec != "none":  # what each site's codec sent, and held of its peer's
+        out["codec"] = {"kind": ch.codec, **{name: codec.figures(port)
+                                             for name, port in ports.items()}}  # fmt: skip
+    return out

@@ -3,7 +3,9 @@
     site_sense:          measured values finite; tau_h or tau_e; the port's input, into the
                          outgoing packet
     (the link)           the packet this site uses this tick, into its rx block
-    site_before_models:  the port (eq 9, 10) on rx; the error; C1 or C2 (eq 4, 14); M_v^-1 a_ref
+    site_before_models:  the port (eq 9, 10) on rx, between the codec's receive and send
+                         stages (teleop_rt.com.codec; idle without one); the error; C1
+                         or C2 (eq 4, 14); M_v^-1 a_ref
     (Python)             RNEA at M_v^-1 a_ref
     site_after_models:   computed torque (eq 2, 12); the site's safety checks and saturation
 
@@ -17,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from teleop_rt.com.codec import codec_receive, codec_send
 from teleop_rt.com.port import EFFORT, FLOW, HSI, P_SEQ, P_TICK, P_VALID, port_input, port_step
 from teleop_rt.control import A_DES, OUT, TAU, ct_finish, ct_prepare, pid_step
 from teleop_rt.flat import Block, Int, Vector, floats_of, ints_of, jit, vec
@@ -78,7 +81,10 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
 def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> None:
     """From the received packet to the acceleration the model is evaluated at."""
     port, port_i = floats_of(f, o, PORT), ints_of(i, o, PORT)
-    port_step(port, port_i, n, floats_of(f, o, RX), ints_of(i, o, RX), floats_of(f, o, TX))
+    rx, rx_i, tx = floats_of(f, o, RX), ints_of(i, o, RX), floats_of(f, o, TX)
+    codec_receive(port, port_i, n, rx, rx_i)
+    port_step(port, port_i, n, rx, rx_i, tx)
+    codec_send(port, port_i, n, tx, ints_of(i, o, TX))
     sig = floats_of(f, o, SIG)
     error, tau = vec(sig, S_ERROR, n), vec(sig, S_TAU, n)
     if i[o[2 * SIG + 1] + S_SIDE] == HSI:  # M1 a_h = C1(tau_h - tau_c)

@@ -2,7 +2,7 @@
 (``teleop-rt run --link zenoh``), and beside them the same config in one process.
 
     python tools/bench_link.py [CONFIG] [--seconds 60] [--delay-ms 20] [--set KEY=VALUE ...]
-                               [--json OUT]
+                               [--json OUT] [--codec PAIRS] [--port P]
 
 Prints per direction the one-way delay (sender to receiver, CLOCK_MONOTONIC on this host),
 packets lost or late beyond the playout rule, and each site's CPU per tick (its loop and its
@@ -37,8 +37,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def two_processes(cfg_path: str, seconds: float, delay_ms: int, sets: list[str]) -> dict:
-    at = f"udp/127.0.0.1:{free_port()}"
+def two_processes(
+    cfg_path: str, seconds: float, delay_ms: int, sets: list[str], port: int | None = None
+) -> dict:
+    at = f"udp/127.0.0.1:{port or free_port()}"
     cmd = [
         sys.executable,
         "-m",
@@ -78,6 +80,45 @@ def one_process(cfg_path: str, seconds: float, delay_ms: int, sets: list[str]) -
             "t_p_total": summary.t_p_total, "t_tau_total": summary.t_tau_total}  # fmt: skip
 
 
+def codec_compare(args: argparse.Namespace) -> int:
+    """Two-site runs without and with the codec, alternated (the host's load moves both
+    alike): each site's CPU (its whole process: loop, link threads), the packets it sent and
+    the one-way delay of those that arrived."""
+    runs: dict[str, list[dict]] = {"none": [], "deadband": []}
+    for k in range(args.codec):
+        for codec in ("none", "deadband"):
+            port = args.port + (2 * k + (codec == "deadband")) if args.port else None
+            sets = [*args.sets, f"channel.codec={codec}"]
+            runs[codec].append(two_processes(args.config, args.seconds, args.delay_ms, sets, port))
+    print(f"\n{args.config}, {args.seconds:g} s at 1 kHz, D = {args.delay_ms} ms, {args.codec} "
+          "alternated pairs (CPU: process time per second of the run)")  # fmt: skip
+    cpu: dict[str, dict[str, float]] = {}
+    for codec, rs in runs.items():
+        for name in ("hsi", "to"):
+            sites = [r["sites"][name] for r in rs]
+            share = [100 * s["cpu_s"] / (s["simulated_time_s"] or args.seconds) for s in sites]
+            # without the loop's spin before its deadlines (the same with or without a codec)
+            rest = [100 * (s["cpu_s"] - s.get("spin_s", 0.0)) / (s["simulated_time_s"]
+                    or args.seconds) for s in sites]  # fmt: skip
+            sent = [s["link"]["sent"] / max(s["ticks"], 1) for s in sites]
+            d = [s["link"]["one_way_delay_us"] or {} for r in rs for s in [r["sites"][name]]]
+            p50 = [x.get("p50", float("nan")) for x in d]
+            p99 = [x.get("p99", float("nan")) for x in d]
+            cpu.setdefault(name, {})[codec] = sum(share) / len(share)
+            cpu.setdefault(f"{name} without the spin", {})[codec] = sum(rest) / len(rest)
+            print(f"  {codec:8s} {name} site: CPU {', '.join(f'{c:.1f}' for c in share)} % of a "
+                  f"core (without the spin {', '.join(f'{c:.1f}' for c in rest)} %); sent "
+                  f"{100 * sum(sent) / len(sent):.1f} % of ticks; one-way delay to "
+                  f"it p50 {', '.join(f'{x:.0f}' for x in p50)} us, p99 "
+                  f"{', '.join(f'{x:.0f}' for x in p99)} us")  # fmt: skip
+    for name, c in cpu.items():
+        print(f"  {name}: CPU with the codec {100 * (c['deadband'] / c['none'] - 1):+.1f} % "
+              "against without (goal: at most -30 %)")  # fmt: skip
+    if args.json:
+        args.json.write_text(json.dumps(runs, indent=1))
+    return 0
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     p.add_argument(
@@ -96,10 +137,21 @@ def main() -> int:
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="a config override for both runs (repeatable)")  # fmt: skip
     p.add_argument("--json", type=Path, help="also write the figures as JSON")
+    p.add_argument("--codec", type=int, default=0, metavar="PAIRS",
+                   help="instead: PAIRS alternated two-site runs without and with the deadband "
+                   "codec (issue 24), CPU per site and one-way delay compared")  # fmt: skip
+    p.add_argument("--port", type=int, help="the UDP port of the link (default: a free one)")
     args = p.parse_args()
-    if not 0 < args.seconds <= 3600 or args.delay_ms < 1:
-        print("bench_link: error: --seconds in (0, 3600], --delay-ms >= 1", file=sys.stderr)
+    if not 0 < args.seconds <= 3600 or args.delay_ms < 1 or args.codec < 0:
+        print("bench_link: error: --seconds in (0, 3600], --delay-ms >= 1, --codec >= 0",
+              file=sys.stderr)  # fmt: skip
         return 2
+    if args.codec:
+        try:
+            return codec_compare(args)
+        except TeleopError as err:
+            print(f"bench_link: error: {err}", file=sys.stderr)
+            return 3
     try:
         both = two_processes(args.config, args.seconds, args.delay_ms, args.sets)
         local = one_process(args.config, args.seconds, args.delay_ms, args.sets)

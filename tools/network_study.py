@@ -2,6 +2,7 @@
 """The channels over an impaired network: a study like the paper's (issue 17).
 
     python tools/network_study.py [--quick] [--out DIR]
+    python tools/network_study.py --codec [--quick] [--out DIR]   (tools/codec_study.py)
 
 Sweeps the network's one-way delay, its jitter and its loss (the seeded impairment stage of a
 one-process fast-mode session, ``link.impairment``) for the paper experiment
@@ -1014,6 +1015,12 @@ def prepare_out(out: Path, quick: bool) -> str | None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if "--codec" in argv:  # the deadband codec's own study (issue 24)
+        sys.path.insert(0, str(ROOT / "tools"))
+        import codec_study
+
+        return codec_study.main([a for a in argv if a != "--codec"])
     args = parse_args(argv)
     out = args.out
     if out is None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from teleop_rt.com.codec import codec_receive, codec_send
 from teleop_rt.com.link import InProcessLink, link_deliver, link_offsets, link_push
 from teleop_rt.com.port import (
     DIRECT,
@@ -140,8 +141,13 @@ def two_port_step(
     for tx in (TP_TX_H, TP_TX_T):  # tick and sequence number count from 0, as a site's do
         ints_of(i, o, tx)[P_VALID] = 1
     link_deliver(f, i, at, n)
-    port_step(ph, pih, n, rx_h, ints_of(i, o, TP_RX_H), tx_h)
-    port_step(pt, pit, n, rx_t, ints_of(i, o, TP_RX_T), tx_t)
+    rxi_h, rxi_t = ints_of(i, o, TP_RX_H), ints_of(i, o, TP_RX_T)
+    codec_receive(ph, pih, n, rx_h, rxi_h)
+    codec_receive(pt, pit, n, rx_t, rxi_t)
+    port_step(ph, pih, n, rx_h, rxi_h, tx_h)
+    port_step(pt, pit, n, rx_t, rxi_t, tx_t)
+    codec_send(ph, pih, n, tx_h, ints_of(i, o, TP_TX_H))
+    codec_send(pt, pit, n, tx_t, ints_of(i, o, TP_TX_T))
     link_push(f, i, at, n)
     for tx in (TP_TX_H, TP_TX_T):
         tx_i = ints_of(i, o, tx)

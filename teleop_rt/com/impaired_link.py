@@ -117,6 +117,10 @@ class ImpairedLink(Link):
         if packet is None:
             raise RuntimeError("end_tick before send")
         tick = self._ticks[side]
+        if packet.unsent:  # the codec sends nothing this tick
+            self._ticks[side] = tick + 1
+            self._sent[side] = None
+            return
         data = encode_into(self._wire[side], packet, self.session_id, tick * self._period_ns,
                            side)  # fmt: skip
         impairment, flight = self.impairments[side], self._flight[side]

@@ -19,7 +19,7 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from teleop_rt.com.port import HSI, N_PACKET_VECTORS, P_WAVE, Packet
+from teleop_rt.com.port import HSI, N_PACKET_VECTORS, P_UNSENT, P_WAVE, Packet
 from teleop_rt.flat import Block, Int, jit, jit_inline
 
 N_PACKET_SCALARS, N_PACKET_INTS = len(Packet.SCALARS), len(Packet.INTS)
@@ -107,8 +107,11 @@ class InProcessLink(Block, Link):
             for sender, packet in enumerate(self._sent):
                 assert packet is not None
                 entry = self._slot(sender)
-                entry[:m] = packet.f
-                entry[m:] = packet.i
+                if not packet.unsent:
+                    entry[:m] = packet.f
+                    entry[m:] = packet.i
+                else:  # not sent (the codec): nothing travels
+                    entry[:] = 0.0
             slot = self.slot + 1
             self.slot = 0 if slot == self.delay_ticks else slot
         self._sent, self._ended = [None, None], [False, False]
@@ -133,12 +136,14 @@ def _line_start(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int, sender: in
 
 @jit
 def line_store(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int, sender: int, p: int) -> None:
-    """Put the packet at offsets at[p], at[p + 1] from ``sender`` into this tick's slot."""
+    """Put the packet at offsets at[p], at[p + 1] from ``sender`` into this tick's slot (one
+    the codec did not send, as a zero packet: nothing travels)."""
     s, m, pf, pi = _line_start(f, i, at, n, sender), packet_floats(n), at[p], at[p + 1]
+    sent = i[pi + P_UNSENT] == 0
     for k in range(m):
-        f[s + k] = f[pf + k]
+        f[s + k] = f[pf + k] if sent else 0.0
     for k in range(N_PACKET_INTS):
-        f[s + m + k] = i[pi + k]
+        f[s + m + k] = i[pi + k] if sent else 0
 
 
 @jit

@@ -83,6 +83,7 @@ class Packet(Block):
     tick = Int("the sender's tick")
     seq = Int("sequence number")
     valid = Int("1: a packet; 0: none arrived")
+    unsent = Int("1: the sender's codec sent nothing this tick (the links carry nothing)")
 
 
 class Port(Block):
@@ -125,6 +126,30 @@ class Port(Block):
     last_seq = Int("sequence number of the newest packet used (-1: none)")
     missing = Int("ticks since the last packet arrived")
     acted = Int("ticks in which the protection acted (bound or passivity controller)")
+    # the deadband codec's (teleop_rt.com.codec; all idle with codec 0)
+    codec_ref = Vector("the value this port last sent (the deadband's reference)")
+    codec_rx = Vector("the value of the peer's last packet (its wave, or TDPA's x)")
+    codec_sim_used = Vector("the peer's used wave energy as this sender predicts it, J")
+    codec_sim_declared = Vector("the wave energy this port last declared, J")
+    codec_e_sent = Vector("TDPA: the E_in this port last sent, J")
+    codec_weber = Scalar("Weber fraction of the deadband", param=True)
+    codec_floor = Scalar("its absolute floor, in the signal's units", param=True)
+    codec_velocity_gain = Scalar("velocity-adaptive gain, s/rad (0: constant)", param=True)
+    codec_reserve = Scalar("fraction of the band a wave is sent smaller by, when short", param=True)
+    codec_room_ticks = Scalar("ticks of held wave the peer's room should cover", param=True)
+    codec_energy_step = Scalar("TDPA: E_in grown by this since sent sends, J (0: off)", param=True)
+    codec = Int("0: a packet every tick; 1: the deadband codec", param=True)
+    codec_min = Int("the fewest ticks between two packets sent", param=True)
+    codec_max = Int("the most ticks between two packets sent", param=True)
+    codec_since = Int("ticks since this port last sent")
+    codec_age = Int("ticks since the peer's last packet")
+    codec_sent = Int("packets sent")
+    codec_by_threshold = Int("of which: the deadband crossed")
+    codec_by_interval = Int("of which: the maximum interval up")
+    codec_by_energy = Int("of which: the peer's energy room would run out")
+    codec_silent = Int("ticks this port sent nothing")
+    codec_held = Int("ticks with no packet from the peer, its last value held")
+    codec_expired = Int("ticks with no packet past the maximum interval (a loss)")
 
     def __init__(
         self,
@@ -177,7 +202,7 @@ P_SUM, P_X_SUM, P_WAVE_ENERGY, P_E_IN, P_E_OUT = (
     Packet.wave_sum.k, Packet.x_sum.k, Packet.wave_energy.k, Packet.e_in.k, Packet.e_out.k
 )  # fmt: skip
 P_ENERGY = Packet.energy.k  # scalar, after the vectors
-P_TICK, P_SEQ, P_VALID = Packet.tick.k, Packet.seq.k, Packet.valid.k
+P_TICK, P_SEQ, P_VALID, P_UNSENT = Packet.tick.k, Packet.seq.k, Packet.valid.k, Packet.unsent.k
 N_PACKET_VECTORS = len(Packet.VECTORS)
 B, SQRT_2B, SQRT_2_OVER_B = Port.b.k, Port.sqrt_2b.k, Port.sqrt_2_over_b.k
 FLOW, EFFORT, WAVE_OUT, WAVE_IN = Port.flow.k, Port.effort.k, Port.wave_out.k, Port.wave_in.k

@@ -246,7 +246,7 @@ class Decoder:
                        self.state, into.f, into.i)  # fmt: skip
 
 
-I_VALID = Packet.valid.k
+I_VALID, I_UNSENT = Packet.valid.k, Packet.unsent.k
 
 
 @jit
@@ -263,6 +263,7 @@ def _decode(
         pi[I_TICK] = words[W_TICK]
         pi[I_SEQ] = words[W_SEQ]
         pi[I_VALID] = 1
+        pi[I_UNSENT] = 0  # (it arrived: it was sent)
         state[SENDER_TIME] = words[W_TIME]
     return status
 

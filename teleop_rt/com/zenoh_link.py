@@ -180,6 +180,17 @@ def parse_hello(raw: bytes, past_ns: int, now_ns: int | None = None) -> dict | s
     return hello
 
 
+def _first_difference(theirs: dict, mine: dict, prefix: str) -> tuple[str, Any, Any]:
+    """The first key (dotted, nested) whose value differs: its name, theirs, mine."""
+    for key in sorted(set(theirs) | set(mine)):
+        a, b = theirs.get(key), mine.get(key)
+        if a != b:
+            if isinstance(a, dict) and isinstance(b, dict):
+                return _first_difference(a, b, f"{prefix}.{key}")
+            return f"{prefix}.{key}", a, b
+    return prefix, theirs, mine
+
+
 def role_name(key: str, site: str) -> str:
     """The name site ``site``'s TLS certificate carries as its subject CN: ``hsi.<key>`` or
     ``to.<key>`` (the link's key, '/' written as '.')."""
@@ -283,12 +294,17 @@ class ZenohLink(Link):
         self._packet: Packet | None = None
         self.receiver: Receiver | None = None
         self.session_id = 0
-        self.timeout_ns = round(spec.peer_timeout_ms * 1e6)
+        # a codec may be silent for its maximum interval: the timeout counts from there
+        silent_ms = 0.0
+        if cfg.channel.codec != "none":
+            silent_ms = cfg.channel.deadband.max_interval_ticks * cfg.dt * 1e3
+        self.timeout_ns = round((spec.peer_timeout_ms + silent_ms) * 1e6)
         self.grace_ns = max(0, round(STARTUP_GRACE_S * 1e9) - self.timeout_ns)
         self.last_arrival_ns = 0
         self.heard = False  # a fresh packet of the peer has arrived since the start
         self.hellos_ignored: dict[str, int] = {}  # invalid hellos by reason
         self.sent = 0
+        self.not_sent = 0  # ticks the codec sent nothing
         # one-way delay of every accepted packet, ns (sender and receiver on one host share
         # CLOCK_MONOTONIC: across hosts this is meaningless and only ticks compare)
         self.delays_ns = np.zeros(cfg.n_ticks + 10_000, dtype=np.int64)
@@ -413,6 +429,13 @@ class ZenohLink(Link):
                     "config_hash"):  # fmt: skip
             if theirs.get(key) != mine[key]:
                 name = "link.peer_timeout_ms" if key == "peer_timeout_ms" else key
+                if key == "channel" and isinstance(theirs.get(key), dict):
+                    # name the setting (channel.codec, channel.deadband.weber_to, ...)
+                    name, there, here = _first_difference(theirs[key], mine[key], "channel")
+                    raise HandshakeError(
+                        f"link: the {self.peer} site runs another session: {name} is "
+                        f"{_short(there)} there, {here!r} here"
+                    )
                 raise HandshakeError(
                     f"link: the {self.peer} site runs another session: {name} is "
                     f"{_short(theirs.get(key))} there, {mine[key]!r} here"
@@ -470,12 +493,19 @@ class ZenohLink(Link):
             raise SafetyStop(
                 f"tick {k}: link: nothing from the {self.peer} site{since} for "
                 f"{silent / 1e6:.0f} ms (link.peer_timeout_ms = "
-                f"{self.cfg.link.peer_timeout_ms:g})"
+                f"{self.cfg.link.peer_timeout_ms:g}{self._codec_text()})"
             )
         with self._lock:
             used = self.receiver.take(k, into)
             if self.arrival is not None:
                 self._note_arrival(used, into.tick)
+
+    def _codec_text(self) -> str:
+        """', after the codec's maximum interval of N ticks' or ''."""
+        ch = self.cfg.channel
+        if ch.codec == "none":
+            return ""
+        return f", after the codec's maximum interval of {ch.deadband.max_interval_ticks} ticks"
 
     def _note_arrival(self, used: int, s: int) -> None:
         a = self.arrival
@@ -490,8 +520,12 @@ class ZenohLink(Link):
             a.arrival_tick, a.one_way_delay_us = -1.0, math.nan
 
     def end_tick(self, side: int) -> None:
-        now = time.monotonic_ns()
         packet = self._packet
+        assert packet is not None  # (send before end_tick)
+        if packet.unsent:  # the codec sends nothing: the sender thread is not woken
+            self.not_sent += 1
+            return
+        now = time.monotonic_ns()
         data = encode_into(self._wire, packet, self.session_id, now, self.side)
         impairment = self.impairment
         if impairment is None:
@@ -511,6 +545,8 @@ class ZenohLink(Link):
             return None
         grace_ticks = round(max(self.timeout_ns, STARTUP_GRACE_S * 1e9) / (self.cfg.dt * 1e9))
         due = ticks - self.cfg.delay_ticks - grace_ticks
+        if self.cfg.channel.codec != "none":  # a live codec sends once a maximum interval
+            due //= self.cfg.channel.deadband.max_interval_ticks
         used = self.receiver.playout.counters()["used"]
         if due <= 0 or used >= SILENT_FRACTION * due:
             return None
@@ -537,6 +573,8 @@ class ZenohLink(Link):
             "send_after_due_us": self.transport.late_out_us(),
             "from_peer": received,
         }
+        if self.cfg.channel.codec != "none":  # ticks its codec sent nothing
+            out["not_sent"] = self.not_sent
         if self.drift is not None:
             out["drift"] = self.drift.stats()
         if self.hellos_ignored:  # what strangers said during the handshake

@@ -1,0 +1,250 @@
+"""The perceptual deadband codec: a site sends a packet only when its signal has changed by
+more than a person could feel, and the peer holds the last one passively in between.
+
+Sender (``codec_send``, after the port has computed this tick's packet): the signal is the
+port's outgoing wave on a wave channel (the deadband on wave variables: Kuschel, Kremer & Buss,
+"Passive haptic data-compression methods with perceptual coding for bilateral presence
+systems", IEEE Trans. SMC-A 39(6), 2009), TDPA's port input otherwise (the HSI's velocity,
+the TO's torque, with the energy observers' E_in in every packet sent: Xu, Schuwerk, Cizmeci
+& Steinbach, "Energy prediction for teleoperation systems that combine the time domain
+passivity approach with perceptual deadband-based haptic data reduction", IEEE ToH 9(4),
+2016). A packet goes out when, on any joint, ``|x - x_sent| > k |x_sent| + floor`` (Weber's
+law: Hinterseer & Steinbach, HAPTICS 2006; the floor keeps zero crossings from sending every
+tick), with ``k = weber (1 + gain |omega|)`` when velocity-adaptive (Kammerl et al., Presence
+19(5), 2010: the just-noticeable difference of force grows with the hand's velocity); no
+sooner than the minimum interval after the last one, and at the latest when the maximum
+interval is up. A tick it does not send is a packet marked ``unsent``: the links carry nothing
+(the peer's port sees a tick with no packet).
+
+Receiver (``codec_receive``, before the port): a tick with no packet within the maximum
+interval is the codec's silence, not a loss: the peer's last packet is used again, with the
+energy it declared. What keeps that passive is the port's own rule, unchanged:
+
+- wave channel: the held wave goes through the energy bound (``reconstruction: bounded``):
+  the wave energy this port emits never exceeds what the peer has declared sent, and the
+  peer declares its TRUE wave energy, dt/2 sum u^2 over every tick, sent or not. Why not the
+  energy of the held wave it knows the receiver uses (the tempting choice: the receiver's
+  balance would then close exactly): the channel's energy (eq 7) is what the sender's port put
+  in, dt/2 sum u^2, minus what the receiver emits, dt/2 sum u_hold^2; inside the deadband
+  |u| may sit below |u_hold| by up to k / (1 + k) for the whole interval, so the held wave
+  emits up to 1 / (1 - k)^2 - 1 (23 % at k = 0.1) more than entered and the two-port makes
+  energy. Declaring the true energy makes the hold passive under any loss, delay or
+  reordering (the bound's argument: emitted <= declared <= put in).
+- Its cost: the receiver's energy room lags one interval (the declaration is as of the last
+  packet). So the sender also predicts the receiver's bound (lossless: it knows what it sent
+  and that the receiver holds it) and sends as soon as the held wave would not fit in the
+  room it declared (``by_energy``): the receiver then never cuts a wave the sender knows of.
+  That alone would send nearly every tick: in a steady state (a constant push) the room
+  is only what the receiver has used less than declared, and holding a wave equal to the
+  true one builds none. So a wave sent while the room after it would not hold it
+  ``ROOM_TICKS`` ticks is sent ``RESERVE`` of the band smaller (|u - u_sent| stays inside the
+  band): holding it then uses less than the sender puts in, and the room builds up to let
+  the intervals grow (the price: a held wave up to 8 % of its size low, at k = 0.1, until the
+  room is there; docs/codec.md has the trade-off measured).
+- TDPA: the held velocity or torque through the passivity controller, against the peer's
+  E_in of its last packet: the controller dissipates whatever the held value would emit
+  beyond it (Xu et al. 2016: the observers' energy travels with the samples). Since that
+  E_in is stale between packets, a port also sends once its E_in has grown by
+  ``ENERGY_STEP_J`` since its last packet (``by_energy``): less for the controller to
+  dissipate that the peer had put in. (Xu et al. predict the energy instead; not done here.)
+
+Past the maximum interval the peer should have sent: the tick is a loss (``expired``) and the
+port's own loss rule applies (the bounded hold, TDPA's hold then zero); the peer timeout
+counts the maximum interval too (``teleop_rt.com.zenoh_link``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from teleop_rt.com.port import (
+    DELAY,
+    DT,
+    FLOW,
+    LAST_SEQ,
+    MODE,
+    N_PORT_VECTORS,
+    P_E_IN,
+    P_SEQ,
+    P_SUM,
+    P_TICK,
+    P_UNSENT,
+    P_VALID,
+    P_WAVE,
+    P_WAVE_ENERGY,
+    P_X,
+    P_X_SUM,
+    PEER_E_IN,
+    PEER_ENERGY,
+    PEER_X_SUM,
+    USED_SUM,
+    WAVE,
+    Port,
+)
+from teleop_rt.flat import jit
+
+NONE, DEADBAND = 0, 1
+# a wave sent while the peer's room is short is this fraction of the band smaller (below
+# 1 / (1 + weber): the true wave is still inside the band around it)
+RESERVE = 0.8
+ROOM_TICKS = 5.0  # ... while the room after it would not hold it this many ticks
+ENERGY_STEP_J = 1e-4  # TDPA: a port whose E_in grew by this since its last packet sends
+CODECS = {"none": NONE, "deadband": DEADBAND}
+
+C_REF, C_RX, C_SIM_USED, C_SIM_DECLARED = (
+    Port.codec_ref.k, Port.codec_rx.k, Port.codec_sim_used.k, Port.codec_sim_declared.k
+)  # fmt: skip
+C_WEBER, C_FLOOR, C_GAIN = Port.codec_weber.k, Port.codec_floor.k, Port.codec_velocity_gain.k
+C_RESERVE, C_ROOM_TICKS = Port.codec_reserve.k, Port.codec_room_ticks.k
+C_E_SENT, C_ENERGY_STEP = Port.codec_e_sent.k, Port.codec_energy_step.k
+C_CODEC, C_MIN, C_MAX, C_SINCE, C_AGE = (
+    Port.codec.k, Port.codec_min.k, Port.codec_max.k, Port.codec_since.k, Port.codec_age.k
+)  # fmt: skip
+C_SENT, C_BY_THRESHOLD, C_BY_INTERVAL, C_BY_ENERGY = (
+    Port.codec_sent.k, Port.codec_by_threshold.k, Port.codec_by_interval.k, Port.codec_by_energy.k
+)  # fmt: skip
+C_SILENT, C_HELD, C_EXPIRED = Port.codec_silent.k, Port.codec_held.k, Port.codec_expired.k
+
+
+def configure(
+    port: Port, weber: float, floor: float, min_ticks: int, max_ticks: int,
+    velocity_gain: float = 0.0,
+) -> None:  # fmt: skip
+    """Switch the deadband codec on at ``port`` (its own signal's Weber fraction and floor)."""
+    if not 0.0 < weber < 1.0 or floor < 0.0 or velocity_gain < 0.0:
+        raise ValueError("the deadband needs 0 < weber < 1, floor >= 0, velocity_gain >= 0")
+    if not 1 <= min_ticks <= max_ticks:
+        raise ValueError("the codec's intervals need 1 <= min_ticks <= max_ticks")
+    if port.delay_ticks < 1:
+        raise ValueError("the codec needs a delay of at least one tick")
+    port.codec = DEADBAND
+    port.codec_weber, port.codec_floor, port.codec_velocity_gain = weber, floor, velocity_gain
+    port.codec_min, port.codec_max = min_ticks, max_ticks
+    port.codec_reserve, port.codec_room_ticks = RESERVE, ROOM_TICKS
+    port.codec_energy_step = ENERGY_STEP_J
+
+
+def figures(port: Port) -> dict:
+    """What the codec did at ``port``: packets sent, their rate and the reduction against one
+    a tick, why they were sent, and the peer's silences held or lost."""
+    sent = int(port.codec_sent)
+    ticks, dt = sent + int(port.codec_silent), port.dt
+    return {
+        "sent": sent,
+        "rate_hz": sent / (ticks * dt) if ticks else 0.0,
+        "reduction": 1.0 - sent / ticks if ticks else 0.0,
+        "by_threshold": int(port.codec_by_threshold),
+        "by_max_interval": int(port.codec_by_interval),
+        "by_energy": int(port.codec_by_energy),
+        "silent_ticks": int(port.codec_silent),
+        "peer_held_ticks": int(port.codec_held),
+        "peer_expired_ticks": int(port.codec_expired),
+    }
+
+
+@jit
+def codec_receive(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.ndarray) -> None:
+    """Before the port: a tick with no packet within the maximum interval since the peer's
+    last one gets that packet again (its value, the energy it declared), for the port's own
+    passivity rule to hold it; past the interval the tick stays a loss."""
+    if i[C_CODEC] == NONE or i[DELAY] == 0:
+        return
+    wave = i[MODE] == WAVE
+    sig = P_WAVE if wave else P_X
+    if rx_i[P_VALID] != 0:
+        for j in range(n):
+            f[C_RX * n + j] = rx[sig * n + j]
+        i[C_AGE] = 0
+        return
+    age = i[C_AGE] + 1
+    i[C_AGE] = age
+    if i[LAST_SEQ] < 0:
+        return  # nothing received yet: nothing to hold
+    if age >= i[C_MAX]:
+        i[C_EXPIRED] += 1  # the peer would have sent by now: a loss
+        return
+    i[C_HELD] += 1
+    dt = f[N_PORT_VECTORS * n + DT]
+    for j in range(n):
+        held = f[C_RX * n + j]
+        rx[sig * n + j] = held
+        rx[P_E_IN * n + j] = f[PEER_E_IN * n + j]
+        rx[P_X_SUM * n + j] = f[PEER_X_SUM * n + j]
+        # what the peer declared, not a joule more: the bound holds the wave within it
+        rx[P_WAVE_ENERGY * n + j] = f[PEER_ENERGY * n + j]
+        rx[P_SUM * n + j] = f[USED_SUM * n + j] + held * dt  # the integral as used
+    rx_i[P_SEQ] = i[LAST_SEQ] + 1  # the next in line: nothing missed, nothing to catch up
+    rx_i[P_TICK] = rx_i[P_SEQ]
+    rx_i[P_VALID] = 1
+
+
+@jit
+def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.ndarray) -> None:
+    """After the port: send this tick's packet, or mark it unsent (the links carry
+    nothing), by the deadband, the intervals and, on a wave channel, the peer's predicted
+    energy room."""
+    if i[C_CODEC] == NONE or i[DELAY] == 0:
+        return
+    s = N_PORT_VECTORS * n
+    wave = i[MODE] == WAVE
+    sig = P_WAVE if wave else P_X
+    dt = f[s + DT]
+    half_dt = 0.5 * dt
+    weber, floor, gain = f[s + C_WEBER], f[s + C_FLOOR], f[s + C_GAIN]
+    reserve, room_ticks = f[s + C_RESERVE], f[s + C_ROOM_TICKS]
+    step = f[s + C_ENERGY_STEP]
+    since = i[C_SINCE] + 1
+    crossed = short = False
+    for j in range(n):
+        ref, x = f[C_REF * n + j], tx[sig * n + j]
+        k = weber * (1.0 + gain * abs(f[FLOW * n + j]))
+        if abs(x - ref) > k * abs(ref) + floor:
+            crossed = True
+        if not wave and step > 0.0 and tx[P_E_IN * n + j] - f[C_E_SENT * n + j] > step:
+            short = True  # the peer's controller would dissipate what it has not been told
+        if wave:
+            # would the peer's bound cut the held wave this tick (the room declared so far)?
+            if f[C_SIM_USED * n + j] + ref * ref * half_dt > f[C_SIM_DECLARED * n + j]:
+                short = True
+    first = i[C_SENT] == 0
+    due = since >= i[C_MAX]
+    if first or due or (since >= i[C_MIN] and (crossed or short)):
+        if crossed or first:
+            i[C_BY_THRESHOLD] += 1
+        elif short:
+            i[C_BY_ENERGY] += 1
+        else:
+            i[C_BY_INTERVAL] += 1
+        i[C_SENT] += 1
+        tx_i[P_UNSENT] = 0
+        since = 0
+        for j in range(n):
+            x = tx[sig * n + j]
+            w = x
+            if wave:
+                declared = tx[P_WAVE_ENERGY * n + j]
+                used = f[C_SIM_USED * n + j]
+                # short of the room to hold it a while: send it a little smaller (within the
+                # band), so that holding it builds the room (0: off)
+                if declared - used - w * w * half_dt < room_ticks * w * w * half_dt:
+                    w *= 1.0 - reserve * weber
+                tx[sig * n + j] = w
+                f[C_SIM_DECLARED * n + j] = declared
+                _peer_uses(f, n, j, w, half_dt)
+            f[C_REF * n + j] = w
+            f[C_E_SENT * n + j] = tx[P_E_IN * n + j]
+    else:
+        tx_i[P_UNSENT] = 1
+        i[C_SILENT] += 1
+        if wave:  # the peer holds the last wave sent, cut to the room it has
+            for j in range(n):
+                _peer_uses(f, n, j, f[C_REF * n + j], half_dt)
+    i[C_SINCE] = since
+
+
+@jit
+def _peer_uses(f: np.ndarray, n: int, j: int, w: float, half_dt: float) -> None:
+    """The peer uses wave ``w`` on joint j this tick, cut by its bound to the room declared:
+    the wave energy it has used, as this sender predicts it."""
+    used = f[C_SIM_USED * n + j]
+    f[C_SIM_USED * n + j] = used + min(w * w * half_dt, max(f[C_SIM_DECLARED * n + j] - used, 0.0))

@@ -1,0 +1,301 @@
+"""The perceptual deadband codec (issue 24, ``teleop_rt.com.codec``): what it sends, that
+its peer's reconstruction stays passive (the ports alone under any delays, losses and inputs;
+whole sessions under the link's impairments), that it is off by default and refused where it
+cannot be passive, and that the links carry nothing for a tick it does not send.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from teleop_rt import config
+from teleop_rt.com import codec
+from teleop_rt.com.channel import make_port
+from teleop_rt.com.codec import codec_receive, codec_send
+from teleop_rt.com.port import HSI, TO, Packet, port_input, port_step
+from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink, _first_difference
+from teleop_rt.errors import ConfigError
+from teleop_rt.session import Session
+from tests.conftest import CONFIGS
+from tests.test_passive_channels import CLASSES, PASSIVE_J, SWEEP, schedules
+
+WEBER, FLOOR, MAX_TICKS = 0.1, 0.01, 50
+
+
+class CodecHarness:
+    """Two ports with the codec through an arbitrary delivery schedule (as
+    ``test_passive_channels.Harness``): at tick k a port gets the peer's packet sent at
+    k - d_k if the peer sent one then, it was not lost and it is newer than the last used."""
+
+    def __init__(self, mode: str, n: int = 1, filter_hz: float | None = None,
+                 max_ticks: int = MAX_TICKS) -> None:  # fmt: skip
+        self.n = n
+        self.ports = [make_port(side, mode, [1.5] * n, 1, 1e-3, filter_hz) for side in (HSI, TO)]
+        for port in self.ports:
+            codec.configure(port, WEBER, FLOOR, 1, max_ticks)
+        self.tx = [Packet(n), Packet(n)]
+        self.rx = [Packet(n), Packet(n)]
+        self.sent: list[list[tuple[np.ndarray, np.ndarray]]] = [[], []]
+        self.last = [-1, -1]
+
+    def step(self, k: int, inputs, delays, lost) -> None:
+        for side in (HSI, TO):
+            port, tx = self.ports[side], self.tx[side]
+            port_input(port.f, port.i, self.n, inputs[side], tx.f)
+            tx.tick = tx.seq = k
+            tx.valid = 1
+        for side in (HSI, TO):
+            rx, s = self.rx[side], k - delays[side]
+            rx.f[:], rx.i[:] = 0.0, 0
+            if 0 <= s < len(self.sent[1 - side]) and s > self.last[side] and not lost[side]:
+                pf, pi = self.sent[1 - side][s]
+                if not pi[Packet.unsent.k]:  # sent by the peer's codec
+                    rx.f[:], rx.i[:] = pf, pi
+                    self.last[side] = s
+            port, tx = self.ports[side], self.tx[side]
+            codec_receive(port.f, port.i, self.n, rx.f, rx.i)
+            port_step(port.f, port.i, self.n, rx.f, rx.i, tx.f)
+            codec_send(port.f, port.i, self.n, tx.f, tx.i)
+        for side in (HSI, TO):
+            self.sent[side].append((self.tx[side].f.copy(), self.tx[side].i.copy()))
+
+    def lowest(self) -> float:
+        h, t = self.ports
+        return min(h.balance, t.balance, h.total_energy + t.total_energy)
+
+
+def drive(harness: CodecHarness, schedule) -> float:
+    d_h, d_t, l_h, l_t, x_h, x_t = schedule
+    low = 0.0
+    for k in range(len(d_h)):
+        inputs = (np.full(harness.n, x_h[k]), np.full(harness.n, x_t[k]))
+        harness.step(k, inputs, (d_h[k], d_t[k]), (l_h[k], l_t[k]))
+        low = min(low, harness.lowest())
+    return low
+
+
+@settings(max_examples=120, deadline=None)
+@given(schedule=schedules(150), mode=st.sampled_from(["wave", "tdpa"]),
+       filter_hz=st.sampled_from([None, 30.0]), max_ticks=st.sampled_from([1, 5, 50]))  # fmt: skip
+def test_ports_with_the_codec_are_passive_for_any_delays_losses_and_inputs(
+    schedule, mode, filter_hz, max_ticks
+) -> None:
+    assert drive(CodecHarness(mode, 1, filter_hz, max_ticks), schedule) >= PASSIVE_J
+
+
+def smooth(ticks: int, seed: int = 1) -> np.ndarray:
+    """A smooth input: a sum of slow sines (what a hand does), in [-3, 3]."""
+    t = np.arange(ticks) * 1e-3
+    rng = np.random.default_rng(seed)
+    out = sum(a * np.sin(2 * np.pi * f * t + p)
+              for a, f, p in zip(rng.uniform(0.3, 1.0, 3), (0.7, 1.9, 3.1),
+                                 rng.uniform(0, 6, 3), strict=True))  # fmt: skip
+    return np.asarray(out)
+
+
+def test_the_peer_holds_what_was_sent_within_the_band_and_the_codec_sends_little() -> None:
+    """No loss, a constant one-tick delay: at every tick the wave the peer uses differs from
+    the sender's own of that tick by at most the band around it (Weber fraction and floor:
+    the deadband's promise), while the codec sends a fraction of the ticks. A codec that
+    sends nothing between its maximum intervals breaks the promise."""
+    ticks = 3000
+    harness = CodecHarness("wave")
+    x_h, x_t = smooth(ticks), 0.5 * smooth(ticks, 2)
+    worst, true_before = 0.0, 0.0
+    for k in range(ticks):
+        harness.step(k, (np.full(1, x_h[k]), np.full(1, x_t[k])), (1, 1), (False, False))
+        # the TO uses now (before its filter) what stands for the HSI's wave of tick k - 1
+        used = float(harness.ports[TO].held[0])
+        if k >= 1:
+            worst = max(worst, abs(used - true_before) - (WEBER * abs(used) + FLOOR))
+        true_before = float(harness.ports[HSI].wave_out[0])
+    assert worst <= 1e-12
+    sent = int(harness.ports[HSI].codec_sent)
+    assert sent < 0.6 * ticks  # (a bare two-port, 1-tick echoes: sessions send far less)
+    assert harness.ports[TO].acted == 0  # the sender kept its peer within the room it declared
+
+
+def hold_through_a_lost_drop(max_ticks: int = MAX_TICKS) -> CodecHarness:
+    """The HSI pushes hard (3), then softly (0.3): the codec sends the drop at once, and that
+    packet is lost; the TO goes on holding the strong wave while the HSI puts in the weak one."""
+    harness = CodecHarness("wave", max_ticks=max_ticks)
+    drop = 200
+    for k in range(400):
+        x = 3.0 if k < drop else 0.3
+        # the packet sent at the drop (and the next few) never arrive
+        lost = drop <= k - 1 < drop + 5
+        harness.step(k, (np.full(1, x), np.zeros(1)), (1, 1), (False, lost))
+    return harness
+
+
+def test_a_held_wave_is_cut_to_the_energy_the_peer_declared() -> None:
+    """Holding is passive only within the rule: emitted wave energy never above what the peer
+    declared sent. Holding a strong wave through the lost drop meets the rule (it acts); a
+    hold without it makes energy (the two-port's own integral goes below zero)."""
+    harness = hold_through_a_lost_drop()
+    h, t = harness.ports
+    assert int(t.codec_held) > 0
+    assert t.acted > 0 and t.limited[0] > 0  # the bound cut the held wave
+    assert min(h.min_balance, t.min_balance) >= PASSIVE_J
+    assert h.total_energy + t.total_energy >= PASSIVE_J
+
+
+def test_a_silent_codec_is_not_a_loss_and_a_lost_peer_is() -> None:
+    """Within the maximum interval no packet means the peer's last one, held; past it, the
+    tick is a loss (counted expired, the port's own loss rule applies)."""
+    harness = CodecHarness("tdpa", max_ticks=20)
+    for k in range(100):
+        lost = k >= 60  # from tick 60 the HSI's packets are lost
+        harness.step(k, (np.full(1, 0.7), np.zeros(1)), (1, 1), (lost, lost))
+    t = harness.ports[TO]
+    assert int(t.codec_expired) > 0 and int(t.codec_held) > 0
+    assert t.flow[0] == 0.0  # TDPA's hold ran out after the interval: the TO stopped
+
+
+def test_the_codec_counts_its_decisions() -> None:
+    harness = CodecHarness("wave")
+    ticks = 2000
+    x = smooth(ticks)
+    for k in range(ticks):
+        harness.step(k, (np.full(1, x[k]), np.zeros(1)), (1, 1), (False, False))
+    f = codec.figures(harness.ports[HSI])
+    assert f["sent"] + f["silent_ticks"] == ticks
+    assert f["by_threshold"] + f["by_max_interval"] + f["by_energy"] == f["sent"]
+    assert f["reduction"] == pytest.approx(1 - f["sent"] / ticks)
+    # the TO's ticks 1..ticks-1 play the HSI's ticks 0..ticks-2: held whenever none was sent
+    delivered = sum(1 - int(pi[Packet.unsent.k]) for _, pi in harness.sent[HSI][:-1])
+    assert codec.figures(harness.ports[TO])["peer_held_ticks"] == ticks - 1 - delivered
+
+
+# --- whole sessions -----------------------------------------------------------------------
+
+
+def session(path: Path, overrides: list[str], impairment: dict | None = None) -> Session:
+    sets = [*overrides]
+    if impairment is not None:
+        sets.append("link.impairment=" + json.dumps({"seed": 3, **impairment}))
+    s = Session(config.load(path, sets))
+    s.summary = s.run()
+    return s
+
+
+def test_the_codec_is_off_by_default_and_sends_every_tick() -> None:
+    s = session(CONFIGS / "stiff_wall.yaml", ["duration_s=1", "channel.delay_ms=20"])
+    assert "codec" not in s.summary.channel
+    assert s.hsi.port.codec == 0 and int(s.hsi.port.codec_silent) == 0
+
+
+@pytest.mark.parametrize("mode", ["wave", "tdpa"])
+@pytest.mark.parametrize("impairment", ["loss", "burst_loss", "reordering", "jitter"])
+def test_sessions_with_the_codec_stay_passive_under_impairments(mode: str, impairment: str) -> None:
+    """The stiff wall and free space through the impaired link, the codec on (the study runs
+    every class, tools/network_study.py --codec)."""
+    for path in (CONFIGS / "stiff_wall.yaml", CONFIGS / "free_space.yaml"):
+        sets = ["duration_s=6", "channel.delay_ms=2", "link.playout=newest",
+                f"channel.mode={mode}", "channel.codec=deadband"]  # fmt: skip
+        if path.stem == "free_space":
+            sets.append("operator.waypoints=" + json.dumps(SWEEP[:6]))
+        s = session(path, sets, CLASSES[impairment])
+        assert not s.summary.safety_stop and s.summary.stopped_early is None
+        assert min(s.hsi.port.min_balance, s.to.port.min_balance) >= PASSIVE_J
+        assert s.summary.min_channel_energy_j >= PASSIVE_J
+        c = s.summary.channel["codec"]
+        assert c["hsi"]["sent"] > 0 and c["hsi"]["silent_ticks"] > 0  # the codec was at work
+
+
+def test_the_links_carry_only_what_the_codec_sent() -> None:
+    """Over the impaired link (no impairment) every packet sent arrives and nothing else:
+    the receivers count exactly the codec's packets, and the run equals the same codec over
+    the compiled in-process link, bit for bit."""
+    base = ["duration_s=3", "channel.delay_ms=20", "channel.codec=deadband"]
+    plain = session(CONFIGS / "stiff_wall.yaml", base)
+    impaired = session(CONFIGS / "stiff_wall.yaml", base, {})
+    for side, peer in (("hsi", "to"), ("to", "hsi")):
+        sent = impaired.summary.channel["codec"][peer]["sent"]
+        assert impaired.summary.link[side]["received"] == sent
+        assert impaired.summary.link[side]["sent"] == sent
+        assert sent < 0.5 * 3000
+    assert np.array_equal(plain.to.feedback.q, impaired.to.feedback.q)
+    assert plain.summary.t_tau == impaired.summary.t_tau
+
+
+@pytest.mark.parametrize(
+    "sets, words",
+    [(["channel.mode=direct"], "needs a passive channel"),
+     (["channel.delay_ms=0"], "at least one tick"),
+     (["channel.wave_reconstruction=hold"], "must be bounded"),
+     (["channel.deadband.min_interval_ticks=5", "channel.deadband.max_interval_ticks=2"],
+      "min_interval_ticks = 5 is above max_interval_ticks = 2"),
+     (["channel.deadband.weber_to=1.5"], "channel.deadband.weber_to"),
+     (["channel.codec=zip"], "channel.codec")],
+)  # fmt: skip
+def test_a_codec_that_cannot_be_passive_is_refused(sets: list[str], words: str) -> None:
+    with pytest.raises(ConfigError) as err:
+        config.load(CONFIGS / "stiff_wall.yaml",
+                    ["channel.delay_ms=20", "channel.codec=deadband", *sets])  # fmt: skip
+    assert words in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_a_codec_mismatch_between_the_sites_is_a_refusal_naming_it() -> None:
+    cfg = config.load(CONFIGS / "stiff_wall.yaml", ["channel.delay_ms=20"])
+    other = config.load(CONFIGS / "stiff_wall.yaml",
+                        ["channel.delay_ms=20", "channel.codec=deadband"])  # fmt: skip
+    link = ZenohLink.__new__(ZenohLink)
+    link.peer = "to"
+    from teleop_rt.com.zenoh_link import shared_parts
+
+    mine = {**shared_parts(cfg, 2), "peer_timeout_ms": 50.0}
+    theirs = {**shared_parts(other, 2), "peer_timeout_ms": 50.0}
+    with pytest.raises(HandshakeError, match="channel.codec is 'deadband' there, 'none' here"):
+        link._check_compatible(mine, theirs)
+    a, b = {"x": 1, "d": {"w": 0.1, "m": 3}}, {"x": 1, "d": {"w": 0.2, "m": 3}}
+    assert _first_difference(a, b, "channel") == ("channel.d.w", 0.1, 0.2)
+
+
+def test_over_zenoh_a_silent_codec_is_no_lost_peer_and_a_lost_peer_still_stops() -> None:
+    """The peer timeout (50 ms) counts from the end of the codec's maximum interval (100 ms):
+    100 ms of nothing after a packet is a codec's silence, 200 ms a lost peer. A tick the
+    codec does not send never reaches the transport."""
+    from teleop_rt.com.drift import DriftFollower
+    from teleop_rt.com.playout import Receiver
+    from teleop_rt.errors import SafetyStop
+    from tests.test_zenoh_attacks import SID, wire
+
+    at = "udp/127.0.0.1:17670"
+    sets = ["channel.delay_ms=20", "channel.codec=deadband", f"link.zenoh.hsi.listen=[{at}]",
+            f"link.zenoh.to.connect=[{at}]"]  # fmt: skip
+    cfg = config.load(CONFIGS / "paper_experiment.yaml", sets)
+    link = ZenohLink(cfg, HSI, 2, lambda: 0)
+    try:
+        link.session_id = SID
+        link.receiver = Receiver(2, cfg.delay_ticks, SID, TO)
+        link.drift = DriftFollower(link.receiver.playout, cfg.link.max_drift_ppm)
+        into, mine = Packet(2), Packet(2)
+        link.start()
+        link._arrive(wire(0))
+        time.sleep(0.1)
+        link.receive(HSI, into)  # within the interval plus the timeout: no stop
+        time.sleep(0.1)
+        with pytest.raises(SafetyStop, match="after the codec's maximum interval of 100 ticks"):
+            link.receive(HSI, into)
+        mine.unsent = 1
+        link.send(HSI, mine)
+        link.end_tick(HSI)
+        assert link.sent == 0 and link.not_sent == 1 and link.transport.sent == 0
+        assert link.stats()["not_sent"] == 1
+        # a live codec sends a packet per maximum interval: 45 used of 4500 ticks is no silence
+        for k in range(45):
+            link.receiver.arrive(100 * k, wire(100 * k))
+        for k in range(4600):
+            link.receiver.take(k, into)
+        assert link.silence(4600) is None
+    finally:
+        link.close()

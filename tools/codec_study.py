@@ -1,0 +1,270 @@
+#!/usr/bin/env python3
+"""The deadband codec studied (issue 24): what it saves and what it costs.
+
+    python tools/codec_study.py [--quick] [--out DIR]      (or: network_study.py --codec)
+
+Three parts, one-process fast-mode sessions (deterministic):
+
+1. acceptance: the paper experiment, foam and the stiff wall at D = 1 (the least delay a
+   network carries: the codec needs one), 20 and 50 ms, the bounded wave channel and TDPA,
+   without and with the codec at a 10 % deadband: the packets each way, T_p and T_tau (eq 18),
+   the wall (or foam) stiffness the operator feels, the displayed mass in free space, and the
+   two-port's and the ports' energy;
+2. the curve: reduction and transparency against the deadband, 1 to 30 %, paper experiment at
+   20 ms (DIR/figures/codec_curve.png);
+3. passivity: the codec on over one case of every impairment class of tools/network_study.py.
+
+Writes DIR/codec_study.md (and the figure); without ``--out`` a new temporary folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tools"))
+
+from network_study import SWEEPS, make_case  # noqa: E402
+
+from teleop_rt import config  # noqa: E402
+from teleop_rt.analysis import experiment  # noqa: E402
+from teleop_rt.output import report_folder_problem  # noqa: E402
+from teleop_rt.session import Session  # noqa: E402
+
+CONFIGS = {name: ROOT / "configs" / f"{name}.yaml"
+           for name in ("paper_experiment", "foam", "stiff_wall")}  # fmt: skip
+CHANNELS = {"wave": ("channel.mode=wave",), "tdpa": ("channel.mode=tdpa",)}
+DELAYS_MS = (1, 20, 50)
+WEBER = 0.10
+CURVE = (0.01, 0.02, 0.05, 0.10, 0.20, 0.30)
+PASSIVE_J = -1e-9
+CLASS_VALUES = {"delay": 50, "jitter_newest": 10, "jitter_correlated": 10, "jitter_fixed": 10,
+                "loss": 20, "burst": 20}  # fmt: skip
+
+
+def codec_sets(weber: float | None) -> list[str]:
+    if weber is None:
+        return ["channel.codec=none"]
+    return ["channel.codec=deadband", f"channel.deadband.weber_hsi={weber:g}",
+            f"channel.deadband.weber_to={weber:g}"]  # fmt: skip
+
+
+def run(name: str, sets: list[str], duration_s: float | None = None) -> dict:
+    """One session; its figures."""
+    extra = [] if duration_s is None else [f"duration_s={duration_s}"]
+    cfg = config.load(CONFIGS[name], [*sets, *extra])
+    s = Session(cfg)
+    ticks, n = cfg.n_ticks, s.n
+    v_h, tau_h = np.zeros((ticks, n)), np.zeros((ticks, n))
+    x_h, x_t, force = np.zeros((ticks, 2)), np.zeros((ticks, 2)), np.zeros((ticks, 2))
+    fb_h, fb_t, world = s.hsi.feedback, s.to.feedback, s.hsi.backend.world
+    m_h, m_t = s.hsi.model, s.to.model
+
+    def observe(session: Session) -> None:
+        k = session.tick - 1
+        v_h[k], tau_h[k], force[k] = fb_h.v, session.tau_h, world.force[:2]
+        x_h[k], x_t[k] = m_h.ee_position(fb_h.q)[:2], m_t.ee_position(fb_t.q)[:2]
+
+    summary = s.run(observer=observe)
+    k = summary.ticks
+    t = np.arange(k) * cfg.dt
+    env = next(e for e in cfg.environment if e.kind in ("wall", "foam"))
+    normal = np.asarray(env.normal[:2], float) / np.linalg.norm(env.normal[:2])
+    point = np.asarray(env.point_m[:2], float)
+    pen_t = experiment.penetration(x_t[:k], point, normal)
+    pen_h = experiment.penetration(x_h[:k], point, normal)
+    f_n = -force[:k] @ normal
+    touch = (pen_t > 0) & (pen_h > 0)
+    # felt stiffness: the hand's force against the HSI's own penetration, least squares
+    # through the origin over the ticks in contact
+    stiffness = float(f_n[touch] @ pen_h[touch] / (pen_h[touch] @ pen_h[touch])) \
+        if touch.sum() > 20 else math.nan  # fmt: skip
+    first = t[np.flatnonzero(pen_t > 0)[0]] if (pen_t > 0).any() else math.inf
+    wps = cfg.operator.waypoints
+    free = t < min(wps[1].t_s if len(wps) > 1 else math.inf, first)
+    mass = float(np.mean(experiment.displayed_mass(v_h[:k], tau_h[:k], cfg.dt, free))) \
+        if free.sum() > 50 else math.nan  # fmt: skip
+    ch = summary.channel or {}
+    c = ch.get("codec")
+    return {
+        "complete": k == cfg.n_ticks and not summary.safety_stop,
+        "t_p": summary.t_p_total,
+        "t_tau": summary.t_tau_total,
+        "stiffness": stiffness,
+        "mass": mass,
+        "min_energy": float(summary.min_channel_energy_j),
+        "min_balance": min(ch["hsi"]["min_balance_j"], ch["to"]["min_balance_j"]),
+        "red_hsi": c["hsi"]["reduction"] if c else 0.0,
+        "red_to": c["to"]["reduction"] if c else 0.0,
+        "rate_hsi": c["hsi"]["rate_hz"] if c else 1.0 / cfg.dt,
+        "rate_to": c["to"]["rate_hz"] if c else 1.0 / cfg.dt,
+        "codec": c,
+    }
+
+
+def ratio(a: float, b: float) -> float:
+    return a / b if b and math.isfinite(a) and math.isfinite(b) else math.nan
+
+
+def _pct(x: float) -> str:
+    return "n/a" if not math.isfinite(x) else f"{100 * x:+.1f} %"
+
+
+def acceptance(quick: bool) -> list[dict]:
+    rows = []
+    names = ("stiff_wall",) if quick else tuple(CONFIGS)
+    delays = (20,) if quick else DELAYS_MS
+    for name in names:
+        for d in delays:
+            for ch, sets in CHANNELS.items():
+                base = [*sets, f"channel.delay_ms={d}"]
+                off = run(name, [*base, *codec_sets(None)], 2.0 if quick else None)
+                on = run(name, [*base, *codec_sets(WEBER)], 2.0 if quick else None)
+                rows.append({"config": name, "delay": d, "channel": ch, "off": off, "on": on})
+                print(f"{name} {d} ms {ch}: reduction {on['red_hsi']:.3f}/{on['red_to']:.3f}, "
+                      f"T_p {_pct(ratio(on['t_p'], off['t_p']) - 1)}, T_tau "
+                      f"{_pct(ratio(on['t_tau'], off['t_tau']) - 1)}, stiffness "
+                      f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)}, mass "
+                      f"{_pct(ratio(on['mass'], off['mass']) - 1)}, min energy "
+                      f"{on['min_energy']:.2e}", flush=True)  # fmt: skip
+    return rows
+
+
+def curve(quick: bool) -> dict:
+    out: dict = {}
+    webers = (0.05, 0.2) if quick else CURVE
+    for ch, sets in CHANNELS.items():
+        base = [*sets, "channel.delay_ms=20"]
+        dur = 3.0 if quick else None
+        off = run("paper_experiment", [*base, *codec_sets(None)], dur)
+        out[ch] = {"off": off, "on": []}
+        for w in webers:
+            on = run("paper_experiment", [*base, *codec_sets(w)], dur)
+            out[ch]["on"].append((w, on))
+            print(f"curve {ch} {w:.0%}: reduction {on['red_hsi']:.3f}/{on['red_to']:.3f}, T_p "
+                  f"x{ratio(on['t_p'], off['t_p']):.3f}, T_tau "
+                  f"x{ratio(on['t_tau'], off['t_tau']):.3f}", flush=True)  # fmt: skip
+    return out
+
+
+def passivity(quick: bool) -> list[dict]:
+    rows = []
+    classes = {"loss": 20} if quick else CLASS_VALUES
+    for name in ("paper_experiment", "stiff_wall"):
+        for sweep, value in classes.items():
+            case = make_case(sweep, value)
+            for ch, sets in CHANNELS.items():
+                r = run(name, [*sets, *case.overrides(), *codec_sets(WEBER)],
+                        2.0 if quick else None)  # fmt: skip
+                rows.append({"config": name, "case": case.label, "sweep": sweep, "channel": ch,
+                             "r": r})  # fmt: skip
+                print(f"passivity {name} {case.label} {ch}: min balance {r['min_balance']:.2e}, "
+                      f"min energy {r['min_energy']:.2e}, reduction {r['red_hsi']:.3f}/"
+                      f"{r['red_to']:.3f}", flush=True)  # fmt: skip
+    return rows
+
+
+def plot_curve(data: dict, path: Path) -> None:
+    fig = Figure(figsize=(10, 4))
+    FigureCanvasAgg(fig)
+    ax1, ax2 = fig.subplots(1, 2)
+    for ch, d in data.items():
+        w = [100 * x for x, _ in d["on"]]
+        red = [100 * 0.5 * (r["red_hsi"] + r["red_to"]) for _, r in d["on"]]
+        ax1.plot(w, red, "o-", label=ch)
+        for key, style in (("t_p", "o-"), ("t_tau", "s--")):
+            ax2.plot(w, [ratio(r[key], d["off"][key]) for _, r in d["on"]], style,
+                     label=f"{ch} {'T_p' if key == 't_p' else 'T_tau'}")  # fmt: skip
+    ax1.set(xlabel="deadband (Weber fraction, %)", ylabel="packets saved, mean of both ways (%)",
+            title="reduction")  # fmt: skip
+    ax2.axhline(1.1, color="grey", lw=0.8, ls=":")
+    ax2.set(xlabel="deadband (Weber fraction, %)", ylabel="with codec / without",
+            title="transparency (paper experiment, 20 ms)")  # fmt: skip
+    for ax in (ax1, ax2):
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+def report(acc: list[dict], cur: dict, pas: list[dict], out: Path, quick: bool) -> Path:
+    lines = ["# The deadband codec, measured", "",
+             "Generated by `tools/codec_study.py`" + (" --quick" if quick else "") +
+             " (one-process fast mode, deterministic). Design: docs/codec.md.", "",
+             f"## Acceptance: {WEBER:.0%} deadband against the same channel without codec", "",
+             "Reduction: packets not sent, HSI -> TO / TO -> HSI. Changes are with / without "
+             "the codec at the same D. Stiffness: the operator's force against the HSI's "
+             "penetration of the wall (foam) surface while the TO is in contact; mass: the "
+             "displayed mass fitted in free space (joint mean). D = 1 ms stands for 0: the "
+             "codec needs a delay of at least one tick (at D = 0 the ports couple directly).",
+             "",
+             "| config | D (ms) | channel | reduction | T_p | T_tau | stiffness | mass | "
+             "min two-port energy (J) | min port balance (J) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for row in acc:
+        on, off = row["on"], row["off"]
+        lines.append(
+            f"| {row['config']} | {row['delay']} | {row['channel']} | "
+            f"{100 * on['red_hsi']:.1f} / {100 * on['red_to']:.1f} % | "
+            f"{_pct(ratio(on['t_p'], off['t_p']) - 1)} | "
+            f"{_pct(ratio(on['t_tau'], off['t_tau']) - 1)} | "
+            f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)} | "
+            f"{_pct(ratio(on['mass'], off['mass']) - 1)} | {on['min_energy']:.2g} | "
+            f"{on['min_balance']:.2g} |"
+        )  # fmt: skip
+    lines += ["", "## Reduction and transparency against the deadband", "",
+              "Paper experiment, D = 20 ms. ![curve](figures/codec_curve.png)", "",
+              "| channel | deadband | reduction | T_p ratio | T_tau ratio |",
+              "|---|---|---|---|---|"]  # fmt: skip
+    for ch, d in cur.items():
+        for w, r in d["on"]:
+            lines.append(f"| {ch} | {w:.0%} | {100 * r['red_hsi']:.1f} / "
+                         f"{100 * r['red_to']:.1f} % | "
+                         f"{ratio(r['t_p'], d['off']['t_p']):.3f} | "
+                         f"{ratio(r['t_tau'], d['off']['t_tau']):.3f} |")  # fmt: skip
+    low = min(min(p["r"]["min_energy"], p["r"]["min_balance"]) for p in pas)
+    lines += ["", f"## Passivity with the codec over the impairment classes ({WEBER:.0%})", "",
+              f"Lowest of every run's two-port energy and port balance: {low:.3g} J "
+              f"({'passive' if low >= PASSIVE_J else 'NOT PASSIVE'}: the criterion is "
+              f">= {PASSIVE_J:g} J).", "",
+              "| config | network | channel | complete | min two-port energy (J) | "
+              "min port balance (J) | reduction |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+    for p in pas:
+        r = p["r"]
+        lines.append(f"| {p['config']} | {p['case']} ({SWEEPS[p['sweep']][1]}) | {p['channel']} | "
+                     f"{'yes' if r['complete'] else 'STOPPED'} | {r['min_energy']:.2g} | "
+                     f"{r['min_balance']:.2g} | {100 * r['red_hsi']:.1f} / "
+                     f"{100 * r['red_to']:.1f} % |")  # fmt: skip
+    path = out / "codec_study.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
+    p.add_argument("--quick", action="store_true", help="a few short runs (for the tests)")
+    p.add_argument("--out", type=Path, help="report folder (default: a new temporary one)")
+    args = p.parse_args(argv)
+    out = args.out or Path(tempfile.mkdtemp(prefix="codec_study_"))
+    problem = report_folder_problem(out)
+    if problem:
+        print(f"codec_study: error: {problem}", file=sys.stderr)
+        return 2
+    (out / "figures").mkdir(parents=True, exist_ok=True)
+    acc, cur, pas = acceptance(args.quick), curve(args.quick), passivity(args.quick)
+    plot_curve(cur, out / "figures" / "codec_curve.png")
+    print(f"report: {report(acc, cur, pas, out, args.quick)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
