@@ -58,7 +58,7 @@ import random
 import signal
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeGuard
 
 import numpy as np
 from cryptography import x509
@@ -145,7 +145,7 @@ def _short(value: Any, limit: int = 80) -> str:
     return text if len(text) <= limit else f"{text[: limit // 2]}...{text[-limit // 2 :]}"
 
 
-def _plain_int(value: Any) -> bool:
+def _plain_int(value: Any) -> TypeGuard[int]:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
@@ -470,12 +470,11 @@ class ZenohLink(Link):
                 f"{self.cfg.link.peer_timeout_ms:g})"
             )
         with self._lock:
-            used = self.receiver.take(k, into)
+            used = self.receiver.take(k, into)  # type: ignore[union-attr]  # (made by connect)
             if self.arrival is not None:
-                self._note_arrival(used, into.tick)
+                self._note_arrival(self.arrival, used, into.tick)
 
-    def _note_arrival(self, used: int, s: int) -> None:
-        a = self.arrival
+    def _note_arrival(self, a: Arrival, used: int, s: int) -> None:
         row = self._arrived[s % len(self._arrived)]
         if not used:
             a.none()
@@ -489,13 +488,14 @@ class ZenohLink(Link):
     def end_tick(self, side: int) -> None:
         now = time.monotonic_ns()
         packet = self._packet
-        data = encode_into(self._wire, packet, self.session_id, now, self.side)
+        # (attach() gave the packet before the first tick)
+        data = encode_into(self._wire, packet, self.session_id, now, self.side)  # type: ignore[arg-type]
         impairment = self.impairment
         if impairment is None:
             self.transport.send(data, now)
         else:  # each surviving copy to the sender thread, with its instant
             delays = impairment.delays_ms
-            for k in range(impairment.decide(packet.tick)):
+            for k in range(impairment.decide(packet.tick)):  # type: ignore[union-attr]
                 self.transport.send_at(data, now + int(delays[k] * 1e6))
         self.sent += 1
 
