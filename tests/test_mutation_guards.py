@@ -33,3 +33,21 @@ def test_a_nan_channel_never_looks_passive() -> None:
     assert math.isnan(monitor.min_total_energy)
     monitor_step(monitor.f, n, _port(n, 1.0, 2.0), quiet)  # NaN energy stays NaN
     assert math.isnan(monitor.min_total_energy)
+
+
+def test_a_reordered_packet_never_lowers_the_peers_e_in_at_the_port() -> None:
+    """TDPA's bound uses the peer's E_in, monotone at the sender: an older packet used after a
+    newer one (reordered) must not lower it (``max(PEER_E_IN, rx)``; taking ``rx`` would give
+    the port back energy the peer already accounted)."""
+    from teleop_rt.com.channel import make_port
+    from teleop_rt.com.port import HSI, Packet, port_step
+
+    n = 2
+    port = make_port(HSI, "tdpa", [1.5] * n, 1, 1e-3, None, "bounded")
+    rx, tx = Packet(n), Packet(n)
+    for e_in, tick in ((5.0, 7), (3.0, 4)):  # the newer packet first, then an older one
+        rx.e_in[:] = e_in
+        rx.tick = rx.seq = tick
+        rx.valid = 1
+        port_step(port.f, port.i, n, rx.f, rx.i, tx.f)
+    assert np.array_equal(port.peer_e_in, [5.0, 5.0])
