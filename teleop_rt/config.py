@@ -12,7 +12,7 @@ from __future__ import annotations
 import ipaddress
 import math
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, overload
 
 import yaml
 from pydantic import (
@@ -620,7 +620,8 @@ def _close_key(loc: tuple) -> str:
         if _is_union_tag(part, loc[i - 1] if i else None):
             section = _KINDS["operator" if loc[i - 1] == "operator" else "environment"][part]
             continue
-        field = section.model_fields.get(part) if isinstance(section, type) else None
+        is_model = isinstance(section, type) and issubclass(section, BaseModel)
+        field = section.model_fields.get(part) if is_model else None
         models = [t for t in annotation_leaves(field.annotation) if isinstance(t, type)
                   and issubclass(t, BaseModel)] if field else []  # fmt: skip
         if len(models) != 1:
@@ -683,7 +684,7 @@ def from_dict(data: Any, base_dir: Path | None = None) -> SessionConfig:
 
 
 def _resolve_paths(cfg: SessionConfig, base_dir: Path) -> SessionConfig:
-    sides = {}
+    sides: dict[str, BaseModel] = {}  # the sections to replace
     for side in ("hsi", "to"):
         spec: SideSpec = getattr(cfg, side)
         if spec.robot.urdf is not None and not spec.robot.urdf.is_absolute():
@@ -704,6 +705,7 @@ def _resolve_paths(cfg: SessionConfig, base_dir: Path) -> SessionConfig:
         sides["link"] = cfg.link.model_copy(update={"zenoh": zenoh})
     if cfg.link.impairment is not None:  # a trace file, like the URDFs
         link = sides.get("link", cfg.link)
+        assert isinstance(link, LinkSpec)
         impairment = cfg.link.impairment.with_paths_resolved(base_dir)
         sides["link"] = link.model_copy(update={"impairment": impairment})
     return cfg.model_copy(update=sides)
@@ -749,7 +751,7 @@ class _NoAliasLoader(yaml.SafeLoader):
     """SafeLoader that refuses anchors/aliases (a config never needs them and they enable
     exponential 'billion laughs' expansion) and repeated keys."""
 
-    def compose_node(self, parent: Any, index: Any) -> Any:  # type: ignore[override]
+    def compose_node(self, parent: Any, index: Any) -> Any:
         if self.check_event(yaml.AliasEvent):
             event = self.peek_event()
             raise yaml.YAMLError(
@@ -758,7 +760,7 @@ class _NoAliasLoader(yaml.SafeLoader):
             )
         return super().compose_node(parent, index)
 
-    def construct_mapping(self, node: Any, deep: bool = False) -> Any:  # type: ignore[override]
+    def construct_mapping(self, node: Any, deep: bool = False) -> Any:
         # YAML's last-wins for a repeated key would silently drop a value the user wrote
         lines: dict[Any, int] = {}
         for key_node, _ in getattr(node, "value", ()):
@@ -829,6 +831,12 @@ def load(path: str | Path, overrides: list[str] | None = None) -> SessionConfig:
     return from_dict(data, base_dir=path.resolve().parent)
 
 
+@overload
+def per_joint(value: float | list[float], n: int, key: str) -> list[float]: ...
+@overload
+def per_joint(value: None, n: int, key: str) -> None: ...
+@overload
+def per_joint(value: float | list[float] | None, n: int, key: str) -> list[float] | None: ...
 def per_joint(value: float | list[float] | None, n: int, key: str) -> list[float] | None:
     """Broadcast a per-joint parameter to n joints; ConfigError naming key on a length mismatch."""
     if value is None:

@@ -18,7 +18,7 @@ from __future__ import annotations
 import hashlib
 from collections.abc import Sequence
 from pathlib import Path
-from typing import overload
+from typing import cast, overload
 
 import numba
 import numpy as np
@@ -41,13 +41,15 @@ def _kernel_cache_dir() -> Path:
     edit to a callee (or a revert) could leave stale machine code; keyed by a hash of all the
     sources, any edit starts a fresh folder. ``NUMBA_CACHE_DIR`` moves the root; to debug a
     kernel as Python, run with ``NUMBA_DISABLE_JIT=1``."""
-    root = Path(numba.config.CACHE_DIR or Path.home() / ".cache" / "teleop_rt" / "numba")
+    # (numba.config makes its options at import time, out of mypy's sight: attr-defined)
+    configured = numba.config.CACHE_DIR  # type: ignore[attr-defined]
+    root = Path(configured or Path.home() / ".cache" / "teleop_rt" / "numba")
     return root / _source_hash()
 
 
 # compiled once per version of the sources and cached (the first run pays some seconds); the
 # decorators below pick the folder up when they are applied
-numba.config.CACHE_DIR = str(_kernel_cache_dir())
+numba.config.CACHE_DIR = str(_kernel_cache_dir())  # type: ignore[attr-defined]
 jit = numba.njit(cache=True, nogil=True)
 # for the small helpers that slice the buffers: inlined where they are called, which saves the
 # call (about a third of a slice's cost here); the view itself still costs tens of ns for its
@@ -71,6 +73,18 @@ def floats_of(f: np.ndarray, offsets: np.ndarray, block: int) -> np.ndarray:
 def ints_of(i: np.ndarray, offsets: np.ndarray, block: int) -> np.ndarray:
     """Block ``block``'s int buffer within packed buffers (compiled code only)."""
     return i[offsets[2 * block + 1] :]
+
+
+def float_view(a: np.ndarray) -> memoryview[float]:
+    """A memoryview of a float64 array, for element reads and writes from Python (a fraction of
+    numpy's per-element cost), typed as floats: numpy's stubs give ``ndarray.__buffer__`` only
+    on Python 3.12+, and a memoryview's items are ints unless said otherwise."""
+    return cast("memoryview[float]", memoryview(a))  # type: ignore[arg-type]
+
+
+def int_view(a: np.ndarray) -> memoryview[int]:
+    """A memoryview of an integer array (see ``float_view``)."""
+    return memoryview(a)  # type: ignore[arg-type]
 
 
 class _Declared:
@@ -178,7 +192,7 @@ class Block:
             setattr(self, name, self.f[k * n : (k + 1) * n])
         # scalars and ints are read and written one at a time from Python: through memoryviews,
         # a fraction of numpy's per-element cost
-        self._f_mv, self._i_mv = memoryview(self.f), memoryview(self.i)
+        self._f_mv, self._i_mv = float_view(self.f), int_view(self.i)
         self._bind_tail()
 
     def _bind_tail(self) -> None:
@@ -198,7 +212,9 @@ class Block:
 
     def state_positions(self) -> tuple[list[int], list[int]]:
         """Positions of the block's state (not its parameters) in its float and int buffers."""
-        n, fs, is_ = self.n, [], []
+        n = self.n
+        fs: list[int] = []
+        is_: list[int] = []
         for k, name in enumerate(self.VECTORS):
             if name not in self.PARAMS:
                 fs += range(k * n, (k + 1) * n)

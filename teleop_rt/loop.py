@@ -25,8 +25,10 @@ import struct
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import BinaryIO, ClassVar
+from types import FrameType
+from typing import Any, BinaryIO, ClassVar
 
 import numpy as np
 
@@ -300,7 +302,8 @@ class StopSignals:
     def __init__(self) -> None:
         self.requested = False
         self.signum: int | None = None
-        self._previous: dict[int, object] = {}
+        # what signal.signal returned: a handler, SIG_DFL / SIG_IGN, or None
+        self._previous: dict[int, Callable[[int, FrameType | None], Any] | int | None] = {}
 
     @property
     def reason(self) -> str:

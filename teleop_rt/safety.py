@@ -225,7 +225,7 @@ class RobotGuard(Block):
     def check_workspace(self, tick: int, q: np.ndarray) -> None:
         """The tool frame inside its workspace box (forward kinematics at the measured q)."""
         position = self.model.tool_position(q)
-        for axis, (name, lower, upper) in enumerate(self.workspace):
+        for axis, (name, lower, upper) in enumerate(self.workspace or ()):
             x = position[axis]
             if not lower <= x <= upper:
                 raise SafetyStop(

@@ -71,6 +71,7 @@ class ChannelView:
         self._owners = {"hsi": session.hsi.port, "to": session.to.port,
                         "monitor": session.monitor}  # fmt: skip
         self.link = session.link
+        self._hsi_port = session.hsi.port
         self.dt = session.dt
 
     def source(self, name: str) -> tuple[Block, str]:
@@ -86,8 +87,10 @@ class ChannelView:
 
     def stored_energy(self) -> float:
         """Wave energy in flight on the link (0 for a channel of no waves)."""
-        if self._owners["hsi"].mode != WAVE:
+        if self._hsi_port.mode != WAVE:
             return 0.0
+        if not isinstance(self.link, InProcessLink):  # an impaired link's packets in flight
+            raise NotImplementedError("stored wave energy: only the in-process link's lines")
         return self.link.stored_wave_energy(self.dt)
 
 
@@ -245,9 +248,8 @@ class Session:
             self._step_over(self.link)
             return
         f, i, o, n = self._buffers
-        fused = self.fused
-        pair = self._pair_plants
-        if fused:
+        pair = self._pair_plants if self.fused else None  # (fused: the pair is there)
+        if pair is not None:
             code = pair.before()
         else:
             try:
@@ -264,13 +266,13 @@ class Session:
         for site in self._boxed:  # (forward kinematics: only sites with a workspace box)
             site.tick = self.tick
             site.check_workspace()
-        if fused:  # only without a finding do the plants take the torques
+        if pair is not None:  # only without a finding do the plants take the torques
             code = pair.after(rnea_h, rnea_t)
         else:
             code = lockstep_after(f, i, o, n, rnea_h, rnea_t)
         if code:
             raise self._stop_for(code)
-        if fused:
+        if pair is not None:
             pair.advance()
         else:
             hsi.backend.write(hsi.computed_torque.tau)
@@ -309,6 +311,9 @@ class Session:
         """What an impaired link did, per receiving site (None for the plain in-process one)."""
         if self.compiled_link:
             return None
+        from teleop_rt.com.impaired_link import ImpairedLink
+
+        assert isinstance(self.link, ImpairedLink)  # the one link that is not compiled
         return {"hsi": self.link.stats(0), "to": self.link.stats(1)}
 
     def _stop_for(self, code: int) -> SafetyStop:

@@ -354,7 +354,7 @@ def port_for(cfg: SessionConfig, n: int, side: int) -> Port:
 def channel_figures(cfg: SessionConfig, ports: dict[str, Port]) -> dict:
     """The channel's kind and what its protection did at each port given (a summary's)."""
     ch = cfg.channel
-    kind = {"mode": ch.mode, "playout": cfg.link.playout}
+    kind: dict[str, str] = {"mode": ch.mode, "playout": cfg.link.playout}
     if ch.mode == "wave":
         kind["reconstruction"] = ch.wave_reconstruction
     out = {**kind, **{name: port.protection() for name, port in ports.items()}}

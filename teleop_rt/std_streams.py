@@ -77,8 +77,8 @@ def guarded() -> Iterator[None]:
     streams are flushed before leaving, so a pipe that broke after the last write is met here
     rather than by the interpreter at exit."""
     saved = sys.stdout, sys.stderr
-    sys.stdout = _Guarded(saved[0], "stdout")  # type: ignore[assignment]
-    sys.stderr = _Guarded(saved[1], "stderr")  # type: ignore[assignment]
+    sys.stdout = _Guarded(saved[0], "stdout")
+    sys.stderr = _Guarded(saved[1], "stderr")
     try:
         yield
     finally:

@@ -56,6 +56,17 @@ class Load(Block):
     def in_contact(self) -> bool:
         return True
 
+    # a ``stateful`` load has a state of its own that the plant integrates with it (RK4 steps
+    # it through these three); the others have none
+    def state(self) -> tuple[float, ...]:
+        raise NotImplementedError(f"{type(self).__name__} has no state")
+
+    def set_state(self, state: tuple[float, ...]) -> None:
+        raise NotImplementedError(f"{type(self).__name__} has no state")
+
+    def derivative(self) -> tuple[float, ...]:
+        raise NotImplementedError(f"{type(self).__name__} has no state")
+
 
 class JointLoad(Load):
     """A load in joint space: vectors of one entry per joint."""

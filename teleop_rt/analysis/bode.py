@@ -53,6 +53,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
@@ -78,7 +79,7 @@ from teleop_rt.hal.sim import SimBackend, initial_configuration
 from teleop_rt.model import RobotModel
 from teleop_rt.safety import RobotGuard
 from teleop_rt.site import HsiSite, ToSite
-from teleop_rt.world import JointDamperOperator, JointLoad, JointMass, JointSpringDamper
+from teleop_rt.world import JointDamperOperator, JointMass, JointSpringDamper, Load
 
 SCARA_URDF = Path(__file__).resolve().parents[2] / "robots" / "urdf" / "scara_2dof.urdf"
 SCARA_Q0 = [-0.8, 1.8]
@@ -97,7 +98,7 @@ def default_omegas(omega_min: float = 0.5, omega_max: float = 50.0, points: int 
 def controller_spec(c: ControllerGains | float) -> ControllerSpec:
     """The ``Pid`` config of analytic gains (P if only kp, else PID; no limits)."""
     g = c if isinstance(c, ControllerGains) else ControllerGains(kp=float(c))
-    kind = "pid" if (g.ki or g.kd) else "p"
+    kind: Literal["p", "pid"] = "pid" if (g.ki or g.kd) else "p"
     return ControllerSpec(
         kind=kind, kp=g.kp, ki=g.ki, kd=g.kd, derivative_filter_s=g.derivative_filter_s
     )
@@ -154,7 +155,7 @@ class OpenChain:
         operator = JointDamperOperator(
             DamperOperatorSpec(kind="damper", damping_nm_s_per_rad=p.z_o), n
         )
-        env: list[JointLoad] = [
+        env: list[Load] = [
             JointSpringDamper([p.env_stiffness] * n, [p.env_damping] * n, self.q0_t)
         ]
         if p.env_mass:
@@ -404,7 +405,8 @@ def measure_point(
     limit = 1e6 * amplitude_rad_s * (scale + params.env_stiffness / w + params.env_mass * w)
     if run_bounded(chain, amplitude_rad_s * np.sin(w * dt * np.arange(n_settle)), limit) is None:
         return _unsettled(omega, w, n_win, chain.tick * dt, math.inf, "diverged", math.inf)
-    z_prev, res_prev = None, None
+    z_prev: complex | None = None
+    res_prev: list[float] = []
     rel = bound = math.inf
     reason = "changing"
     z_floor = 1e-12 * params.b

@@ -228,6 +228,8 @@ def _channel_tanh(
     t = tanh(T_d s) for the exact delay and t = T_d s for Pade when there is no filter.
     """
     x = delay_s * s
+    one_minus_e: np.ndarray
+    one_plus_e: np.ndarray
     if delay_model == "exact":
         one_minus_e, one_plus_e = -np.expm1(-2.0 * x), 1.0 + np.exp(-2.0 * x)
     else:

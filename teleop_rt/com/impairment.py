@@ -52,6 +52,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from teleop_rt.errors import ConfigError
+from teleop_rt.flat import float_view
 from teleop_rt.inputs import read_bounded, shown
 from teleop_rt.schema import StrictModel
 
@@ -228,7 +229,7 @@ class Impairment:
         )
         self._u = np.zeros((BLOCK, 5))
         self._z = np.zeros((BLOCK, 2))
-        self._u_mv, self._z_mv = memoryview(self._u), memoryview(self._z)
+        self._u_mv, self._z_mv = float_view(self._u), float_view(self._z)
         self._row = BLOCK  # draws used up: refill on the first packet
         rho = spec.correlation_percent / 100.0
         self._rho, self._rho_c = rho, math.sqrt(1.0 - rho * rho)

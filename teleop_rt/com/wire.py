@@ -50,7 +50,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from teleop_rt.com.port import P_E_OUT, P_SUM, P_WAVE_ENERGY, P_X_SUM, Packet
-from teleop_rt.flat import jit
+from teleop_rt.flat import int_view, jit
 
 if sys.byteorder != "little":  # the layout is read through native views
     raise ImportError("teleop_rt.com.wire needs a little-endian host")
@@ -115,7 +115,7 @@ class WireBuffer:
     def __init__(self, n: int) -> None:
         self.n, self.size = n, wire_size(n)
         self.words = np.zeros(self.size // 8, dtype=np.int64)
-        self.data = memoryview(self.words.view(np.uint8))
+        self.data = int_view(self.words.view(np.uint8))
 
 
 def encode_into(

@@ -58,7 +58,7 @@ import random
 import signal
 import threading
 import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeGuard
 
 import numpy as np
 from cryptography import x509
@@ -145,7 +145,7 @@ def _short(value: Any, limit: int = 80) -> str:
     return text if len(text) <= limit else f"{text[: limit // 2]}...{text[-limit // 2 :]}"
 
 
-def _plain_int(value: Any) -> bool:
+def _plain_int(value: Any) -> TypeGuard[int]:
     return isinstance(value, int) and not isinstance(value, bool)
 
 
@@ -496,9 +496,9 @@ class ZenohLink(Link):
                 f"{self.cfg.link.peer_timeout_ms:g}{self._codec_text()})"
             )
         with self._lock:
-            used = self.receiver.take(k, into)
+            used = self.receiver.take(k, into)  # type: ignore[union-attr]  # (made by connect)
             if self.arrival is not None:
-                self._note_arrival(used, into.tick)
+                self._note_arrival(self.arrival, used, into.tick)
 
     def _codec_text(self) -> str:
         """', after the codec's maximum interval of N ticks' or ''."""
@@ -507,8 +507,7 @@ class ZenohLink(Link):
             return ""
         return f", after the codec's maximum interval of {ch.deadband.max_interval_ticks} ticks"
 
-    def _note_arrival(self, used: int, s: int) -> None:
-        a = self.arrival
+    def _note_arrival(self, a: Arrival, used: int, s: int) -> None:
         row = self._arrived[s % len(self._arrived)]
         if not used:
             a.none()
@@ -521,7 +520,7 @@ class ZenohLink(Link):
 
     def end_tick(self, side: int) -> None:
         packet = self._packet
-        assert packet is not None  # (send before end_tick)
+        assert packet is not None  # (attach() gave the packet before the first tick)
         if packet.unsent:  # the codec sends nothing: the sender thread is not woken
             self.not_sent += 1
             return
@@ -532,7 +531,7 @@ class ZenohLink(Link):
             self.transport.send(data, now)
         else:  # each surviving copy to the sender thread, with its instant
             delays = impairment.delays_ms
-            for k in range(impairment.decide(packet.tick)):
+            for k in range(impairment.decide(packet.tick)):  # type: ignore[union-attr]
                 self.transport.send_at(data, now + int(delays[k] * 1e6))
         self.sent += 1
 

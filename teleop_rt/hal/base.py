@@ -11,12 +11,12 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
 
 from teleop_rt.errors import ConfigError
-from teleop_rt.flat import Block, Int, Vector
+from teleop_rt.flat import Block, Int, Vector, float_view
 
 if TYPE_CHECKING:
     from teleop_rt.config import SessionConfig
@@ -37,7 +37,9 @@ class Feedback(Block):
 
     def _bind(self) -> None:
         super()._bind()
-        self.q_mv, self.v_mv, self.tau_mv = (memoryview(x) for x in (self.q, self.v, self.tau_ext))
+        self.q_mv, self.v_mv, self.tau_mv = (
+            float_view(x) for x in (self.q, self.v, self.tau_ext)
+        )
 
     def copy_arrays(self, q: memoryview, v: memoryview) -> None:
         """q, v = q, v given as float64 memoryviews of n entries (a memcpy each)."""
@@ -66,7 +68,7 @@ class WorldSnapshot(Block):
         self.contacts = self.f[self.tail_start :]
         # for a backend's element writes each tick (cheaper than numpy's)
         self.reference_mv, self.reference_velocity_mv, self.force_mv, self.contacts_mv = (
-            memoryview(x)
+            float_view(x)
             for x in (self.reference, self.reference_velocity, self.force, self.contacts)
         )
 
@@ -162,10 +164,14 @@ BackendFactory = Callable[..., Backend]
 _REGISTRY: dict[str, BackendFactory] = {}
 
 
-def register_backend(name: str) -> Callable[[BackendFactory], BackendFactory]:
-    """Decorator: make a factory ``(config, side, model) -> Backend`` available by name."""
+_Factory = TypeVar("_Factory", bound=BackendFactory)
 
-    def deco(factory: BackendFactory) -> BackendFactory:
+
+def register_backend(name: str) -> Callable[[_Factory], _Factory]:
+    """Decorator: make a factory ``(config, side, model) -> Backend`` available by name (the
+    factory keeps its own type: a ``SimBackend`` factory still returns a ``SimBackend``)."""
+
+    def deco(factory: _Factory) -> _Factory:
         _REGISTRY[name] = factory
         return factory
 

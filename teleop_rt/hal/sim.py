@@ -373,8 +373,8 @@ class SimBackend(Backend):
             if self.rk4:
                 self._rk4_step()
             else:
-                f, i, o, n = self._buffers
-                euler_step(f, i, o, n, self._acceleration())
+                fb, i, o, n = self._buffers  # (f is the fault above)
+                euler_step(fb, i, o, n, self._acceleration())
             for fault in stuck:  # a blocked joint: held in place whatever the torque
                 state.q[fault.joint] = self._held[fault.joint]
                 state.v[fault.joint] = 0.0
@@ -430,7 +430,7 @@ class SimBackend(Backend):
 
 @register_backend("sim")
 def _make_sim(
-    cfg: SessionConfig, side: str, model: RobotModel, operator: Load | None = None
+    cfg: SessionConfig, side: str, model: RobotModel | None, operator: Load | None = None
 ) -> SimBackend:
     spec = getattr(cfg, side)
     plant = RobotModel.from_spec(spec.robot, side, cfg.plant.coulomb_smoothing_rad_s)

@@ -85,7 +85,7 @@ def _json_list(text: str | None) -> list[str]:
     try:
         value = json.loads(text) if text else []
     except ValueError:
-        return [text]
+        return [str(text)]
     return [str(x) for x in value] if isinstance(value, list) else [str(value)]
 
 
@@ -234,7 +234,7 @@ def _first(first: int | None) -> str:
     return "" if first in (0, None) else f" (from tick {first})"
 
 
-def _size(n: int) -> str:
+def _size(n: float) -> str:
     for unit in ("bytes", "KiB", "MiB", "GiB"):
         if n < 1024 or unit == "GiB":
             return f"{n} {unit}" if unit == "bytes" else f"{n:.1f} {unit}"

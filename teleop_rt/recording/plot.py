@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -33,8 +34,8 @@ from teleop_rt.recording.reader import (
 TOPICS = ("/hsi", "/to", "/channel")
 MAX_POINTS = 20_000  # per line; longer signals are drawn as their min / max envelope
 PATH_POINTS = 4_000  # tool path samples (forward kinematics per sample)
-HSI_STYLE = {"ls": "--", "color": "C0"}
-TO_STYLE = {"ls": "-", "color": "C1"}
+HSI_STYLE: dict[str, Any] = {"ls": "--", "color": "C0"}
+TO_STYLE: dict[str, Any] = {"ls": "-", "color": "C1"}
 ENV_COLORS = {"wall": "0.35", "foam": "C8", "spring": "C2", "damper": "C2", "mass": "C5"}
 ORIGINAL_STYLE = {"lw": 4.0, "alpha": 0.3}  # a replay's original run, under the replay
 

@@ -332,13 +332,13 @@ class _Reader:
                 f"no '{SUMMARY_META}' metadata: the session did not finish writing its log "
                 "(killed or crashed)"
             )
-        config_yaml = self.attachments.get("config.yaml")
-        if config_yaml is not None:
+        raw_config = self.attachments.get("config.yaml")
+        config_yaml: str | None = None
+        if raw_config is not None:
             try:
-                config_yaml = config_yaml.decode()
+                config_yaml = raw_config.decode()
             except UnicodeDecodeError:
                 self.damaged["config.yaml"] = "not UTF-8 text"
-                config_yaml = None
         return LogData(
             path=self.path,
             meta=meta,
@@ -381,7 +381,7 @@ class _Reader:
             offsets = self._walk(data)
         self._gather(data, offsets, names, lo, hi, parts)
 
-    def _walk(self, data: bytes) -> dict[int, np.ndarray]:
+    def _walk(self, data: bytes | memoryview) -> dict[int, np.ndarray]:
         """Offsets of the messages of a chunk, one record at a time (also reads its channels)."""
         found: dict[int, list[int]] = {}
         at, end = 0, len(data)
@@ -421,20 +421,21 @@ class _Reader:
                 raise self.fail(f"cut short before its '{META}' metadata ({self.cut})")
             by = f" (written by '{self.library}')" if self.library else ""
             raise self.fail(f"not a teleop_rt log: no '{META}' metadata record{by}")
-        ints = {}
+        ints: dict[str, int] = {}
         for key in (*_META_INTS, "delay_ticks"):  # delay_ticks: optional
             if key not in meta:
                 if key == "delay_ticks":
                     continue
                 raise self.fail(f"'{META}' metadata lacks '{key}'")
             try:
-                ints[key] = int(meta[key]) if len(meta[key]) <= 20 else None
+                value = int(meta[key]) if len(meta[key]) <= 20 else None
             except ValueError:
-                ints[key] = None
-            if ints[key] is None or ints[key] < 0:
+                value = None
+            if value is None or value < 0:
                 raise self.fail(
                     f"'{META}' metadata: {key} = {quote(meta[key])} is not an integer >= 0"
                 ) from None
+            ints[key] = value
         try:
             rate = float(meta["rate_hz"])
         except (KeyError, ValueError):
@@ -609,6 +610,7 @@ def _decompress(body: memoryview) -> bytes | memoryview:
     data = body[at + 8 : at + 8 + length]
     if len(data) != length:
         raise _Damaged("chunk data past the record end")
+    out: bytes | memoryview
     try:
         if compression == "zstd":
             import zstandard
@@ -631,7 +633,7 @@ def _decompress(body: memoryview) -> bytes | memoryview:
     return out
 
 
-def _records_size(data: bytes, offsets: dict[int, np.ndarray]) -> int:
+def _records_size(data: bytes | memoryview, offsets: dict[int, np.ndarray]) -> int:
     """Bytes taken by the indexed message records (a channel's records all have one size)."""
     total = 0
     for offs in offsets.values():

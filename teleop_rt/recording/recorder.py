@@ -180,7 +180,9 @@ class Recorder:
                 f"cannot make the log's ring of {size / 1e6:.1f} MB in shared memory "
                 f"({err.strerror}); a smaller recording.ring_s needs less"
             ) from None
-        self.buf = self.shm.buf
+        buf = self.shm.buf
+        assert buf is not None  # (None only once the mapping is closed)
+        self.buf: memoryview = buf
         self.ctrl = np.ndarray((CONTROL_BYTES // 8,), np.int64, self.shm.buf)
         # the ring as rows of float64 (native order, as the writer reads it), and where each
         # signal column of a row sits in the session's packed state
@@ -207,8 +209,8 @@ class Recorder:
         self._count.pack_into(self.buf, START_NS * 8, time.time_ns())
         # fork: the writer starts in milliseconds (spawn would re-import numpy and mcap, and
         # needs an importable __main__); it touches nothing of the parent but the ring
-        method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
-        ctx = multiprocessing.get_context(method)
+        fork = "fork" in multiprocessing.get_all_start_methods()
+        ctx = multiprocessing.get_context("fork") if fork else multiprocessing.get_context("spawn")
         self._summary_rx, self._summary_tx = ctx.Pipe(duplex=False)
         live_rx, live_tx = ctx.Pipe(duplex=False) if live is not None else (None, None)
         self.process = ctx.Process(
@@ -248,7 +250,7 @@ class Recorder:
             process.join(5.0)
         shm = getattr(self, "shm", None)
         if shm is not None:
-            self.buf = self.ring = self.ctrl = None
+            self.buf = self.ring = self.ctrl = None  # type: ignore[assignment]  # released with the mapping: unused after
             with contextlib.suppress(OSError, BufferError):
                 shm.close()
             with contextlib.suppress(OSError):
@@ -275,7 +277,7 @@ class Recorder:
         if self.process.exitcode is None:
             self.process.kill()
             self.process.join()
-        self.buf = self.ring = self.ctrl = None
+        self.buf = self.ring = self.ctrl = None  # type: ignore[assignment]  # released with the mapping: unused after
         self.shm.close()
         self.shm.unlink()
         self.path.unlink()  # created empty by this recorder; nothing was written
@@ -416,7 +418,7 @@ class Recorder:
             except KeyboardInterrupt:  # a second Ctrl-C: the user will not wait
                 self._end_writer("a second interrupt while the log was being finished")
         finally:
-            self.buf = self.ring = self.ctrl = None
+            self.buf = self.ring = self.ctrl = None  # type: ignore[assignment]  # released with the mapping: unused after
             self.shm.close()
             self.shm.unlink()
         return self.status()

@@ -100,7 +100,9 @@ def scene_spec(session: Session, sides: tuple[str, ...] = SIDES) -> SceneSpec | 
     """The scene of a session (or of the robots ``sides`` of it: a site's log, whose source
     has the site under its name); None when a robot's URDF cannot be found (no 3D topics)."""
     cfg = session.cfg
-    urdf, ee, start = {}, {}, {}
+    urdf: dict[str, str] = {}
+    ee: dict[str, str] = {}
+    start: dict[str, tuple[float, float, float]] = {}
     for side in sides:
         text = _urdf_text(getattr(cfg, side).robot)
         if text is None:
@@ -109,7 +111,8 @@ def scene_spec(session: Session, sides: tuple[str, ...] = SIDES) -> SceneSpec | 
         urdf[side] = text
         ee[side] = site.model.ee_frame
         q0 = np.asarray(getattr(cfg, side).robot.q0_rad or np.zeros(site.n), dtype=float)
-        start[side] = tuple(float(x) for x in site.model.ee_position(q0))
+        x, y, z = (float(c) for c in site.model.ee_position(q0))
+        start[side] = (x, y, z)
     # the config's operator and environment exist where a simulated world has them (a plant or
     # the drives' emulator); real hardware logs neither
     env = tuple(EnvElement(e.kind, _xyz(e.point_m), _unit(_xyz(e.normal))) for e in cfg.environment)
@@ -176,20 +179,37 @@ class UrdfJoint:
     fixed: bool
 
 
+def _attr(el: ET.Element, name: str) -> str:
+    """An attribute the URDF must have (Pinocchio loaded the same file: a missing one is a
+    broken file, said in one line)."""
+    value = el.get(name)
+    if value is None:
+        raise ValueError(f"URDF: <{el.tag}> without {name!r}")
+    return value
+
+
+def _child(el: ET.Element, tag: str) -> ET.Element:
+    """A child element the URDF must have (see ``_attr``)."""
+    found = el.find(tag)
+    if found is None:
+        raise ValueError(f"URDF: <{el.tag} name={el.get('name')!r}> without <{tag}>")
+    return found
+
+
 def robot_tree(urdf: str) -> tuple[str, list[UrdfJoint]]:
     """A URDF's root link and its joints (parent link, child link), in file order."""
     root = ET.fromstring(urdf)
     joints = [
         UrdfJoint(
-            j.get("name"),
-            j.find("parent").get("link"),
-            j.find("child").get("link"),
+            _attr(j, "name"),
+            _attr(_child(j, "parent"), "link"),
+            _attr(_child(j, "child"), "link"),
             j.get("type") == "fixed",
         )  # fmt: skip
         for j in root.findall("joint")
     ]
     children = {j.child for j in joints}
-    links = [link.get("name") for link in root.findall("link")]
+    links = [_attr(link, "name") for link in root.findall("link")]
     roots = [name for name in links if name not in children]
     return (roots[0] if roots else links[0]), joints
 
@@ -206,7 +226,7 @@ def combined_urdf(spec: SceneSpec) -> str:
         ET.SubElement(material, "color", rgba=" ".join(f"{c:g}" for c in COLORS[side]))
         offsets = _child_offsets(robot)
         for link in robot.findall("link"):
-            name = link.get("name")
+            name = _attr(link, "name")
             link.set("name", prefix + name)
             for el in link.findall("collision"):  # meshes would not resolve; visuals suffice
                 link.remove(el)
@@ -220,10 +240,10 @@ def combined_urdf(spec: SceneSpec) -> str:
                 link.append(v)
             out.append(link)
         for joint in robot.findall("joint"):
-            joint.set("name", prefix + joint.get("name"))
+            joint.set("name", prefix + _attr(joint, "name"))
             for end in ("parent", "child"):
-                el = joint.find(end)
-                el.set("link", prefix + el.get("link"))
+                el = _child(joint, end)
+                el.set("link", prefix + _attr(el, "link"))
             for tag in ("mimic", "transmission"):
                 for el in joint.findall(tag):
                     joint.remove(el)
@@ -249,7 +269,7 @@ def _child_offsets(robot: ET.Element) -> dict[str, list[tuple[float, ...]]]:
     for joint in robot.findall("joint"):
         origin = joint.find("origin")
         xyz = origin.get("xyz", "0 0 0") if origin is not None else "0 0 0"
-        out.setdefault(joint.find("parent").get("link"), []).append(
+        out.setdefault(_attr(_child(joint, "parent"), "link"), []).append(
             tuple(float(x) for x in xyz.split())
         )
     return out

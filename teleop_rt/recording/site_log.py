@@ -19,6 +19,7 @@ and ``out.to.mcap`` (``site_log_path``); by default ``logs/<name>-<UTC time>.<si
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -35,6 +36,9 @@ from teleop_rt.recording.recorder import (
 from teleop_rt.recording.scene import scene_spec, shift_sources
 from teleop_rt.recording.schema import PACKET_EXTRAS, PORT_NAMES, LogLayout
 from teleop_rt.site import Site
+
+if TYPE_CHECKING:
+    from teleop_rt.session import Session
 
 PORT_SOURCES = ("flow", "effort", "wave_out", "wave_in", "power", "energy", "total_energy",
                 "balance", "limited")  # fmt: skip
@@ -75,17 +79,19 @@ class SiteLogSource:
             owner, attr = LINK_SOURCES[field.name]
             block = self.arrival if owner == "arrival" else site.rx
             out += self._columns(block, attr, field.count)
-        shifts = shift_sources(self) if n_env else np.zeros(0, dtype=np.int64)
+        # to the session's helpers this is a session: cfg, n, dt, tick, the site under its name
+        as_session = cast("Session", self)
+        shifts = shift_sources(as_session) if n_env else np.zeros(0, dtype=np.int64)
         meta = {
-            **_metadata(self),
+            **_metadata(as_session),
             "env_elements": str(n_env),
             "log_kind": "site",
             "site": self.name,
             "config_hash": shared_parts(cfg, self.n)["config_hash"],
         }
         return LogParts(
-            layout, np.array(out, dtype=np.int64), shifts, meta, _attachments(self),
-            scene_spec(self, (self.name,)),
+            layout, np.array(out, dtype=np.int64), shifts, meta, _attachments(as_session),
+            scene_spec(as_session, (self.name,)),
         )  # fmt: skip
 
     def _columns(self, block, attr: str, count: int) -> list[int]:

@@ -54,7 +54,9 @@ if TYPE_CHECKING:
     import can
 
     from teleop_rt.config import SessionConfig
+    from teleop_rt.hal.can.emulator import DriveEmulator
     from teleop_rt.model import RobotModel
+    from teleop_rt.world import Load
 
 _TPDO1, _TPDO2, _EMCY, _HEARTBEAT, _SENSOR = range(5)
 _TPDO1_SIZE, _TPDO2_SIZE = codec.TPDO1_STRUCT.size, codec.TPDO2_STRUCT.size
@@ -75,7 +77,9 @@ class CanBackend(Backend):
         operator: passed to an in-process emulator (``can.emulate``) like to the sim backend.
     """
 
-    def __init__(self, cfg: SessionConfig, side: str, n: int, operator: object = None) -> None:
+    def __init__(
+        self, cfg: SessionConfig, side: str, n: int, operator: Load | None = None
+    ) -> None:
         super().__init__(n, len(cfg.environment) if side == "to" else 0)
         spec = cfg.can if cfg.can is not None else CanSpec()
         side_spec = spec.side(side)
@@ -107,7 +111,7 @@ class CanBackend(Backend):
         self.operator = operator
         self.sensor = sensor
         self.node_ids = [d.node_id for d in side_spec.drives]
-        self.emulator = None  # the in-process emulator when can.emulate is on
+        self.emulator: DriveEmulator | None = None  # the in-process emulator (can.emulate)
         self.bus: can.BusABC | None = None
         self.can_tap = None  # every frame to this (--can-log: canlog.CanLog.tap) if set
         self.drive_info: list = []
@@ -150,7 +154,7 @@ class CanBackend(Backend):
         self._stop_phase: str | None = None  # None, then _QUICK_STOP, ..., _DONE
         self._stop_count = 0  # periods spent in the stop phase
         self._faulted = False
-        self._keepalive = None
+        self._keepalive: tuple[threading.Event, threading.Thread] | None = None
         self._keepalive_fault: str | None = None  # the first fault the keepalive saw
         self._next_state_poll = 0  # tick of the next bus.state poll
         self._bus_name = f"can: {side} bus"
@@ -166,9 +170,9 @@ class CanBackend(Backend):
     def start(self) -> None:
         from teleop_rt.hal.can.startup import Startup
 
-        self._open_bus()
+        bus = self._open_bus()
         startup = Startup(
-            self.bus, self.side, self.side_spec, self.spec, self.cfg.dt, self._bus_label()
+            bus, self.side, self.side_spec, self.spec, self.cfg.dt, self._bus_label()
         )
         info = startup.run()
         self.begin_cyclic(info)
@@ -261,20 +265,21 @@ class CanBackend(Backend):
             thread.join()
             self._keepalive = None
 
-    def _open_bus(self) -> None:
+    def _open_bus(self) -> can.BusABC:
         if self.bus is not None:
-            return
+            return self.bus
         if self.spec.emulate:
             from teleop_rt.hal.can.emulator import emulated_bus
 
-            self.bus = emulated_bus(self.cfg, self.side, self.operator)
-            self.emulator = self.bus.emulator
+            stepped = emulated_bus(self.cfg, self.side, self.operator)
+            self.emulator = stepped.emulator
+            bus: can.BusABC = stepped
         else:
             import can
 
             kwargs = self.side_spec.bus.kwargs()
             try:
-                self.bus = can.Bus(**kwargs)
+                bus = can.Bus(**kwargs)
             except (can.CanError, ImportError, OSError, ValueError, TypeError) as exc:
                 described = ", ".join(f"{k}={v}" for k, v in kwargs.items())
                 raise BackendError(
@@ -283,7 +288,9 @@ class CanBackend(Backend):
         if self.can_tap is not None:  # from here on, start-up included, every frame is logged
             from teleop_rt.hal.can.canlog import TappedBus
 
-            self.bus = TappedBus(self.bus, self.can_tap)
+            bus = TappedBus(bus, self.can_tap)
+        self.bus = bus
+        return bus
 
     def _bus_label(self) -> str:
         """The bus as the user knows it: interface and channel (the emulator's own name)."""
@@ -323,8 +330,10 @@ class CanBackend(Backend):
         self._bus_error_state = can.BusState.ERROR
         self._bus_name = f"can: {self.side} bus ({self._bus_label()})"
         self._next_state_poll = self.tick + 1
-        self._recv = self.bus.recv
-        self._send_raw = self.bus.send
+        bus = self.bus
+        assert bus is not None  # begin_cyclic follows start's _open_bus
+        self._recv = bus.recv
+        self._send_raw = bus.send
         self._next_ns = time.perf_counter_ns()
 
     def _tick_time(self) -> int:
@@ -446,7 +455,7 @@ class CanBackend(Backend):
         missing feedback a dead bus causes, and with the reason; some interfaces pay a driver
         call for it. PASSIVE is not a fault: it means listen-only on some interfaces."""
         self._next_state_poll = self.tick + self.missed_limit
-        if self.bus.state is self._bus_error_state:
+        if self.bus.state is self._bus_error_state:  # type: ignore[union-attr]  # cyclic: open
             self._faults.append(f"{self._bus_name}: bus state ERROR (bus off or coupling error)")
 
     def _on_frame(self, msg: can.Message, fresh: bool) -> None:
@@ -775,6 +784,6 @@ class CanBackend(Backend):
 
 @register_backend("can")
 def _make_can(
-    cfg: SessionConfig, side: str, model: RobotModel, operator: object = None
+    cfg: SessionConfig, side: str, model: RobotModel, operator: Load | None = None
 ) -> CanBackend:
     return CanBackend(cfg, side, model.nv, operator)

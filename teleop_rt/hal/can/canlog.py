@@ -77,7 +77,9 @@ class CanLog:
         self.capacity = capacity
         self.wait_for_room = wait_for_room
         self.shm = SharedMemory(create=True, size=CONTROL.size + capacity * RECORD.size)
-        self.buf = self.shm.buf
+        buf = self.shm.buf
+        assert buf is not None  # (None only once the mapping is closed)
+        self.buf: memoryview = buf
         CONTROL.pack_into(self.buf, 0, 0, 0, 0, 0, 0, 0, 0, 0)
         self._word = struct.Struct("@q")
         self.published = 0
@@ -85,8 +87,9 @@ class CanLog:
         self.dropped = 0
         self.failure: str | None = None
         self._lock = threading.Lock()  # a keepalive thread and the loop may both send
-        method = "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
-        self.process = multiprocessing.get_context(method).Process(
+        fork = "fork" in multiprocessing.get_all_start_methods()
+        ctx = multiprocessing.get_context("fork") if fork else multiprocessing.get_context("spawn")
+        self.process = ctx.Process(
             target=_writer_main,
             args=(self.shm.name, capacity, str(self.path)),
             name="teleop-rt-can-writer",
@@ -168,7 +171,7 @@ class CanLog:
             elif self.process.exitcode:
                 self._fail(f"the CAN log writer ended with code {self.process.exitcode}")
             self.frames_written = self._ctrl(CONSUMED)
-            self.buf = None
+            self.buf = None  # type: ignore[assignment]  # released with the mapping: unused after
             self.shm.close()
             self.shm.unlink()
         return self.status()
@@ -193,7 +196,8 @@ class TappedBus(can.BusABC):
     def __init__(self, inner: can.BusABC, tap) -> None:
         self._inner = inner
         self._tap = tap
-        super().__init__(channel=getattr(inner, "channel_id", None))
+        # python-can keeps the channel as given; an inner bus without one has None
+        super().__init__(channel=getattr(inner, "channel_id", None))  # type: ignore[arg-type]
         self.channel_info = inner.channel_info
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
@@ -215,6 +219,10 @@ class TappedBus(can.BusABC):
     def state(self) -> can.BusState:
         return self._inner.state
 
+    @state.setter
+    def state(self, value: can.BusState) -> None:
+        self._inner.state = value
+
     def shutdown(self) -> None:
         super().shutdown()
         self._inner.shutdown()
@@ -232,6 +240,7 @@ def _writer_main(shm_name: str, capacity: int, path: str) -> None:
     _set_process_name(PROCESS_NAME)
     shm = SharedMemory(name=shm_name)
     buf = shm.buf
+    assert buf is not None  # (None only once the mapping is closed)
     word = struct.Struct("@q")
     parent = multiprocessing.parent_process()
     try:

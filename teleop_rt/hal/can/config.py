@@ -16,7 +16,7 @@ naming the key when the backend or the emulator is built (``CanSideSpec.check_ed
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, model_validator
 
@@ -55,7 +55,7 @@ class CanBusSpec(_Strict):
     bitrate: Annotated[int, Field(ge=10_000, le=1_000_000)] | None = None
     options: dict[str, OptionValue] = Field(default_factory=dict)
 
-    def kwargs(self) -> dict[str, OptionValue]:
+    def kwargs(self) -> dict[str, Any]:  # python-can's Bus takes any of its options
         """Keyword arguments for ``can.Bus``."""
         out: dict[str, OptionValue] = {"interface": self.interface}
         if self.channel is not None:
@@ -139,7 +139,9 @@ class CanSideSpec(_Strict):
     def check_eds(self, key: str) -> None:
         """ConfigError naming the first drive whose EDS file is missing (``key``: 'can.hsi')."""
         for j, d in enumerate(self.drives):
-            problem = None if d.eds is None else file_problem(d.eds)
+            if d.eds is None:
+                continue
+            problem = file_problem(d.eds)
             if problem == "no such file":
                 raise ConfigError(f"{key}.drives.{j}.eds: no such file: {shown(d.eds)}")
             if problem is not None:

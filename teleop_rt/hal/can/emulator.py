@@ -43,7 +43,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import can
 import canopen
@@ -55,6 +55,7 @@ from teleop_rt.hal.can.config import DEFAULT_EDS, CanSpec, DriveSpec, TorqueSens
 if TYPE_CHECKING:
     from teleop_rt.config import SessionConfig
     from teleop_rt.hal.sim import SimBackend
+    from teleop_rt.world import Load
 
 log = logging.getLogger(__name__)
 
@@ -209,13 +210,15 @@ class EmulatedDrive:
         return obj if isinstance(obj, odt.ODVariable) else obj[subindex]
 
     def _od_value(self, index: int, subindex: int) -> int:
-        return self._od_entry(index, subindex).decode_raw(self.node.get_data(index, subindex))
+        # the drive's objects the emulator reads are integers (CiA 402's and 301's)
+        raw = self.node.get_data(index, subindex)
+        return cast(int, self._od_entry(index, subindex).decode_raw(raw))
 
     def _on_sdo_read(self, index: int, subindex: int, od: odt.ODVariable) -> int | None:
         return self.obj.get(index) if index in self.obj and index != 0x6060 else None
 
     def _on_sdo_write(self, index: int, subindex: int, od: odt.ODVariable, data: bytes) -> None:
-        value = od.decode_raw(data)
+        value = cast(int, od.decode_raw(data))  # every object written here is an integer
         self.sdo_writes.append((index, subindex, value))
         if index == 0x6060:
             self.obj[0x6060] = self.obj[0x6061] = value
@@ -285,7 +288,7 @@ class EmulatedDrive:
                 self.mapping_errors.append(f"{name}: object 0x{index:04X} does not exist")
                 return None
             var = self._od_entry(index, (entry >> 8) & 0xFF)
-            code = _FMT.get(var.data_type)
+            code = None if var.data_type is None else _FMT.get(var.data_type)
             if code is None or struct.calcsize(code) * 8 != bits or not var.pdo_mappable:
                 self.mapping_errors.append(f"{name}: cannot map 0x{index:04X} as {bits} bits")
                 return None
@@ -437,7 +440,7 @@ class DriveEmulator:
         bus: can.BusABC,
         cfg: SessionConfig,
         side: str,
-        operator: object = None,
+        operator: Load | None = None,
         sensor_offset_nm: float | list[float] = 0.0,
         rated_torque_raw: int | None = None,
     ) -> None:
@@ -454,7 +457,9 @@ class DriveEmulator:
         self.drives = [EmulatedDrive(self, d) for d in spec.drives]
         if rated_torque_raw is not None:
             for d in self.drives:
-                d.node.object_dictionary[0x6076].default = rated_torque_raw
+                rated = d.node.object_dictionary[0x6076]
+                assert isinstance(rated, odt.ODVariable)  # 0x6076 is a variable in every EDS
+                rated.default = rated_torque_raw
                 d.power_on()
         self.by_node = {d.node_id: d for d in self.drives}
         self.sensor: TorqueSensorSpec | None = spec.torque_sensor
@@ -553,7 +558,7 @@ class DriveEmulator:
             self._prepare(advance=True)
         elif self._outbox is None:  # nothing prepared (start, NMT change): sample now
             self._prepare(advance=False)
-        for cob, data in self._outbox:
+        for cob, data in self._outbox or ():
             self.send(cob, data)
         for d in self.drives:
             d.heartbeat(now, id(d) in self._silent)
@@ -653,19 +658,20 @@ class DriveEmulator:
         if not self.faults:
             return []
         k = self.world_tick
-        out = []
+        out: list[tuple[str, EmulatedDrive]] = []
         for f in list(self.faults):
-            once = f.kind in _ONE_SHOT
-            if once:
-                on = k == f.at_tick
+            at = f.at_tick
+            assert at is not None  # inject() schedules faults with their tick
+            if f.kind in _ONE_SHOT:
+                on = k == at
             else:
-                on = f.at_tick <= k and (f.ticks is None or k < f.at_tick + f.ticks)
+                on = at <= k and (f.ticks is None or k < at + f.ticks)
             if on:
                 targets = self.drives if f.node_id is None else [self.by_node[f.node_id]]
                 if f.kind == "error_frame":
                     targets = targets[:1]  # one frame on the bus, not one per drive
                 out.extend((f.kind, d) for d in targets)
-                if once:
+                if f.kind in _ONE_SHOT:
                     self.faults.remove(f)
         return out
 
@@ -719,13 +725,16 @@ class SteppedBus(can.BusABC):
     looks for them: deterministic, single-threaded, no wall-clock waits.
     """
 
+    emulator: DriveEmulator  # set by ``emulated_bus``
+
     def __init__(
         self, inner: can.BusABC, on_send: Callable[[], None], owned: tuple[can.BusABC, ...] = ()
     ) -> None:
         self._inner = inner
         self._on_send = on_send
         self._owned = owned  # further buses to shut down with this one (the emulator's)
-        super().__init__(channel=getattr(inner, "channel_id", None))
+        # python-can keeps the channel as given; an inner bus without one has None
+        super().__init__(channel=getattr(inner, "channel_id", None))  # type: ignore[arg-type]
         self.channel_info = f"stepped emulator on {inner.channel_info}"
 
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
@@ -745,7 +754,7 @@ class SteppedBus(can.BusABC):
 _channel_serial = iter(range(1, 1 << 62))
 
 
-def emulated_bus(cfg: SessionConfig, side: str, operator: object = None) -> SteppedBus:
+def emulated_bus(cfg: SessionConfig, side: str, operator: Load | None = None) -> SteppedBus:
     """A master bus with an in-process emulator of ``side``'s drives behind it.
 
     The emulator is reachable as ``bus.emulator`` (tests inject faults there).
@@ -755,5 +764,5 @@ def emulated_bus(cfg: SessionConfig, side: str, operator: object = None) -> Step
     master_bus = can.Bus(interface="virtual", channel=channel)
     emu = DriveEmulator(emu_bus, cfg, side, operator=operator, sensor_offset_nm=0.02)
     bus = SteppedBus(master_bus, emu.poll, owned=(emu_bus,))
-    bus.emulator = emu  # type: ignore[attr-defined]
+    bus.emulator = emu
     return bus
