@@ -286,7 +286,10 @@ class Session:
         monitor_step(mon.f, n, hsi.port.f, to.port.f)
         if hsi.guard.saturated or to.guard.saturated:
             self.pair.saturated_ticks += 1
-        accumulate(met.f, met.i, n, hsi.feedback.q, to.feedback.q, hsi.signals.tau, to.signals.tau)
+        q_h = hsi.mapping.q_mapped if hsi.mapping.active else hsi.feedback.q
+        tau_e = to.mapping.tau_mapped if to.mapping.active else to.signals.tau
+        q_t = to.mapping.q_mapped if to.mapping.active else to.feedback.q
+        accumulate(met.f, met.i, n, q_h, q_t, hsi.signals.tau, tau_e)
         self.tick += 1
 
     def link_stats(self) -> dict | None:

@@ -26,6 +26,7 @@ from teleop_rt.control import ComputedTorque, Pid
 from teleop_rt.errors import SafetyStop
 from teleop_rt.flat import Block, Packed
 from teleop_rt.hal.base import Backend, create_backend
+from teleop_rt.mapping import PRESENCE_LOST, Mapping, mapping_for
 from teleop_rt.model import RobotModel
 from teleop_rt.safety import RobotGuard
 from teleop_rt.site_tick import (
@@ -74,6 +75,7 @@ class Site:
             RobotGuard(cfg.safety, model, name, cfg.dt),
             port_for(cfg, n, SIDES[name]),
             cfg.dt,
+            mapping_for(cfg, n, SIDES[name]),
         )
         self.stop_damping = cfg.safety.stop_damping_nm_s_per_rad
 
@@ -90,8 +92,11 @@ class Site:
     def _assemble(
         self, model: RobotModel, backend: Backend, controller: Pid,
         computed_torque: ComputedTorque, guard: RobotGuard, port: Port, dt: float,
+        mapping: Mapping | None = None,
     ) -> None:  # fmt: skip
+        """``mapping``: the map between the robot and its port (None: the identity)."""
         self.side, self.dt = SIDES[self.name], dt
+        self.mapping = mapping or Mapping(model.nv, SIDES[self.name], dt)
         self.stop_damping = STOP_DAMPING_DEFAULT
         self.model, self.n = model, model.nv
         self.controller, self.computed_torque, self.guard = controller, computed_torque, guard
@@ -251,6 +256,10 @@ class Site:
     def stop_for(self, code: int) -> SafetyStop:
         """The SafetyStop that words a finding of this site's compiled checks."""
         self.found_fault = True
+        if code == PRESENCE_LOST:
+            timeout = self.mapping.timeout_ticks * self.dt
+            return SafetyStop(f"tick {self.tick}: {self.name}: the operator has been away for "
+                              f"more than {timeout:g} s (mapping.presence_timeout_s)")  # fmt: skip
         return self.guard.stop_for(self.tick, code, self.feedback.age_ticks)
 
 

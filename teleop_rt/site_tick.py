@@ -17,15 +17,39 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop_rt.com.port import EFFORT, FLOW, HSI, P_SEQ, P_TICK, P_VALID, port_input, port_step
+from teleop_rt.com.port import (
+    EFFORT,
+    FLOW,
+    HSI,
+    P_SEQ,
+    P_TICK,
+    P_VALID,
+    TERMINATED,
+    port_input,
+    port_step,
+)
 from teleop_rt.control import A_DES, OUT, TAU, ct_finish, ct_prepare, pid_step
 from teleop_rt.flat import Block, Int, Vector, floats_of, ints_of, jit, vec
 from teleop_rt.hal.base import FB_AGE_TICKS, FB_Q, FB_TAU_EXT, FB_V
+from teleop_rt.mapping import (
+    M_ACTIVE,
+    M_ALPHA,
+    M_GAIN,
+    N_MAPPING_VECTORS,
+    Q_MAPPED,
+    TAU_MAPPED,
+    X,
+    hsi_map_input,
+    mapping_engage,
+    to_map_gain,
+    to_map_input,
+    to_map_output,
+)
 from teleop_rt.safety import guard_site, measured_fault
 
 SITE_ORDER = ("feedback", "signals", "port", "tx", "rx", "controller", "computed_torque",
-              "guard", "world")  # fmt: skip
-FB, SIG, PORT, TX, RX, PID, CT, GUARD, WORLD = range(len(SITE_ORDER))
+              "guard", "world", "mapping")  # fmt: skip
+FB, SIG, PORT, TX, RX, PID, CT, GUARD, WORLD, MAP = range(len(SITE_ORDER))
 SITE_BLOCKS = len(SITE_ORDER)
 
 
@@ -59,14 +83,30 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
     sig, si = floats_of(f, o, SIG), o[2 * SIG + 1]  # (ints by offset: a slice costs more)
     port, port_i, tx = floats_of(f, o, PORT), ints_of(i, o, PORT), floats_of(f, o, TX)
     tau = vec(sig, S_TAU, n)
+    mapped = i[o[2 * MAP + 1] + M_ACTIVE] != 0  # (the identity: the ports take v_h, tau_e)
+    mf, mi = floats_of(f, o, MAP), ints_of(i, o, MAP)
     if i[si + S_SIDE] == HSI:  # tau_h = tau_ext; the port's flow omega_c = v_h
         for j in range(n):
             tau[j] = tau_ext[j]
-        port_input(port, port_i, n, v, tx)
+        if mapped:  # omega_c = r v_h (teleop_rt.mapping)
+            code = mapping_engage(mf, mi, n, i[si + S_TICK], vec(port, EFFORT, n))
+            if code:
+                return code
+            hsi_map_input(mf, n, q, v)
+            port_input(port, port_i, n, vec(mf, X, n), tx)
+        else:
+            port_input(port, port_i, n, v, tx)
     else:  # tau_e = -tau_ext; the port's effort tau_t = tau_e
         for j in range(n):
             tau[j] = -tau_ext[j]
-        port_input(port, port_i, n, tau, tx)
+        if mapped:  # tau_t = r beta tau_e
+            to_map_input(mf, n, tau)
+            mapping_engage(mf, mi, n, i[si + S_TICK], vec(mf, TAU_MAPPED, n))
+            to_map_gain(mf, n)
+            port_i[TERMINATED] = mf[N_MAPPING_VECTORS * n + M_GAIN] == 0.0
+            port_input(port, port_i, n, vec(mf, X, n), tx)
+        else:
+            port_input(port, port_i, n, tau, tx)
     ti = o[2 * TX + 1]
     i[ti + P_TICK] = i[si + S_TICK]
     i[ti + P_SEQ] = i[si + S_TICK]
@@ -81,14 +121,28 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
     port_step(port, port_i, n, floats_of(f, o, RX), ints_of(i, o, RX), floats_of(f, o, TX))
     sig = floats_of(f, o, SIG)
     error, tau = vec(sig, S_ERROR, n), vec(sig, S_TAU, n)
+    mapped = i[o[2 * MAP + 1] + M_ACTIVE] != 0
+    ms = N_MAPPING_VECTORS * n
     if i[o[2 * SIG + 1] + S_SIDE] == HSI:  # M1 a_h = C1(tau_h - tau_c)
         tau_c = vec(port, EFFORT, n)
-        for j in range(n):
-            error[j] = tau[j] - tau_c[j]
+        if mapped:  # the rendered torque r tau_c
+            r = floats_of(f, o, MAP)[ms + M_GAIN]
+            for j in range(n):
+                error[j] = tau[j] - r * tau_c[j]
+        else:
+            for j in range(n):
+                error[j] = tau[j] - tau_c[j]
     else:  # M2 a_t = C2(omega_t - v_t)
         omega_t, v = vec(port, FLOW, n), vec(floats_of(f, o, FB), FB_V, n)
-        for j in range(n):
-            error[j] = omega_t[j] - v[j]
+        if mapped:  # the velocity reference r alpha omega_t
+            mf = floats_of(f, o, MAP)
+            g = mf[ms + M_GAIN] * mf[ms + M_ALPHA]
+            for j in range(n):
+                error[j] = g * omega_t[j] - v[j]
+            to_map_output(mf, n, vec(floats_of(f, o, FB), FB_Q, n), omega_t)
+        else:
+            for j in range(n):
+                error[j] = omega_t[j] - v[j]
     pid = floats_of(f, o, PID)
     pid_step(pid, ints_of(i, o, PID), n, error)
     ct_prepare(floats_of(f, o, CT), n, vec(pid, OUT, n))
@@ -106,3 +160,20 @@ def site_after_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, rnea:
         floats_of(f, o, GUARD), ints_of(i, o, GUARD), n, q, v, i[o[2 * FB + 1] + FB_AGE_TICKS],
         vec(ct, TAU, n), vec(ct, A_DES, n),
     )  # fmt: skip
+
+
+@jit
+def site_position(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> np.ndarray:
+    """The position this site adds to T_p: q, or the mapped, indexed one (the HSI's
+    alpha (q_h - offset), the TO's q_t + offset: ``teleop_rt.mapping``)."""
+    if i[o[2 * MAP + 1] + M_ACTIVE]:
+        return vec(floats_of(f, o, MAP), Q_MAPPED, n)
+    return vec(floats_of(f, o, FB), FB_Q, n)
+
+
+@jit
+def site_torque(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> np.ndarray:
+    """The torque this site adds to T_tau: tau_h or tau_e, or the TO's mapped beta tau_e."""
+    if i[o[2 * MAP + 1] + M_ACTIVE] and i[o[2 * SIG + 1] + S_SIDE] != HSI:
+        return vec(floats_of(f, o, MAP), TAU_MAPPED, n)
+    return vec(floats_of(f, o, SIG), S_TAU, n)
