@@ -133,6 +133,10 @@ class ChannelSpec(Strict):
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # README, Passive over any network). None, the default, switches it off.
     tdpa_drift_time_s: PositiveFloat | None = None
+    # what the channel couples (teleop_rt.mapping): joint j to joint j, or the tools' x-y
+    # velocity and force in the world plane (each site through its own Jacobian; 2 joints
+    # a side; wave_impedance then in N s/m)
+    space: Literal["joint", "plane"] = "joint"
 
 
 class FaultSpec(Strict):

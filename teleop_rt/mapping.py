@@ -69,6 +69,12 @@ from teleop_rt.config import SessionConfig
 from teleop_rt.flat import Block, Int, Scalar, Vector, jit, vec
 
 PRESENCE_LOST = 200  # a site finding (teleop_rt.safety's codes are below 200)
+JOINT, PLANE = 0, 1  # channel.space: joint to joint, or the tools' x-y velocity and force
+SPACES = {"joint": JOINT, "plane": PLANE}
+TASK = 2  # the plane's dimension: the port's vectors hold x, y
+# damped least squares (Wampler 1986; Nakamura & Hanafusa 1986): J# = J^T (J J^T + l^2 I)^-1,
+# l in m (the SCARA's links are ~0.2 m: it acts within ~1 mm of a singular pose)
+DLS_DAMPING_M = 1e-3
 
 
 class Mapping(Block):
@@ -95,15 +101,23 @@ class Mapping(Block):
     absent_at = Int("the first absence interval not yet over")
     coupled = Int("1: clutch released and operator present")
     engagements = Int("re-engagements so far")
-    TAIL_IS_STATE = False  # the script: starts then ends of the clutch, then of the absences
+    space = Int("JOINT or PLANE", param=True)
+    kin_at = Int("PLANE: where J (2 x n), J# (n x 2) and the tool's x, y start", param=True)
+    # the script: starts then ends of the clutch, then of the absences; then (PLANE) the
+    # kinematics, refreshed by ``map_kinematics`` after every tick
+    TAIL_IS_STATE = False
 
     def __init__(
         self, n: int, side: int, dt: float, motion_scale: float = 1.0, force_scale: float = 1.0,
         clutch: list[tuple[int, int]] | None = None, absent: list[tuple[int, int]] | None = None,
         ramp_s: float = 0.0, step_limit: float = math.inf, timeout_ticks: int = -1,
+        space: int = JOINT,
     ) -> None:  # fmt: skip
         clutch, absent = clutch or [], absent or []
-        super().__init__(n, tail=2 * (len(clutch) + len(absent)))
+        script = 2 * (len(clutch) + len(absent))
+        super().__init__(n, tail=script + (4 * n + TASK if space == PLANE else 0))
+        self.space = space
+        self.kin_at = self.tail_start + script
         self.side, self.dt = side, dt
         self.motion_scale, self.force_scale = motion_scale, force_scale
         self.ramp_step = min(1.0, dt / ramp_s) if ramp_s > 0 else 1.0
@@ -115,7 +129,9 @@ class Mapping(Block):
             at = 2 * len(clutch) * k
             tail[at : at + len(intervals)] = [a for a, _ in intervals]
             tail[at + len(intervals) : at + 2 * len(intervals)] = [b for _, b in intervals]
-        self.active = int(motion_scale != 1.0 or force_scale != 1.0 or bool(clutch or absent))
+        self.active = int(
+            motion_scale != 1.0 or force_scale != 1.0 or bool(clutch or absent) or space != JOINT
+        )
         self.gain, self.coupled = 1.0, 1
 
 
@@ -133,6 +149,7 @@ M_ACTIVE, M_SIDE, M_CLUTCH_COUNT, M_ABSENT_COUNT, M_TIMEOUT = (
 M_CLUTCH_AT, M_ABSENT_AT, M_COUPLED, M_ENGAGEMENTS = (
     Mapping.clutch_at.k, Mapping.absent_at.k, Mapping.coupled.k, Mapping.engagements.k
 )  # fmt: skip
+M_SPACE, M_KIN_AT = Mapping.space.k, Mapping.kin_at.k
 N_MAPPING_VECTORS, N_MAPPING_SCALARS = len(Mapping.VECTORS), len(Mapping.SCALARS)
 
 
@@ -226,6 +243,107 @@ def to_map_gain(f: np.ndarray, n: int) -> None:
         x[j] = r * tau_mapped[j]
 
 
+@jit
+def map_kinematics(f: np.ndarray, i: np.ndarray, n: int, jac: np.ndarray, x: np.ndarray) -> None:
+    """PLANE: the tool's Jacobian rows x, y (of ``jac``, 6 x n, world-aligned), their damped
+    least-squares inverse J# = J^T (J J^T + l^2 I)^-1 and the tool's x, y (of ``x``), for the
+    next tick's map. The same J# maps flow in and effort out, so the map stays lossless
+    whatever l does to accuracy."""
+    k = i[M_KIN_AT]
+    jj, inv, pos = k, k + TASK * n, k + 4 * n
+    for a in range(TASK):
+        for j in range(n):
+            f[jj + a * n + j] = jac[a, j]
+        f[pos + a] = x[a]
+    # A = J J^T + l^2 I (2 x 2), then J# = J^T A^-1
+    a00 = a01 = a11 = 0.0
+    for j in range(n):
+        a00 += jac[0, j] * jac[0, j]
+        a01 += jac[0, j] * jac[1, j]
+        a11 += jac[1, j] * jac[1, j]
+    damping = DLS_DAMPING_M * DLS_DAMPING_M
+    a00 += damping
+    a11 += damping
+    det = a00 * a11 - a01 * a01
+    b00, b01, b11 = a11 / det, -a01 / det, a00 / det
+    for j in range(n):
+        f[inv + j * TASK] = jac[0, j] * b00 + jac[1, j] * b01
+        f[inv + j * TASK + 1] = jac[0, j] * b01 + jac[1, j] * b11
+
+
+@jit
+def hsi_plane_input(
+    f: np.ndarray, i: np.ndarray, n: int, v: np.ndarray, tau_h: np.ndarray
+) -> None:  # fmt: skip
+    """PLANE at the HSI: omega_c = r J v_h; the indexing offset and the indexed tool position
+    alpha (x_h - offset); the operator's force J#^T tau_h (for T_tau)."""
+    s, k = N_MAPPING_VECTORS * n, i[M_KIN_AT]
+    jj, inv, pos = k, k + TASK * n, k + 4 * n
+    r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
+    x, q_mapped, offset = vec(f, X, n), vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
+    force = vec(f, TAU_MAPPED, n)
+    for a in range(TASK):
+        xd = 0.0
+        fa = 0.0
+        for j in range(n):
+            xd += f[jj + a * n + j] * v[j]
+            fa += f[inv + j * TASK + a] * tau_h[j]
+        x[a] = r * xd
+        offset[a] += (1.0 - r) * xd * dt
+        q_mapped[a] = alpha * (f[pos + a] - offset[a])
+        force[a] = fa
+
+
+@jit
+def hsi_plane_render(
+    f: np.ndarray, i: np.ndarray, n: int, tau_h: np.ndarray, tau_c: np.ndarray,
+    error: np.ndarray,
+) -> None:  # fmt: skip
+    """PLANE at the HSI: C1's error tau_h - r J^T F_c."""
+    s, jj = N_MAPPING_VECTORS * n, i[M_KIN_AT]
+    r = f[s + M_GAIN]
+    for j in range(n):
+        rendered = 0.0
+        for a in range(TASK):
+            rendered += f[jj + a * n + j] * tau_c[a]
+        error[j] = tau_h[j] - r * rendered
+
+
+@jit
+def to_plane_input(f: np.ndarray, i: np.ndarray, n: int, tau_e: np.ndarray) -> None:
+    """PLANE at the TO: the environment's force beta J#^T tau_e into tau_mapped."""
+    s, inv = N_MAPPING_VECTORS * n, i[M_KIN_AT] + TASK * n
+    beta = f[s + M_BETA]
+    force = vec(f, TAU_MAPPED, n)
+    for a in range(TASK):
+        fa = 0.0
+        for j in range(n):
+            fa += f[inv + j * TASK + a] * tau_e[j]
+        force[a] = beta * fa
+
+
+@jit
+def to_plane_output(
+    f: np.ndarray, i: np.ndarray, n: int, omega_t: np.ndarray, v: np.ndarray,
+    error: np.ndarray,
+) -> None:  # fmt: skip
+    """PLANE at the TO: C2's error r alpha J# omega_t - v_t; the indexing offset and the
+    indexed tool position x_t + offset."""
+    s, k = N_MAPPING_VECTORS * n, i[M_KIN_AT]
+    inv, pos = k + TASK * n, k + 4 * n
+    r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
+    g = r * alpha
+    q_mapped, offset = vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
+    for j in range(n):
+        v_ref = 0.0
+        for a in range(TASK):
+            v_ref += f[inv + j * TASK + a] * omega_t[a]
+        error[j] = g * v_ref - v[j]
+    for a in range(TASK):
+        offset[a] += (1.0 - r) * alpha * omega_t[a] * dt
+        q_mapped[a] = f[pos + a] + offset[a]
+
+
 def mapping_for(cfg: SessionConfig, n: int, side: int) -> Mapping:
     """Site ``side``'s map from the config (``mapping`` and the operator's script); the TO's
     script is the HSI's shifted by the channel's delay (when the HSI's input reaches it)."""
@@ -241,4 +359,5 @@ def mapping_for(cfg: SessionConfig, n: int, side: int) -> Mapping:
         n, side, cfg.dt, spec.motion_scale, spec.force_scale,
         ticks(cfg.operator.clutch), ticks(cfg.operator.absent), spec.engage_ramp_s,
         spec.engage_step_nm, -1 if timeout is None else round(timeout * rate),
+        SPACES[cfg.channel.space],
     )  # fmt: skip

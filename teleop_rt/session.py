@@ -43,6 +43,7 @@ from teleop_rt.lockstep import (
     lockstep_before,
 )
 from teleop_rt.loop import TickClock
+from teleop_rt.mapping import JOINT
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
 
@@ -178,6 +179,7 @@ class Session:
         self._pack(pair)
         self.compiled_link = compiled_link
         self._boxed = [s for s in self.sites if s.guard.workspace is not None and s.guard.enabled]
+        self._task_space = [s for s in self.sites if s.mapping.space != JOINT]
 
     @property
     def sites(self) -> tuple[Site, Site]:
@@ -272,6 +274,8 @@ class Session:
         else:
             hsi.backend.write(hsi.computed_torque.tau)
             to.backend.write(to.computed_torque.tau)
+        for site in self._task_space:  # (the next tick's Jacobians: task-space maps only)
+            site.map_kinematics()
         self.tick += 1
 
     def _step_over(self, link: Link) -> None:

@@ -23,10 +23,10 @@ from teleop_rt.com.link import Link
 from teleop_rt.com.port import HSI, TO, Packet, Port
 from teleop_rt.config import SafetySpec, SessionConfig, per_joint
 from teleop_rt.control import ComputedTorque, Pid
-from teleop_rt.errors import SafetyStop
+from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
 from teleop_rt.hal.base import Backend, create_backend
-from teleop_rt.mapping import PRESENCE_LOST, Mapping, mapping_for
+from teleop_rt.mapping import PLANE, PRESENCE_LOST, TASK, Mapping, map_kinematics, mapping_for
 from teleop_rt.model import RobotModel
 from teleop_rt.safety import RobotGuard
 from teleop_rt.site_tick import (
@@ -78,6 +78,12 @@ class Site:
             mapping_for(cfg, n, SIDES[name]),
         )
         self.stop_damping = cfg.safety.stop_damping_nm_s_per_rad
+        if self.mapping.space == PLANE and n != TASK:
+            raise ConfigError(
+                f"channel.space: plane couples 2-joint robots (x, y of the tool); the {name} "
+                f"has {n} joints"
+            )
+        self.map_kinematics(np.array(spec.robot.q0_rad or [0.0] * n, dtype=float))
 
     @classmethod
     def from_parts(
@@ -123,6 +129,17 @@ class Site:
         self.tick = 0
         self.blocks: list[Block] = [getattr(self, attr) for attr in SITE_ORDER]
         self.bind(Packed(self.blocks))  # alone until a session packs it with the other site
+
+    def map_kinematics(self, q: np.ndarray | None = None) -> None:
+        """A task-space map's Jacobian, its inverse and the tool's place at the measured q (or
+        ``q``), for the next tick (after this tick's torques: one Pinocchio call)."""
+        if self.mapping.space != PLANE:
+            return
+        m = self.model
+        at = self.feedback.q if q is None else q
+        jac = pin.computeFrameJacobian(m.model, m.data, at, m.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)
+        mapping = self.mapping
+        map_kinematics(mapping.f, mapping.i, self.n, jac, m._ee_translation)
 
     def bind(self, packed: Packed, first: int = 0) -> None:
         """Work on the site's blocks where they are now: blocks ``first`` on of ``packed``."""
@@ -175,6 +192,7 @@ class Site:
         if code:
             raise self.stop_for(code)
         self.backend.write(self.computed_torque.tau)
+        self.map_kinematics()
         self.tick += 1
 
     def check_workspace(self) -> None:

@@ -35,15 +35,21 @@ from teleop_rt.mapping import (
     M_ACTIVE,
     M_ALPHA,
     M_GAIN,
+    M_SPACE,
     N_MAPPING_VECTORS,
+    PLANE,
     Q_MAPPED,
     TAU_MAPPED,
     X,
     hsi_map_input,
+    hsi_plane_input,
+    hsi_plane_render,
     mapping_engage,
     to_map_gain,
     to_map_input,
     to_map_output,
+    to_plane_input,
+    to_plane_output,
 )
 from teleop_rt.safety import guard_site, measured_fault
 
@@ -92,7 +98,10 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
             code = mapping_engage(mf, mi, n, i[si + S_TICK], vec(port, EFFORT, n))
             if code:
                 return code
-            hsi_map_input(mf, n, q, v)
+            if mi[M_SPACE] == PLANE:
+                hsi_plane_input(mf, mi, n, v, tau)
+            else:
+                hsi_map_input(mf, n, q, v)
             port_input(port, port_i, n, vec(mf, X, n), tx)
         else:
             port_input(port, port_i, n, v, tx)
@@ -100,7 +109,10 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
         for j in range(n):
             tau[j] = -tau_ext[j]
         if mapped:  # tau_t = r beta tau_e
-            to_map_input(mf, n, tau)
+            if mi[M_SPACE] == PLANE:
+                to_plane_input(mf, mi, n, tau)
+            else:
+                to_map_input(mf, n, tau)
             mapping_engage(mf, mi, n, i[si + S_TICK], vec(mf, TAU_MAPPED, n))
             to_map_gain(mf, n)
             port_i[TERMINATED] = mf[N_MAPPING_VECTORS * n + M_GAIN] == 0.0
@@ -125,7 +137,9 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
     ms = N_MAPPING_VECTORS * n
     if i[o[2 * SIG + 1] + S_SIDE] == HSI:  # M1 a_h = C1(tau_h - tau_c)
         tau_c = vec(port, EFFORT, n)
-        if mapped:  # the rendered torque r tau_c
+        if mapped and ints_of(i, o, MAP)[M_SPACE] == PLANE:  # r J^T F_c
+            hsi_plane_render(floats_of(f, o, MAP), ints_of(i, o, MAP), n, tau, tau_c, error)
+        elif mapped:  # the rendered torque r tau_c
             r = floats_of(f, o, MAP)[ms + M_GAIN]
             for j in range(n):
                 error[j] = tau[j] - r * tau_c[j]
@@ -134,7 +148,9 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
                 error[j] = tau[j] - tau_c[j]
     else:  # M2 a_t = C2(omega_t - v_t)
         omega_t, v = vec(port, FLOW, n), vec(floats_of(f, o, FB), FB_V, n)
-        if mapped:  # the velocity reference r alpha omega_t
+        if mapped and ints_of(i, o, MAP)[M_SPACE] == PLANE:  # r alpha J# omega_t
+            to_plane_output(floats_of(f, o, MAP), ints_of(i, o, MAP), n, omega_t, v, error)
+        elif mapped:  # the velocity reference r alpha omega_t
             mf = floats_of(f, o, MAP)
             g = mf[ms + M_GAIN] * mf[ms + M_ALPHA]
             for j in range(n):
@@ -173,7 +189,9 @@ def site_position(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> np.nda
 
 @jit
 def site_torque(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> np.ndarray:
-    """The torque this site adds to T_tau: tau_h or tau_e, or the TO's mapped beta tau_e."""
-    if i[o[2 * MAP + 1] + M_ACTIVE] and i[o[2 * SIG + 1] + S_SIDE] != HSI:
+    """The torque this site adds to T_tau: tau_h or tau_e, or the mapped one (the TO's
+    beta tau_e; in the plane the tools' forces)."""
+    mi = o[2 * MAP + 1]
+    if i[mi + M_ACTIVE] and (i[o[2 * SIG + 1] + S_SIDE] != HSI or i[mi + M_SPACE] == PLANE):
         return vec(floats_of(f, o, MAP), TAU_MAPPED, n)
     return vec(floats_of(f, o, SIG), S_TAU, n)

@@ -143,7 +143,7 @@ def test_the_operator_feels_beta_times_the_wall(delay_ms: int) -> None:
     assert summary.min_channel_energy_j >= PASSIVE_J
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=16, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     delay_ms=st.sampled_from([0, 1, 7, 20, 50]),
     mode=st.sampled_from(
@@ -152,13 +152,18 @@ def test_the_operator_feels_beta_times_the_wall(delay_ms: int) -> None:
     stiffness=st.sampled_from([500.0, 5000.0]),
     clutch=st.booleans(),
     b=st.sampled_from([0.5, 2.0, 8.0]),
+    space=st.sampled_from(["joint", "plane"]),
 )
-def test_scaled_channel_is_passive(delay_ms, mode, stiffness, clutch, b) -> None:
+def test_scaled_channel_is_passive(delay_ms, mode, stiffness, clutch, b, space) -> None:
     """alpha = 0.2, beta = 5 against a wall within the scaled TO's reach, with and without a
-    clutch: the channel's energy >= -1e-9 J, and the scaled two-port's (robot variables, the
-    TO's power times beta / alpha) is that energy plus what the matched termination took."""
+    clutch, joint to joint or in the plane (b in N s/m there: 25 times, the SCARA's ~0.2 m
+    lever squared): the channel's energy >= -1e-9 J, and the scaled two-port's (robot
+    variables, the TO's power times beta / alpha) is that energy plus what the matched
+    termination took."""
+    b_space = b * (25 if space == "plane" else 1)
     overrides = [
-        f"channel.delay_ms={delay_ms}", mode, f"channel.wave_impedance={b}", "duration_s=3",
+        f"channel.delay_ms={delay_ms}", mode, f"channel.wave_impedance={b_space}",
+        f"channel.space={space}", "duration_s=3",
         f"mapping.motion_scale={ALPHA}", f"mapping.force_scale={BETA}",
         "environment.0.point_m=[0.0, -0.015]", f"environment.0.stiffness_n_per_m={stiffness}",
     ]  # fmt: skip
@@ -292,3 +297,44 @@ def test_presence_lost_briefly_decouples_and_too_long_stops() -> None:
     stopped = Session(long).run()
     assert stopped.safety_stop and "away for more than 0.5 s" in (stopped.stopped_early or "")
     assert stopped.ticks == 1500  # ticks 0-1499 ran; at tick 1500 away for 501 ticks: stop
+
+
+# --- the plane: each site through its own Jacobian ----------------------------------------------
+PLANE = ("channel.space=plane", "channel.wave_impedance=50")  # b in N s/m
+
+
+def test_in_the_plane_the_to_tool_follows_the_hsi_tool() -> None:
+    """Free space, 0 ms: the TO's tool moves as the HSI's does (x, y), and T_p (now of the
+    tools' positions, m^2 s) is small against the motion's own square integral."""
+    session, trace, summary = run(load("free_space", *PLANE))
+    x_h, x_t = session.hsi.mapping.q_mapped, session.to.mapping.q_mapped
+    np.testing.assert_allclose(x_h, x_t, atol=1e-3)
+    assert session.hsi.model.tool_position(session.hsi.feedback.q)[:2] == pytest.approx(
+        session.to.model.tool_position(session.to.feedback.q)[:2], abs=1e-3
+    )
+    assert sum(summary.t_p) < 1e-5  # (the tool sweeps ~0.09 m for 4 s: ~1e-2 m^2 s)
+    assert summary.min_channel_energy_j >= PASSIVE_J
+
+
+@pytest.mark.parametrize("delay_ms", [0, 50])
+def test_in_the_plane_the_operator_feels_beta_times_the_wall_force(delay_ms: int) -> None:
+    """Held against the wall, the HSI at rest: tau_h = J_h^T F_c and F_c = beta F_e, so the
+    operator's force at the tool (J_h#^T tau_h) is beta times the TO's force on the wall
+    (J_t#^T tau_e), within 5 %; with alpha = 0.2 the TO's tool moves 0.2 times as far."""
+    cfg = load("stiff_wall", *PLANE, f"channel.delay_ms={delay_ms}",
+               f"mapping.motion_scale={ALPHA}", f"mapping.force_scale={BETA}",
+               "environment.0.point_m=[0.0, -0.015]")  # fmt: skip
+    session = Session(cfg)
+    forces: list[np.ndarray] = []
+    session.run(observer=lambda s: forces.append(
+        np.concatenate([s.hsi.mapping.tau_mapped, s.to.mapping.tau_mapped])))  # fmt: skip
+    held = np.array(forces)[3500:3900].mean(axis=0)
+    f_h, beta_f_e = held[:2], held[2:]
+    assert abs(beta_f_e[1]) > 1.0  # pressing the wall (N, along its normal y)
+    np.testing.assert_allclose(f_h, beta_f_e, rtol=0.05, atol=0.05)
+
+
+def test_the_plane_refuses_a_robot_of_other_than_two_joints() -> None:
+    cfg = load("free_space", *PLANE, "hsi.robot={example_robot: ur5, ee_frame: tool0}")
+    with pytest.raises(ConfigError, match="plane couples 2-joint robots.*the hsi has 6 joints"):
+        Session(cfg)
