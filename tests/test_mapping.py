@@ -338,3 +338,28 @@ def test_the_plane_refuses_a_robot_of_other_than_two_joints() -> None:
     cfg = load("free_space", *PLANE, "hsi.robot={example_robot: ur5, ee_frame: tool0}")
     with pytest.raises(ConfigError, match="plane couples 2-joint robots.*the hsi has 6 joints"):
         Session(cfg)
+
+
+@pytest.mark.parametrize("space", ["joint", "plane"])
+def test_sites_alone_over_a_link_map_as_the_lock_step_session(space: str) -> None:
+    """What a site in a process of its own runs (its sense / update over a Link) maps exactly
+    as the one-process session's fused kernels do, clutch, scaling and plane included."""
+    from tests.test_two_sites import sites_alone
+
+    b = 50 if space == "plane" else 2
+    cfg = load("stiff_wall", "duration_s=3", "channel.delay_ms=20", f"channel.space={space}",
+               f"channel.wave_impedance={b}", f"mapping.motion_scale={ALPHA}",
+               f"mapping.force_scale={BETA}", "environment.0.point_m=[0.0, -0.015]",
+               "operator.clutch=[{start_s: 1.2, end_s: 1.7}]")  # fmt: skip
+    lockstep = Session(cfg)
+    alone, link = sites_alone(cfg)
+    for k in range(cfg.n_ticks):
+        lockstep.step()
+        alone.hsi.sense(link)
+        alone.to.sense(link)
+        alone.hsi.update(link)
+        alone.to.update(link)
+        for a, b_ in ((lockstep.hsi, alone.hsi), (lockstep.to, alone.to)):
+            assert np.array_equal(a.tau_cmd, b_.tau_cmd), k
+            assert np.array_equal(a.mapping.f, b_.mapping.f), k
+    assert alone.hsi.mapping.engagements == alone.to.mapping.engagements == 1
