@@ -102,7 +102,9 @@ class Mapping(Block):
     coupled = Int("1: clutch released and operator present")
     engagements = Int("re-engagements so far")
     space = Int("JOINT or PLANE", param=True)
-    kin_at = Int("PLANE: where J (2 x n), J# (n x 2) and the tool's x, y start", param=True)
+    kin_at = Int("PLANE: where J (2 x joints), J# (joints x 2) and the tool's x, y start",
+                 param=True)
+    joints = Int("the robot's joints (the block's vectors: the port's size)", param=True)
     # the script: starts then ends of the clutch, then of the absences; then (PLANE) the
     # kinematics, refreshed by ``map_kinematics`` after every tick
     TAIL_IS_STATE = False
@@ -111,12 +113,15 @@ class Mapping(Block):
         self, n: int, side: int, dt: float, motion_scale: float = 1.0, force_scale: float = 1.0,
         clutch: list[tuple[int, int]] | None = None, absent: list[tuple[int, int]] | None = None,
         ramp_s: float = 0.0, step_limit: float = math.inf, timeout_ticks: int = -1,
-        space: int = JOINT,
+        space: int = JOINT, joints: int | None = None,
     ) -> None:  # fmt: skip
+        """``n``: the port's size (the joints, or TASK in the plane); ``joints``: the robot's
+        (default n)."""
         clutch, absent = clutch or [], absent or []
         script = 2 * (len(clutch) + len(absent))
-        super().__init__(n, tail=script + (4 * n + TASK if space == PLANE else 0))
-        self.space = space
+        nj = n if joints is None else joints
+        super().__init__(n, tail=script + (4 * nj + TASK if space == PLANE else 0))
+        self.space, self.joints = space, nj
         self.kin_at = self.tail_start + script
         self.side, self.dt = side, dt
         self.motion_scale, self.force_scale = motion_scale, force_scale
@@ -149,7 +154,7 @@ M_ACTIVE, M_SIDE, M_CLUTCH_COUNT, M_ABSENT_COUNT, M_TIMEOUT = (
 M_CLUTCH_AT, M_ABSENT_AT, M_COUPLED, M_ENGAGEMENTS = (
     Mapping.clutch_at.k, Mapping.absent_at.k, Mapping.coupled.k, Mapping.engagements.k
 )  # fmt: skip
-M_SPACE, M_KIN_AT = Mapping.space.k, Mapping.kin_at.k
+M_SPACE, M_KIN_AT, M_JOINTS = Mapping.space.k, Mapping.kin_at.k, Mapping.joints.k
 N_MAPPING_VECTORS, N_MAPPING_SCALARS = len(Mapping.VECTORS), len(Mapping.SCALARS)
 
 
@@ -244,12 +249,12 @@ def to_map_gain(f: np.ndarray, n: int) -> None:
 
 
 @jit
-def map_kinematics(f: np.ndarray, i: np.ndarray, n: int, jac: np.ndarray, x: np.ndarray) -> None:
+def map_kinematics(f: np.ndarray, i: np.ndarray, jac: np.ndarray, x: np.ndarray) -> None:
     """PLANE: the tool's Jacobian rows x, y (of ``jac``, 6 x n, world-aligned), their damped
     least-squares inverse J# = J^T (J J^T + l^2 I)^-1 and the tool's x, y (of ``x``), for the
     next tick's map. The same J# maps flow in and effort out, so the map stays lossless
     whatever l does to accuracy."""
-    k = i[M_KIN_AT]
+    k, n = i[M_KIN_AT], i[M_JOINTS]
     jj, inv, pos = k, k + TASK * n, k + 4 * n
     for a in range(TASK):
         for j in range(n):
@@ -276,17 +281,19 @@ def hsi_plane_input(
     f: np.ndarray, i: np.ndarray, n: int, v: np.ndarray, tau_h: np.ndarray
 ) -> None:  # fmt: skip
     """PLANE at the HSI: omega_c = r J v_h; the indexing offset and the indexed tool position
-    alpha (x_h - offset); the operator's force J#^T tau_h (for T_tau)."""
+    alpha (x_h - offset); the operator's force J#^T tau_h (for T_tau). ``n``: the port's
+    size; the robot's joints are the block's ``joints``."""
     s, k = N_MAPPING_VECTORS * n, i[M_KIN_AT]
-    jj, inv, pos = k, k + TASK * n, k + 4 * n
+    nj = i[M_JOINTS]
+    jj, inv, pos = k, k + TASK * nj, k + 4 * nj
     r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
     x, q_mapped, offset = vec(f, X, n), vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
     force = vec(f, TAU_MAPPED, n)
     for a in range(TASK):
         xd = 0.0
         fa = 0.0
-        for j in range(n):
-            xd += f[jj + a * n + j] * v[j]
+        for j in range(nj):
+            xd += f[jj + a * nj + j] * v[j]
             fa += f[inv + j * TASK + a] * tau_h[j]
         x[a] = r * xd
         offset[a] += (1.0 - r) * xd * dt
@@ -300,24 +307,25 @@ def hsi_plane_render(
     error: np.ndarray,
 ) -> None:  # fmt: skip
     """PLANE at the HSI: C1's error tau_h - r J^T F_c."""
-    s, jj = N_MAPPING_VECTORS * n, i[M_KIN_AT]
+    s, jj, nj = N_MAPPING_VECTORS * n, i[M_KIN_AT], i[M_JOINTS]
     r = f[s + M_GAIN]
-    for j in range(n):
+    for j in range(nj):
         rendered = 0.0
         for a in range(TASK):
-            rendered += f[jj + a * n + j] * tau_c[a]
+            rendered += f[jj + a * nj + j] * tau_c[a]
         error[j] = tau_h[j] - r * rendered
 
 
 @jit
 def to_plane_input(f: np.ndarray, i: np.ndarray, n: int, tau_e: np.ndarray) -> None:
     """PLANE at the TO: the environment's force beta J#^T tau_e into tau_mapped."""
-    s, inv = N_MAPPING_VECTORS * n, i[M_KIN_AT] + TASK * n
+    nj = i[M_JOINTS]
+    s, inv = N_MAPPING_VECTORS * n, i[M_KIN_AT] + TASK * nj
     beta = f[s + M_BETA]
     force = vec(f, TAU_MAPPED, n)
     for a in range(TASK):
         fa = 0.0
-        for j in range(n):
+        for j in range(nj):
             fa += f[inv + j * TASK + a] * tau_e[j]
         force[a] = beta * fa
 
@@ -329,12 +337,12 @@ def to_plane_output(
 ) -> None:  # fmt: skip
     """PLANE at the TO: C2's error r alpha J# omega_t - v_t; the indexing offset and the
     indexed tool position x_t + offset."""
-    s, k = N_MAPPING_VECTORS * n, i[M_KIN_AT]
-    inv, pos = k + TASK * n, k + 4 * n
+    s, k, nj = N_MAPPING_VECTORS * n, i[M_KIN_AT], i[M_JOINTS]
+    inv, pos = k + TASK * nj, k + 4 * nj
     r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
     g = r * alpha
     q_mapped, offset = vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
-    for j in range(n):
+    for j in range(nj):
         v_ref = 0.0
         for a in range(TASK):
             v_ref += f[inv + j * TASK + a] * omega_t[a]
@@ -344,7 +352,7 @@ def to_plane_output(
         q_mapped[a] = f[pos + a] + offset[a]
 
 
-def mapping_for(cfg: SessionConfig, n: int, side: int) -> Mapping:
+def mapping_for(cfg: SessionConfig, joints: int, side: int) -> Mapping:
     """Site ``side``'s map from the config (``mapping`` and the operator's script); the TO's
     script is the HSI's shifted by the channel's delay (when the HSI's input reaches it)."""
     spec, rate = cfg.mapping, cfg.rate_hz
@@ -355,9 +363,10 @@ def mapping_for(cfg: SessionConfig, n: int, side: int) -> Mapping:
                 for w in intervals]  # fmt: skip
 
     timeout = spec.presence_timeout_s
+    space = SPACES[cfg.channel.space]
     return Mapping(
-        n, side, cfg.dt, spec.motion_scale, spec.force_scale,
+        TASK if space == PLANE else joints, side, cfg.dt, spec.motion_scale, spec.force_scale,
         ticks(cfg.operator.clutch), ticks(cfg.operator.absent), spec.engage_ramp_s,
         spec.engage_step_nm, -1 if timeout is None else round(timeout * rate),
-        SPACES[cfg.channel.space],
+        space, joints,
     )  # fmt: skip

@@ -149,11 +149,11 @@ class Session:
         backends = backends or {}
         self.hsi = HsiSite(cfg, backends.get("hsi"), operator)
         self.to = ToSite(cfg, backends.get("to"))
-        n = self.hsi.n
-        if self.to.n != n:
+        n = self.hsi.m  # the channel's size: the joints, or the task's dimension
+        if self.to.m != n:
             raise ConfigError(
-                f"to.robot: the TO has {self.to.n} joints but the HSI has {n}; "
-                "the channel couples joint to joint"
+                f"to.robot: the TO has {self.to.n} joints but the HSI has {self.hsi.n}; "
+                "the channel couples joint to joint (channel.space: plane couples the tools)"
             )
         self.n = n
         impairment = cfg.link.impairment
@@ -175,7 +175,9 @@ class Session:
         self.channel = ChannelView(self)
         self.tick = 0
         compiled_link = isinstance(self.link, InProcessLink)
-        pair = self.hsi.backend.fuse(self.to.backend) if fuse and compiled_link else None
+        # the fused plants take one joint count (a pair of other robots runs read / write)
+        same = self.hsi.n == self.to.n == n
+        pair = self.hsi.backend.fuse(self.to.backend) if fuse and compiled_link and same else None
         self._pack(pair)
         self.compiled_link = compiled_link
         self._boxed = [s for s in self.sites if s.guard.workspace is not None and s.guard.enabled]
@@ -203,7 +205,7 @@ class Session:
         # state, not at the first deadline
         f, i, o, n = self._buffers
         lockstep_before(f.copy(), i.copy(), o, self._at, n)
-        lockstep_after(f.copy(), i.copy(), o, n, np.zeros(n), np.zeros(n))
+        lockstep_after(f.copy(), i.copy(), o, n, np.zeros(hsi.n), np.zeros(to.n))
         self._pair_plants = pair
         if pair is not None:
             pair.bind(p.f, p.i, p.offsets)

@@ -73,15 +73,15 @@ class Site:
             Pid(spec.controller, n, cfg.dt, f"{name}.controller"),
             ComputedTorque(model, self.virtual_mass, spec.compensate_friction),
             RobotGuard(cfg.safety, model, name, cfg.dt),
-            port_for(cfg, n, SIDES[name]),
+            port_for(cfg, TASK if cfg.channel.space == "plane" else n, SIDES[name]),
             cfg.dt,
             mapping_for(cfg, n, SIDES[name]),
         )
         self.stop_damping = cfg.safety.stop_damping_nm_s_per_rad
-        if self.mapping.space == PLANE and n != TASK:
+        if self.mapping.space == PLANE and n < TASK:
             raise ConfigError(
-                f"channel.space: plane couples 2-joint robots (x, y of the tool); the {name} "
-                f"has {n} joints"
+                f"channel.space: plane needs at least 2 joints (x, y of the tool); the {name} "
+                f"has {n}"
             )
         self.map_kinematics(np.array(spec.robot.q0_rad or [0.0] * n, dtype=float))
 
@@ -105,6 +105,7 @@ class Site:
         self.mapping = mapping or Mapping(model.nv, SIDES[self.name], dt)
         self.stop_damping = STOP_DAMPING_DEFAULT
         self.model, self.n = model, model.nv
+        self.m = port.n  # the port's size: the joints, or the task's dimension
         self.controller, self.computed_torque, self.guard = controller, computed_torque, guard
         self.backend = backend
         self.feedback = backend.feedback
@@ -113,7 +114,7 @@ class Site:
         if port.side != self.side:
             raise ValueError(f"the {self.name} site needs the {self.name}'s port")
         self.port = port
-        self.tx, self.rx = Packet(self.n), Packet(self.n)
+        self.tx, self.rx = Packet(self.m), Packet(self.m)
         # the staged stop's buffers, and the TO's stop gain: its controller's kp, at most
         # STOP_GAIN_OF_DEADBEAT of the sampled velocity loop's deadbeat gain M_v / dt, so that
         # the stop converges whatever kp is (the loop v[k+1] = (1 - k dt / M_v) v[k] is stable
@@ -139,13 +140,13 @@ class Site:
         at = self.feedback.q if q is None else q
         jac = pin.computeFrameJacobian(m.model, m.data, at, m.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)
         mapping = self.mapping
-        map_kinematics(mapping.f, mapping.i, self.n, jac, m._ee_translation)
+        map_kinematics(mapping.f, mapping.i, jac, m._ee_translation)
 
     def bind(self, packed: Packed, first: int = 0) -> None:
         """Work on the site's blocks where they are now: blocks ``first`` on of ``packed``."""
         self.packed = packed
         end = first + len(SITE_ORDER)
-        self._buffers = (packed.f, packed.i, packed.offsets[2 * first : 2 * end], self.n)
+        self._buffers = (packed.f, packed.i, packed.offsets[2 * first : 2 * end], self.m)
         self._pin = (self.model.model, self.model.data, self.feedback.q, self.feedback.v,
                      self.computed_torque.a_des)  # fmt: skip
 
@@ -155,7 +156,7 @@ class Site:
         f, i = f.copy(), i.copy()
         site_sense(f, i, o, n)
         site_before_models(f, i, o, n)
-        site_after_models(f, i, o, n, np.zeros(n))
+        site_after_models(f, i, o, n, np.zeros(self.n))
 
     @property
     def a_ref(self) -> np.ndarray:

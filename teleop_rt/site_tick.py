@@ -35,6 +35,7 @@ from teleop_rt.mapping import (
     M_ACTIVE,
     M_ALPHA,
     M_GAIN,
+    M_JOINTS,
     M_SPACE,
     N_MAPPING_VECTORS,
     PLANE,
@@ -80,19 +81,21 @@ S_TAU, S_ERROR, S_TICK, S_SIDE = (
 @jit
 def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
     """From the fresh feedback to the outgoing packet's port input; a non-finite measurement
-    is a finding (returned) before anything is computed or sent from it."""
+    is a finding (returned) before anything is computed or sent from it. ``n``: the port's
+    size (the robot's joints, or the task's dimension: the mapping's ``joints`` says)."""
+    nj = i[o[2 * MAP + 1] + M_JOINTS]
     fb = floats_of(f, o, FB)
-    q, v, tau_ext = vec(fb, FB_Q, n), vec(fb, FB_V, n), vec(fb, FB_TAU_EXT, n)
-    code = measured_fault(floats_of(f, o, GUARD), ints_of(i, o, GUARD), n, q, v, tau_ext)
+    q, v, tau_ext = vec(fb, FB_Q, nj), vec(fb, FB_V, nj), vec(fb, FB_TAU_EXT, nj)
+    code = measured_fault(floats_of(f, o, GUARD), ints_of(i, o, GUARD), nj, q, v, tau_ext)
     if code:
         return code
     sig, si = floats_of(f, o, SIG), o[2 * SIG + 1]  # (ints by offset: a slice costs more)
     port, port_i, tx = floats_of(f, o, PORT), ints_of(i, o, PORT), floats_of(f, o, TX)
-    tau = vec(sig, S_TAU, n)
+    tau = vec(sig, S_TAU, nj)
     mapped = i[o[2 * MAP + 1] + M_ACTIVE] != 0  # (the identity: the ports take v_h, tau_e)
     mf, mi = floats_of(f, o, MAP), ints_of(i, o, MAP)
     if i[si + S_SIDE] == HSI:  # tau_h = tau_ext; the port's flow omega_c = v_h
-        for j in range(n):
+        for j in range(nj):
             tau[j] = tau_ext[j]
         if mapped:  # omega_c = r v_h (teleop_rt.mapping)
             code = mapping_engage(mf, mi, n, i[si + S_TICK], vec(port, EFFORT, n))
@@ -106,7 +109,7 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
         else:
             port_input(port, port_i, n, v, tx)
     else:  # tau_e = -tau_ext; the port's effort tau_t = tau_e
-        for j in range(n):
+        for j in range(nj):
             tau[j] = -tau_ext[j]
         if mapped:  # tau_t = r beta tau_e
             if mi[M_SPACE] == PLANE:
@@ -131,8 +134,9 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
     """From the received packet to the acceleration the model is evaluated at."""
     port, port_i = floats_of(f, o, PORT), ints_of(i, o, PORT)
     port_step(port, port_i, n, floats_of(f, o, RX), ints_of(i, o, RX), floats_of(f, o, TX))
+    nj = i[o[2 * MAP + 1] + M_JOINTS]  # (n: the port's size)
     sig = floats_of(f, o, SIG)
-    error, tau = vec(sig, S_ERROR, n), vec(sig, S_TAU, n)
+    error, tau = vec(sig, S_ERROR, nj), vec(sig, S_TAU, nj)
     mapped = i[o[2 * MAP + 1] + M_ACTIVE] != 0
     ms = N_MAPPING_VECTORS * n
     if i[o[2 * SIG + 1] + S_SIDE] == HSI:  # M1 a_h = C1(tau_h - tau_c)
@@ -147,7 +151,7 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
             for j in range(n):
                 error[j] = tau[j] - tau_c[j]
     else:  # M2 a_t = C2(omega_t - v_t)
-        omega_t, v = vec(port, FLOW, n), vec(floats_of(f, o, FB), FB_V, n)
+        omega_t, v = vec(port, FLOW, n), vec(floats_of(f, o, FB), FB_V, nj)
         if mapped and ints_of(i, o, MAP)[M_SPACE] == PLANE:  # r alpha J# omega_t
             to_plane_output(floats_of(f, o, MAP), ints_of(i, o, MAP), n, omega_t, v, error)
         elif mapped:  # the velocity reference r alpha omega_t
@@ -160,13 +164,14 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
             for j in range(n):
                 error[j] = omega_t[j] - v[j]
     pid = floats_of(f, o, PID)
-    pid_step(pid, ints_of(i, o, PID), n, error)
-    ct_prepare(floats_of(f, o, CT), n, vec(pid, OUT, n))
+    pid_step(pid, ints_of(i, o, PID), nj, error)
+    ct_prepare(floats_of(f, o, CT), nj, vec(pid, OUT, nj))
 
 
 @jit
 def site_after_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, rnea: np.ndarray) -> int:
     """From the model's RNEA to the checked motor torque; the safety finding (0: none)."""
+    n = i[o[2 * MAP + 1] + M_JOINTS]  # (all joint-sized here)
     fb, ct = floats_of(f, o, FB), floats_of(f, o, CT)
     q, v, tau_ext = vec(fb, FB_Q, n), vec(fb, FB_V, n), vec(fb, FB_TAU_EXT, n)
     ct_finish(ct, ints_of(i, o, CT), n, rnea, tau_ext, v)

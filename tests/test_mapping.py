@@ -334,10 +334,34 @@ def test_in_the_plane_the_operator_feels_beta_times_the_wall_force(delay_ms: int
     np.testing.assert_allclose(f_h, beta_f_e, rtol=0.05, atol=0.05)
 
 
-def test_the_plane_refuses_a_robot_of_other_than_two_joints() -> None:
-    cfg = load("free_space", *PLANE, "hsi.robot={example_robot: ur5, ee_frame: tool0}")
-    with pytest.raises(ConfigError, match="plane couples 2-joint robots.*the hsi has 6 joints"):
-        Session(cfg)
+@pytest.mark.parametrize("delay_ms", [0, 50])
+def test_a_scara_drives_a_ur5_in_the_plane(delay_ms: int) -> None:
+    """The heterogeneous pair (configs/task_space/scara_ur5_plane.yaml): the UR5's tool
+    follows the SCARA's in x, y (within 1 mm at 0 ms, 6 mm at 50 ms), and held against the
+    wall the operator's tool force equals the UR5's on the wall within 5 %; passive."""
+    cfg = config.load(CONFIGS / "task_space" / "scara_ur5_plane.yaml",
+                      [f"channel.delay_ms={delay_ms}"])  # fmt: skip
+    session = Session(cfg)
+    assert (session.hsi.n, session.to.n, session.n) == (2, 6, 2) and not session.fused
+    rows: list[np.ndarray] = []
+    summary = session.run(observer=lambda s: rows.append(np.concatenate([
+        s.hsi.mapping.tau_mapped, s.to.mapping.tau_mapped,
+        s.hsi.mapping.q_mapped, s.to.mapping.q_mapped])))  # fmt: skip
+    a = np.array(rows)
+    follow = np.abs((a[:, 4:6] - a[0, 4:6]) - (a[:, 6:8] - a[0, 6:8])).max()
+    assert follow < (1e-3 if delay_ms == 0 else 6e-3)
+    held = a[3500:3900].mean(axis=0)
+    assert abs(held[3]) > 1.0
+    np.testing.assert_allclose(held[:2], held[2:4], rtol=0.05, atol=0.05)
+    assert summary.min_channel_energy_j >= PASSIVE_J and summary.stopped_early is None
+
+
+def test_a_pair_of_other_joint_counts_is_not_recorded(tmp_path) -> None:
+    from teleop_rt.recording.recorder import Recorder
+
+    session = Session(config.load(CONFIGS / "task_space" / "scara_ur5_plane.yaml"))
+    with pytest.raises(ConfigError, match="run with --no-log"):
+        Recorder(session, tmp_path / "x.mcap")
 
 
 @pytest.mark.parametrize("space", ["joint", "plane"])
