@@ -167,6 +167,10 @@ class ChannelSpec(Strict):
     # is up), the receiver holding the last one passively in between (docs/codec.md)
     codec: Literal["none", "deadband"] = "none"
     deadband: DeadbandSpec = DeadbandSpec()
+    # what the channel couples (teleop_rt.mapping): joint j to joint j, or the tools' x-y
+    # velocity and force in the world plane (each site through its own Jacobian; 2 joints
+    # a side; wave_impedance then in N s/m)
+    space: Literal["joint", "plane"] = "joint"
 
 
 class FaultSpec(Strict):
@@ -263,7 +267,40 @@ class RecordingSpec(Strict):
     ring_s: Annotated[float, Field(gt=0, le=600, allow_inf_nan=False)] = 64.0
 
 
-class DamperOperatorSpec(Strict):
+class Interval(Strict):
+    """A stretch of time [start_s, end_s)."""
+
+    start_s: NonNegFloat
+    end_s: PositiveFloat
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Interval:
+        if not self.end_s > self.start_s:
+            raise ValueError("end_s must be after start_s")
+        return self
+
+
+def _disjoint(intervals: list[Interval]) -> list[Interval]:
+    if any(b.start_s < a.end_s for a, b in zip(intervals, intervals[1:], strict=False)):
+        raise ValueError("intervals must be in time order and must not overlap")
+    return intervals
+
+
+class OperatorInputs(Strict):
+    """The operator's digital inputs, scripted (teleop_rt.mapping): the clutch pressed (the
+    sites decoupled, for indexing) and the presence switch released (the operator away: as
+    the clutch, and a stop after mapping.presence_timeout_s)."""
+
+    clutch: list[Interval] = Field(default_factory=list)
+    absent: list[Interval] = Field(default_factory=list)
+
+    @field_validator("clutch", "absent")
+    @classmethod
+    def _in_order(cls, v: list[Interval]) -> list[Interval]:
+        return _disjoint(v)
+
+
+class DamperOperatorSpec(OperatorInputs):
     """The paper's operator (Z_o = const): a damper between the HSI joints and the ground."""
 
     kind: Literal["damper"]
@@ -280,7 +317,7 @@ class Waypoint(Strict):
         return _vec3(v, "position_m")
 
 
-class HandOperatorSpec(Strict):
+class HandOperatorSpec(OperatorInputs):
     """An active operator: a hand following scripted end-effector waypoints (minimum-jerk
     segments from the HSI's start pose) through a Cartesian spring-damper."""
 
@@ -465,6 +502,21 @@ class LinkSpec(Strict):
     playout: Literal["fixed", "newest"] = "fixed"
 
 
+class MappingSpec(Strict):
+    """The map between each robot and its port of the channel (teleop_rt.mapping): motion and
+    force scaling, kept passive, and how the coupling comes back after the clutch or an
+    absence. Joint space: joint j of the HSI maps to joint j of the TO."""
+
+    motion_scale: PositiveFloat = 1.0  # alpha: the TO moves alpha times the HSI's motion
+    force_scale: PositiveFloat = 1.0  # beta: the HSI displays beta times the TO's torque
+    # on re-engaging the coupling gain ramps 0 -> 1 over at least this long, and changes the
+    # torque it multiplies by at most engage_step_nm per tick
+    engage_ramp_s: NonNegFloat = 0.2
+    engage_step_nm: PositiveFloat = 0.005
+    # the operator away (operator.absent) for longer than this: a safety stop (None: never)
+    presence_timeout_s: PositiveFloat | None = None
+
+
 class SessionConfig(Strict):
     """A whole session: rate, duration, both robots, the channel, plant, operator, environment."""
 
@@ -483,6 +535,7 @@ class SessionConfig(Strict):
     operator: Operator
     environment: list[Environment] = Field(default_factory=list)
     can: CanSpec | None = None  # the CAN backend's buses and drives (teleop_rt.hal.can)
+    mapping: MappingSpec = MappingSpec()  # scaling, clutch and presence (teleop_rt.mapping)
 
     @field_validator("duration_s")
     @classmethod

@@ -20,21 +20,19 @@ import numpy as np
 from teleop_rt.analysis.transparency import accumulate
 from teleop_rt.com.channel import monitor_step
 from teleop_rt.com.link import link_deliver, link_offsets, link_push
-from teleop_rt.flat import Block, Int, floats_of, ints_of, jit, vec
-from teleop_rt.hal.base import FB_Q
+from teleop_rt.flat import Block, Int, floats_of, ints_of, jit
 from teleop_rt.safety import SATURATED
 from teleop_rt.site_tick import (
-    FB,
     GUARD,
     PORT,
     RX,
-    S_TAU,
-    SIG,
     SITE_BLOCKS,
     TX,
     site_after_models,
     site_before_models,
+    site_position,
     site_sense,
+    site_torque,
 )
 
 HSI_SITE, TO_SITE = 0, SITE_BLOCKS  # each site's first block
@@ -96,10 +94,9 @@ def lockstep_after(
         return code
     if i[oh[2 * GUARD + 1] + SATURATED] or i[ot[2 * GUARD + 1] + SATURATED]:
         i[pair + SATURATED_TICKS] += 1
-    fb_h, fb_t = floats_of(f, oh, FB), floats_of(f, ot, FB)
     accumulate(
         floats_of(f, o, METRICS), ints_of(i, o, METRICS), n,
-        vec(fb_h, FB_Q, n), vec(fb_t, FB_Q, n),
-        vec(floats_of(f, oh, SIG), S_TAU, n), vec(floats_of(f, ot, SIG), S_TAU, n),
+        site_position(f, i, oh, n), site_position(f, i, ot, n),
+        site_torque(f, i, oh, n), site_torque(f, i, ot, n),
     )  # fmt: skip
     return 0

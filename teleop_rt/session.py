@@ -43,6 +43,7 @@ from teleop_rt.lockstep import (
     lockstep_before,
 )
 from teleop_rt.loop import TickClock
+from teleop_rt.mapping import JOINT
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
 
@@ -151,11 +152,11 @@ class Session:
         backends = backends or {}
         self.hsi = HsiSite(cfg, backends.get("hsi"), operator)
         self.to = ToSite(cfg, backends.get("to"))
-        n = self.hsi.n
-        if self.to.n != n:
+        n = self.hsi.m  # the channel's size: the joints, or the task's dimension
+        if self.to.m != n:
             raise ConfigError(
-                f"to.robot: the TO has {self.to.n} joints but the HSI has {n}; "
-                "the channel couples joint to joint"
+                f"to.robot: the TO has {self.to.n} joints but the HSI has {self.hsi.n}; "
+                "the channel couples joint to joint (channel.space: plane couples the tools)"
             )
         self.n = n
         impairment = cfg.link.impairment
@@ -177,10 +178,13 @@ class Session:
         self.channel = ChannelView(self)
         self.tick = 0
         compiled_link = isinstance(self.link, InProcessLink)
-        pair = self.hsi.backend.fuse(self.to.backend) if fuse and compiled_link else None
+        # the fused plants take one joint count (a pair of other robots runs read / write)
+        same = self.hsi.n == self.to.n == n
+        pair = self.hsi.backend.fuse(self.to.backend) if fuse and compiled_link and same else None
         self._pack(pair)
         self.compiled_link = compiled_link
         self._boxed = [s for s in self.sites if s.guard.workspace is not None and s.guard.enabled]
+        self._task_space = [s for s in self.sites if s.mapping.space != JOINT]
 
     @property
     def sites(self) -> tuple[Site, Site]:
@@ -204,7 +208,7 @@ class Session:
         # state, not at the first deadline
         f, i, o, n = self._buffers
         lockstep_before(f.copy(), i.copy(), o, self._at, n)
-        lockstep_after(f.copy(), i.copy(), o, n, np.zeros(n), np.zeros(n))
+        lockstep_after(f.copy(), i.copy(), o, n, np.zeros(hsi.n), np.zeros(to.n))
         self._pair_plants = pair
         if pair is not None:
             pair.bind(p.f, p.i, p.offsets)
@@ -277,6 +281,8 @@ class Session:
         else:
             hsi.backend.write(hsi.computed_torque.tau)
             to.backend.write(to.computed_torque.tau)
+        for site in self._task_space:  # (the next tick's Jacobians: task-space maps only)
+            site.map_kinematics()
         self.tick += 1
 
     def _step_over(self, link: Link) -> None:
@@ -294,7 +300,10 @@ class Session:
         monitor_step(mon.f, n, hsi.port.f, to.port.f)
         if hsi.guard.saturated or to.guard.saturated:
             self.pair.saturated_ticks += 1
-        accumulate(met.f, met.i, n, hsi.feedback.q, to.feedback.q, hsi.signals.tau, to.signals.tau)
+        q_h = hsi.mapping.q_mapped if hsi.mapping.active else hsi.feedback.q
+        tau_e = to.mapping.tau_mapped if to.mapping.active else to.signals.tau
+        q_t = to.mapping.q_mapped if to.mapping.active else to.feedback.q
+        accumulate(met.f, met.i, n, q_h, q_t, hsi.signals.tau, tau_e)
         self.tick += 1
 
     def _read_to_after(self, exc: SafetyStop) -> SafetyStop:

@@ -24,9 +24,10 @@ from teleop_rt.com.link import Link
 from teleop_rt.com.port import HSI, TO, Packet, Port
 from teleop_rt.config import SafetySpec, SessionConfig, per_joint
 from teleop_rt.control import ComputedTorque, Pid
-from teleop_rt.errors import SafetyStop
+from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
 from teleop_rt.hal.base import Backend, create_backend
+from teleop_rt.mapping import PLANE, PRESENCE_LOST, TASK, Mapping, map_kinematics, mapping_for
 from teleop_rt.model import RobotModel
 from teleop_rt.safety import RobotGuard
 from teleop_rt.site_tick import (
@@ -73,10 +74,17 @@ class Site:
             Pid(spec.controller, n, cfg.dt, f"{name}.controller"),
             ComputedTorque(model, self.virtual_mass, spec.compensate_friction),
             RobotGuard(cfg.safety, model, name, cfg.dt),
-            port_for(cfg, n, SIDES[name]),
+            port_for(cfg, TASK if cfg.channel.space == "plane" else n, SIDES[name]),
             cfg.dt,
+            mapping_for(cfg, n, SIDES[name]),
         )
         self.stop_damping = cfg.safety.stop_damping_nm_s_per_rad
+        if self.mapping.space == PLANE and n < TASK:
+            raise ConfigError(
+                f"channel.space: plane needs at least 2 joints (x, y of the tool); the {name} "
+                f"has {n}"
+            )
+        self.map_kinematics(np.array(spec.robot.q0_rad or [0.0] * n, dtype=float))
 
     @classmethod
     def from_parts(
@@ -91,10 +99,14 @@ class Site:
     def _assemble(
         self, model: RobotModel, backend: Backend, controller: Pid,
         computed_torque: ComputedTorque, guard: RobotGuard, port: Port, dt: float,
+        mapping: Mapping | None = None,
     ) -> None:  # fmt: skip
+        """``mapping``: the map between the robot and its port (None: the identity)."""
         self.side, self.dt = SIDES[self.name], dt
+        self.mapping = mapping or Mapping(model.nv, SIDES[self.name], dt)
         self.stop_damping = STOP_DAMPING_DEFAULT
         self.model, self.n = model, model.nv
+        self.m = port.n  # the port's size: the joints, or the task's dimension
         self.controller, self.computed_torque, self.guard = controller, computed_torque, guard
         self.backend = backend
         self.feedback = backend.feedback
@@ -103,7 +115,7 @@ class Site:
         if port.side != self.side:
             raise ValueError(f"the {self.name} site needs the {self.name}'s port")
         self.port = port
-        self.tx, self.rx = Packet(self.n), Packet(self.n)
+        self.tx, self.rx = Packet(self.m), Packet(self.m)
         # the staged stop's buffers, and the TO's stop gain: its controller's kp, at most
         # STOP_GAIN_OF_DEADBEAT of the sampled velocity loop's deadbeat gain M_v / dt, so that
         # the stop converges whatever kp is (the loop v[k+1] = (1 - k dt / M_v) v[k] is stable
@@ -120,11 +132,22 @@ class Site:
         self.blocks: list[Block] = [getattr(self, attr) for attr in SITE_ORDER]
         self.bind(Packed(self.blocks))  # alone until a session packs it with the other site
 
+    def map_kinematics(self, q: np.ndarray | None = None) -> None:
+        """A task-space map's Jacobian, its inverse and the tool's place at the measured q (or
+        ``q``), for the next tick (after this tick's torques: one Pinocchio call)."""
+        if self.mapping.space != PLANE:
+            return
+        m = self.model
+        at = self.feedback.q if q is None else q
+        jac = pin.computeFrameJacobian(m.model, m.data, at, m.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)
+        mapping = self.mapping
+        map_kinematics(mapping.f, mapping.i, jac, m._ee_translation)
+
     def bind(self, packed: Packed, first: int = 0) -> None:
         """Work on the site's blocks where they are now: blocks ``first`` on of ``packed``."""
         self.packed = packed
         end = first + len(SITE_ORDER)
-        self._buffers = (packed.f, packed.i, packed.offsets[2 * first : 2 * end], self.n)
+        self._buffers = (packed.f, packed.i, packed.offsets[2 * first : 2 * end], self.m)
         self._pin = (self.model.model, self.model.data, self.feedback.q, self.feedback.v,
                      self.computed_torque.a_des)  # fmt: skip
 
@@ -134,7 +157,7 @@ class Site:
         f, i = f.copy(), i.copy()
         site_sense(f, i, o, n)
         site_before_models(f, i, o, n)
-        site_after_models(f, i, o, n, np.zeros(n))
+        site_after_models(f, i, o, n, np.zeros(self.n))
 
     @property
     def a_ref(self) -> np.ndarray:
@@ -171,6 +194,7 @@ class Site:
         if code:
             raise self.stop_for(code)
         self.backend.write(self.computed_torque.tau)
+        self.map_kinematics()
         self.tick += 1
 
     def check_workspace(self) -> None:
@@ -266,6 +290,10 @@ class Site:
     def stop_for(self, code: int) -> SafetyStop:
         """The SafetyStop that words a finding of this site's compiled checks."""
         self.found_fault = True
+        if code == PRESENCE_LOST:
+            timeout = self.mapping.timeout_ticks * self.dt
+            return SafetyStop(f"tick {self.tick}: {self.name}: the operator has been away for "
+                              f"more than {timeout:g} s (mapping.presence_timeout_s)")  # fmt: skip
         return self.guard.stop_for(self.tick, code, self.feedback.age_ticks)
 
 

@@ -20,15 +20,46 @@ from __future__ import annotations
 import numpy as np
 
 from teleop_rt.com.codec import codec_receive, codec_send
-from teleop_rt.com.port import EFFORT, FLOW, HSI, P_SEQ, P_TICK, P_VALID, port_input, port_step
+from teleop_rt.com.port import (
+    EFFORT,
+    FLOW,
+    HSI,
+    P_SEQ,
+    P_TICK,
+    P_VALID,
+    TERMINATED,
+    port_input,
+    port_step,
+)
 from teleop_rt.control import A_DES, OUT, TAU, ct_finish, ct_prepare, pid_step
 from teleop_rt.flat import Block, Int, Vector, floats_of, ints_of, jit, vec
 from teleop_rt.hal.base import FB_AGE_TICKS, FB_Q, FB_TAU_EXT, FB_V
+from teleop_rt.mapping import (
+    M_ACTIVE,
+    M_ALPHA,
+    M_GAIN,
+    M_JOINTS,
+    M_SPACE,
+    N_MAPPING_VECTORS,
+    PLANE,
+    Q_MAPPED,
+    TAU_MAPPED,
+    X,
+    hsi_map_input,
+    hsi_plane_input,
+    hsi_plane_render,
+    mapping_engage,
+    to_map_gain,
+    to_map_input,
+    to_map_output,
+    to_plane_input,
+    to_plane_output,
+)
 from teleop_rt.safety import guard_site, measured_fault
 
 SITE_ORDER = ("feedback", "signals", "port", "tx", "rx", "controller", "computed_torque",
-              "guard", "world")  # fmt: skip
-FB, SIG, PORT, TX, RX, PID, CT, GUARD, WORLD = range(len(SITE_ORDER))
+              "guard", "world", "mapping")  # fmt: skip
+FB, SIG, PORT, TX, RX, PID, CT, GUARD, WORLD, MAP = range(len(SITE_ORDER))
 SITE_BLOCKS = len(SITE_ORDER)
 
 
@@ -53,23 +84,47 @@ S_TAU, S_ERROR, S_TICK, S_SIDE = (
 @jit
 def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
     """From the fresh feedback to the outgoing packet's port input; a non-finite measurement
-    is a finding (returned) before anything is computed or sent from it."""
+    is a finding (returned) before anything is computed or sent from it. ``n``: the port's
+    size (the robot's joints, or the task's dimension: the mapping's ``joints`` says)."""
+    nj = i[o[2 * MAP + 1] + M_JOINTS]
     fb = floats_of(f, o, FB)
-    q, v, tau_ext = vec(fb, FB_Q, n), vec(fb, FB_V, n), vec(fb, FB_TAU_EXT, n)
-    code = measured_fault(floats_of(f, o, GUARD), ints_of(i, o, GUARD), n, q, v, tau_ext)
+    q, v, tau_ext = vec(fb, FB_Q, nj), vec(fb, FB_V, nj), vec(fb, FB_TAU_EXT, nj)
+    code = measured_fault(floats_of(f, o, GUARD), ints_of(i, o, GUARD), nj, q, v, tau_ext)
     if code:
         return code
     sig, si = floats_of(f, o, SIG), o[2 * SIG + 1]  # (ints by offset: a slice costs more)
     port, port_i, tx = floats_of(f, o, PORT), ints_of(i, o, PORT), floats_of(f, o, TX)
-    tau = vec(sig, S_TAU, n)
+    tau = vec(sig, S_TAU, nj)
+    mapped = i[o[2 * MAP + 1] + M_ACTIVE] != 0  # (the identity: the ports take v_h, tau_e)
+    mf, mi = floats_of(f, o, MAP), ints_of(i, o, MAP)
     if i[si + S_SIDE] == HSI:  # tau_h = tau_ext; the port's flow omega_c = v_h
-        for j in range(n):
+        for j in range(nj):
             tau[j] = tau_ext[j]
-        port_input(port, port_i, n, v, tx)
+        if mapped:  # omega_c = r v_h (teleop_rt.mapping)
+            code = mapping_engage(mf, mi, n, i[si + S_TICK], vec(port, EFFORT, n))
+            if code:
+                return code
+            if mi[M_SPACE] == PLANE:
+                hsi_plane_input(mf, mi, n, v, tau)
+            else:
+                hsi_map_input(mf, n, q, v)
+            port_input(port, port_i, n, vec(mf, X, n), tx)
+        else:
+            port_input(port, port_i, n, v, tx)
     else:  # tau_e = -tau_ext; the port's effort tau_t = tau_e
-        for j in range(n):
+        for j in range(nj):
             tau[j] = -tau_ext[j]
-        port_input(port, port_i, n, tau, tx)
+        if mapped:  # tau_t = r beta tau_e
+            if mi[M_SPACE] == PLANE:
+                to_plane_input(mf, mi, n, tau)
+            else:
+                to_map_input(mf, n, tau)
+            mapping_engage(mf, mi, n, i[si + S_TICK], vec(mf, TAU_MAPPED, n))
+            to_map_gain(mf, n)
+            port_i[TERMINATED] = mf[N_MAPPING_VECTORS * n + M_GAIN] == 0.0
+            port_input(port, port_i, n, vec(mf, X, n), tx)
+        else:
+            port_input(port, port_i, n, tau, tx)
     ti = o[2 * TX + 1]
     i[ti + P_TICK] = i[si + S_TICK]
     i[ti + P_SEQ] = i[si + S_TICK]
@@ -85,24 +140,44 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
     codec_receive(port, port_i, n, rx, rx_i)
     port_step(port, port_i, n, rx, rx_i, tx)
     codec_send(port, port_i, n, tx, ints_of(i, o, TX))
+    nj = i[o[2 * MAP + 1] + M_JOINTS]  # (n: the port's size)
     sig = floats_of(f, o, SIG)
-    error, tau = vec(sig, S_ERROR, n), vec(sig, S_TAU, n)
+    error, tau = vec(sig, S_ERROR, nj), vec(sig, S_TAU, nj)
+    mapped = i[o[2 * MAP + 1] + M_ACTIVE] != 0
+    ms = N_MAPPING_VECTORS * n
     if i[o[2 * SIG + 1] + S_SIDE] == HSI:  # M1 a_h = C1(tau_h - tau_c)
         tau_c = vec(port, EFFORT, n)
-        for j in range(n):
-            error[j] = tau[j] - tau_c[j]
+        if mapped and ints_of(i, o, MAP)[M_SPACE] == PLANE:  # r J^T F_c
+            hsi_plane_render(floats_of(f, o, MAP), ints_of(i, o, MAP), n, tau, tau_c, error)
+        elif mapped:  # the rendered torque r tau_c
+            r = floats_of(f, o, MAP)[ms + M_GAIN]
+            for j in range(n):
+                error[j] = tau[j] - r * tau_c[j]
+        else:
+            for j in range(n):
+                error[j] = tau[j] - tau_c[j]
     else:  # M2 a_t = C2(omega_t - v_t)
-        omega_t, v = vec(port, FLOW, n), vec(floats_of(f, o, FB), FB_V, n)
-        for j in range(n):
-            error[j] = omega_t[j] - v[j]
+        omega_t, v = vec(port, FLOW, n), vec(floats_of(f, o, FB), FB_V, nj)
+        if mapped and ints_of(i, o, MAP)[M_SPACE] == PLANE:  # r alpha J# omega_t
+            to_plane_output(floats_of(f, o, MAP), ints_of(i, o, MAP), n, omega_t, v, error)
+        elif mapped:  # the velocity reference r alpha omega_t
+            mf = floats_of(f, o, MAP)
+            g = mf[ms + M_GAIN] * mf[ms + M_ALPHA]
+            for j in range(n):
+                error[j] = g * omega_t[j] - v[j]
+            to_map_output(mf, n, vec(floats_of(f, o, FB), FB_Q, n), omega_t)
+        else:
+            for j in range(n):
+                error[j] = omega_t[j] - v[j]
     pid = floats_of(f, o, PID)
-    pid_step(pid, ints_of(i, o, PID), n, error)
-    ct_prepare(floats_of(f, o, CT), n, vec(pid, OUT, n))
+    pid_step(pid, ints_of(i, o, PID), nj, error)
+    ct_prepare(floats_of(f, o, CT), nj, vec(pid, OUT, nj))
 
 
 @jit
 def site_after_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, rnea: np.ndarray) -> int:
     """From the model's RNEA to the checked motor torque; the safety finding (0: none)."""
+    n = i[o[2 * MAP + 1] + M_JOINTS]  # (all joint-sized here)
     fb, ct = floats_of(f, o, FB), floats_of(f, o, CT)
     q, v, tau_ext = vec(fb, FB_Q, n), vec(fb, FB_V, n), vec(fb, FB_TAU_EXT, n)
     ct_finish(ct, ints_of(i, o, CT), n, rnea, tau_ext, v)
@@ -112,3 +187,22 @@ def site_after_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, rnea:
         floats_of(f, o, GUARD), ints_of(i, o, GUARD), n, q, v, i[o[2 * FB + 1] + FB_AGE_TICKS],
         vec(ct, TAU, n), vec(ct, A_DES, n),
     )  # fmt: skip
+
+
+@jit
+def site_position(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> np.ndarray:
+    """The position this site adds to T_p: q, or the mapped, indexed one (the HSI's
+    alpha (q_h - offset), the TO's q_t + offset: ``teleop_rt.mapping``)."""
+    if i[o[2 * MAP + 1] + M_ACTIVE]:
+        return vec(floats_of(f, o, MAP), Q_MAPPED, n)
+    return vec(floats_of(f, o, FB), FB_Q, n)
+
+
+@jit
+def site_torque(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> np.ndarray:
+    """The torque this site adds to T_tau: tau_h or tau_e, or the mapped one (the TO's
+    beta tau_e; in the plane the tools' forces)."""
+    mi = o[2 * MAP + 1]
+    if i[mi + M_ACTIVE] and (i[o[2 * SIG + 1] + S_SIDE] != HSI or i[mi + M_SPACE] == PLANE):
+        return vec(floats_of(f, o, MAP), TAU_MAPPED, n)
+    return vec(floats_of(f, o, SIG), S_TAU, n)

@@ -17,7 +17,9 @@ and read the medians, not the maxima):
 5. what each channel kind costs: the full tick (recording off) at a 20 ms delay with the plain
    wave channel (zero reconstruction), the protected wave (bounded) and TDPA, alternated in
    one run, and the difference to the plain wave channel (issue 17's target: <= 2 us);
-6. how the tick grows with the number of joints (planar chains generated from one template).
+6. what the workspace mapping costs (teleop_rt.mapping): identity, joint scaling with a clutch
+   script, the plane's per-site Jacobian map, alternated in one run;
+7. how the tick grows with the number of joints (planar chains generated from one template).
 Times are min / median / p99 over R repeats of N ticks (the repeat with the lowest median).
 """
 
@@ -242,6 +244,27 @@ def channel_kinds(path: Path, ticks: int, repeat: int) -> dict[str, dict]:
     runs: dict[str, list[np.ndarray]] = {label: [] for label in CHANNEL_KINDS}
     for _ in range(repeat):
         for label, overrides in CHANNEL_KINDS.items():
+            cfg = config.load(path, ["channel.delay_ms=20", *overrides])
+            runs[label].append(time_ticks(Session(cfg).step, ticks))
+    return {label: best_of(r) for label, r in runs.items()}
+
+
+MAPPINGS = {  # label -> overrides (teleop_rt.mapping); the first is the baseline
+    "joint, identity": [],
+    "joint, scaled + clutch": [
+        "mapping.motion_scale=0.2",
+        "mapping.force_scale=5",
+        "operator.clutch=[{start_s: 1000, end_s: 1001}]",
+    ],  # fmt: skip
+    "plane (J, J# per site)": ["channel.space=plane", "channel.wave_impedance=50"],
+}
+
+
+def mappings(path: Path, ticks: int, repeat: int) -> dict[str, dict]:
+    """The full tick per mapping at a 20 ms delay, alternated in each repeat."""
+    runs: dict[str, list[np.ndarray]] = {label: [] for label in MAPPINGS}
+    for _ in range(repeat):
+        for label, overrides in MAPPINGS.items():
             cfg = config.load(path, ["channel.delay_ms=20", *overrides])
             runs[label].append(time_ticks(Session(cfg).step, ticks))
     return {label: best_of(r) for label, r in runs.items()}
@@ -513,6 +536,15 @@ def run(args, cfg, joints: list[int]) -> int:
             print(line(label, figures) + f"   vs plain wave: min {d_min:+.2f}, median "
                   f"{d_med:+.2f} us")  # fmt: skip
         out["channel_kinds_us"] = kinds
+
+        print("\nmappings (full tick, both sites, recording off, 20 ms delay, alternated)")
+        maps = mappings(Path(args.config), args.ticks, args.repeat)
+        base = next(iter(maps.values()))
+        for label, figures in maps.items():
+            d_min, d_med = (figures[k] - base[k] for k in ("min", "median"))
+            print(line(label, figures) + f"   vs identity: min {d_min:+.2f}, median "
+                  f"{d_med:+.2f} us")  # fmt: skip
+        out["mappings_us"] = maps
 
         if joints:  # --joints "" skips the scaling table
             print("\nscaling with the number of joints (planar chains, full tick, recording off)")

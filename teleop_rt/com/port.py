@@ -150,6 +150,8 @@ class Port(Block):
     codec_silent = Int("ticks this port sent nothing")
     codec_held = Int("ticks with no packet from the peer, its last value held")
     codec_expired = Int("ticks with no packet past the maximum interval (a loss)")
+    terminated = Int("1: the site is decoupled (teleop_rt.mapping): a matched damper b ends "
+                     "the wave port, absorbing what arrives and sending no wave")
 
     def __init__(
         self,
@@ -218,7 +220,7 @@ PEER_SUM, PEER_ENERGY, USED_SUM, USED_ENERGY = (
 )  # fmt: skip
 PEER_E_IN, LIMITED = Port.peer_e_in.k, Port.limited.k
 RECONSTRUCTION, LAST_SEQ, ACTED = Port.reconstruction.k, Port.last_seq.k, Port.acted.k
-MISSING = Port.missing.k
+MISSING, TERMINATED = Port.missing.k, Port.terminated.k
 X_SUM, PEER_X_SUM, OUT_SUM, DRIFT_RATE = (
     Port.x_sum.k, Port.peer_x_sum.k, Port.out_sum.k, Port.drift_rate.k
 )  # fmt: skip
@@ -302,6 +304,7 @@ def wave_step(
     w_in, w_out, received = vec(f, WAVE_IN, n), vec(f, WAVE_OUT, n), vec(rx, P_WAVE, n)
     held = vec(f, HELD, n)
     hsi, how, valid = i[SIDE] == HSI, i[RECONSTRUCTION], rx_i[P_VALID] != 0
+    terminated = i[TERMINATED] != 0
     missed = rx_i[P_SEQ] - i[LAST_SEQ] - 1  # packets missed since the last one used
     acted = synced = False
     for j in range(n):
@@ -335,7 +338,11 @@ def wave_step(
             w_in[j] += alpha * (w - w_in[j])
         else:
             w_in[j] = w
-        if hsi:  # tau_c = b omega_c - sqrt(2b) v_l ; u_l = sqrt(2b) omega_c - v_l
+        if terminated:  # a matched damper: omega = w_in / sqrt(2b), tau = -+ b omega, no wave
+            flow[j] = w_in[j] / s2b[j]
+            effort[j] = -b[j] * flow[j] if hsi else b[j] * flow[j]
+            w_out[j] = 0.0
+        elif hsi:  # tau_c = b omega_c - sqrt(2b) v_l ; u_l = sqrt(2b) omega_c - v_l
             effort[j] = b[j] * flow[j] - s2b[j] * w_in[j]
             w_out[j] = s2b[j] * flow[j] - w_in[j]
         else:  # omega_t = (sqrt(2b) u_r - tau_t) / b ; v_r = u_r - sqrt(2/b) tau_t

@@ -39,7 +39,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from teleop_rt.errors import RecordingFailure, TeleopError
+from teleop_rt.errors import ConfigError, RecordingFailure, TeleopError
 from teleop_rt.flat import jit
 from teleop_rt.loop import StopSignals
 from teleop_rt.recording.scene import scene_spec, shift_sources
@@ -125,6 +125,11 @@ class LogParts:
 
 def session_parts(session: Session) -> LogParts:
     """A one-process session's log: both robots, the channel, the timing."""
+    if not session.hsi.n == session.to.n == session.n:  # (the layout has one joint count)
+        raise ConfigError(
+            f"recording: the log takes robots of one joint count and a channel of the same "
+            f"size (here {session.hsi.n}, {session.to.n} and {session.n}); run with --no-log"
+        )
     layout = LogLayout(session.n, len(session.cfg.environment))
     return LogParts(
         layout, row_sources(session, layout), shift_sources(session), _metadata(session),

@@ -1,0 +1,372 @@
+"""The workspace mapping at each site, between its robot and its port of the channel: motion
+and force scaling, the clutch (indexing) and the operator's presence (dead-man), kept passive.
+
+The channel (``teleop_rt.com.port``) is left as it is: its port variables are in the HSI's
+units, and everything here is a map between a robot's own variables and its port's:
+
+    HSI:  omega_c = r v_h                     rendered torque = r tau_c
+    TO:   v_ref   = r alpha omega_t           tau_t = r beta tau_e
+
+``alpha`` (``mapping.motion_scale``) is the TO's motion per HSI motion, ``beta``
+(``mapping.force_scale``) the torque the HSI displays per TO torque (at steady state the
+operator feels ``beta tau_e`` against a TO that moves ``alpha`` times as far). ``r`` in [0, 1]
+is the coupling gain: 1 while coupled, 0 while the clutch is pressed or the operator is away,
+ramped back up on re-engaging.
+
+What is passive, exactly. Each site's map is a transformer (Paynter's bond-graph TF, here
+time varying through r) times, at the TO, a constant power scale:
+
+* HSI: ``omega_c tau_c = (r v_h) tau_c = v_h (r tau_c)``: the power into the channel's HSI
+  port is the power the HSI robot receives from its rendered torque, at every tick and for any
+  r(t), since flow and effort carry the same r of the same tick. Lossless.
+* TO: ``omega_t tau_t = r beta omega_t tau_e = (beta / alpha) v_ref tau_e``: the power out of
+  the channel's TO port is ``beta / alpha`` times the power the TO's velocity reference does
+  on the environment. For ``beta = alpha`` this is a lossless transformer (a lever: TO motion
+  scaled by alpha, force fed back scaled by alpha); otherwise it is a transformer of ratio
+  alpha followed by a power gain ``kappa = beta / alpha``, which is Colgate's power scaling
+  ("Robust impedance shaping telemanipulation", IEEE T-RA 1993): the channel sees the
+  environment's impedance times kappa, which is passive exactly when the environment is
+  (kappa > 0). Seen from the channel's TO port in the TO's own units the wave impedance is
+  ``b / (alpha beta)`` (tau_e = tau_t / beta, v = alpha omega_t); Niemeyer and Slotine scale
+  motion by choosing different wave impedances at the two ends (IEEE J. Oceanic Eng. 1991),
+  which gives the lossless case only: the force gain beyond it is the power scale.
+
+So the channel's energy (eq 7) stays the unchanged wave / TDPA channel's, >= 0, for any
+alpha, beta > 0 and any clutch script; and the scaled two-port between the robots' ports,
+``integral of v_h (r tau_c) - (beta / alpha) v_ref tau_e``, is that same energy, tick for
+tick (tests/test_mapping.py checks both). What scaling does not preserve is the operator's
+share of the environment's energy: an active environment's energy reaches the operator
+multiplied by kappa.
+
+Clutch and presence (``operator.clutch``, ``operator.absent`` in the config: scripted
+intervals). Pressed, r = 0: no HSI motion enters the channel and no channel torque is
+rendered (the HSI moves freely), and the TO's velocity reference is zero (under computed
+torque the TO stops and holds its pose) while it feeds the channel no torque. The TO learns
+the HSI's input with the channel's delay (its script is shifted by D ticks, as a packet would
+bring it). On release r ramps back to 1, by at most ``dt / mapping.engage_ramp_s`` per tick
+and by at most ``mapping.engage_step_nm / max|effort|`` (effort: the torque r multiplies,
+tau_c at the HSI, beta tau_e at the TO), so the gain changes the rendered torque by at most
+that much per tick. Energy: r enters as a transformer, so any r(t) is lossless and the
+uncoupled interval's motion never reaches the channel (its integral of omega_c, the position
+the wave integral and TDPA's drift compensation carry, does not advance): nothing is replayed.
+The HSI's motion the channel did not carry, ``index_offset = integral of (1 - r) v_h dt``, is
+the indexing offset: the TO tracks ``alpha (q_h - index_offset)``, which is what the summary's
+T_p compares (and T_tau compares tau_h with ``beta tau_e``). The operator away for longer than
+``mapping.presence_timeout_s`` is a safety stop (the staged stop of ``teleop_rt.site``).
+
+With the identity (alpha = beta = 1, no script) the block is inactive and the sites compute
+exactly what they computed before it existed.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from teleop_rt.com.port import HSI, TO
+from teleop_rt.config import SessionConfig
+from teleop_rt.flat import Block, Int, Scalar, Vector, jit, vec
+
+PRESENCE_LOST = 200  # a site finding (teleop_rt.safety's codes are below 200)
+JOINT, PLANE = 0, 1  # channel.space: joint to joint, or the tools' x-y velocity and force
+SPACES = {"joint": JOINT, "plane": PLANE}
+TASK = 2  # the plane's dimension: the port's vectors hold x, y
+# damped least squares (Wampler 1986; Nakamura & Hanafusa 1986): J# = J^T (J J^T + l^2 I)^-1,
+# l in m (the SCARA's links are ~0.2 m: it acts within ~1 mm of a singular pose)
+DLS_DAMPING_M = 1e-3
+
+
+class Mapping(Block):
+    """One site's map between its robot and its port (see the module's docstring)."""
+
+    x = Vector("the port's input: r v_h (HSI), r beta tau_e (TO)")
+    q_mapped = Vector(
+        "indexed position: alpha (q_h - index_offset) (HSI), q_t + index_offset (TO), rad"
+    )
+    tau_mapped = Vector("TO: beta tau_e, the torque the HSI is to display, N m")
+    index_offset = Vector("the motion the channel did not carry (HSI) or the TO did not follow")
+    motion_scale = Scalar("alpha", param=True)
+    force_scale = Scalar("beta", param=True)
+    ramp_step = Scalar("the gain's largest rise per tick", param=True)
+    step_limit = Scalar("N m: the gain's largest change of the torque it multiplies", param=True)
+    dt = Scalar(param=True)
+    gain = Scalar("r: 1 coupled, 0 decoupled")
+    active = Int("0: the identity (the sites skip the map)", param=True)
+    side = Int("HSI or TO", param=True)
+    clutch_count = Int("clutch intervals in the tail", param=True)
+    absent_count = Int("absence intervals in the tail", param=True)
+    timeout_ticks = Int("away longer than this: a finding (-1: never)", param=True)
+    clutch_at = Int("the first clutch interval not yet over")
+    absent_at = Int("the first absence interval not yet over")
+    coupled = Int("1: clutch released and operator present")
+    engagements = Int("re-engagements so far")
+    space = Int("JOINT or PLANE", param=True)
+    kin_at = Int("PLANE: where J (2 x joints), J# (joints x 2) and the tool's x, y start",
+                 param=True)
+    joints = Int("the robot's joints (the block's vectors: the port's size)", param=True)
+    # the script: starts then ends of the clutch, then of the absences; then (PLANE) the
+    # kinematics, refreshed by ``map_kinematics`` after every tick
+    TAIL_IS_STATE = False
+
+    def __init__(
+        self, n: int, side: int, dt: float, motion_scale: float = 1.0, force_scale: float = 1.0,
+        clutch: list[tuple[int, int]] | None = None, absent: list[tuple[int, int]] | None = None,
+        ramp_s: float = 0.0, step_limit: float = math.inf, timeout_ticks: int = -1,
+        space: int = JOINT, joints: int | None = None,
+    ) -> None:  # fmt: skip
+        """``n``: the port's size (the joints, or TASK in the plane); ``joints``: the robot's
+        (default n)."""
+        clutch, absent = clutch or [], absent or []
+        script = 2 * (len(clutch) + len(absent))
+        nj = n if joints is None else joints
+        super().__init__(n, tail=script + (4 * nj + TASK if space == PLANE else 0))
+        self.space, self.joints = space, nj
+        self.kin_at = self.tail_start + script
+        self.side, self.dt = side, dt
+        self.motion_scale, self.force_scale = motion_scale, force_scale
+        self.ramp_step = min(1.0, dt / ramp_s) if ramp_s > 0 else 1.0
+        self.step_limit = step_limit
+        self.timeout_ticks = timeout_ticks
+        self.clutch_count, self.absent_count = len(clutch), len(absent)
+        tail = self.f[self.tail_start :]
+        for k, intervals in enumerate((clutch, absent)):
+            at = 2 * len(clutch) * k
+            tail[at : at + len(intervals)] = [a for a, _ in intervals]
+            tail[at + len(intervals) : at + 2 * len(intervals)] = [b for _, b in intervals]
+        self.active = int(
+            motion_scale != 1.0 or force_scale != 1.0 or bool(clutch or absent) or space != JOINT
+        )
+        self.gain, self.coupled = 1.0, 1
+
+
+X, Q_MAPPED, TAU_MAPPED, INDEX_OFFSET = (
+    Mapping.x.k, Mapping.q_mapped.k, Mapping.tau_mapped.k, Mapping.index_offset.k
+)  # fmt: skip
+M_ALPHA, M_BETA, M_RAMP, M_LIMIT, M_DT, M_GAIN = (
+    Mapping.motion_scale.k, Mapping.force_scale.k, Mapping.ramp_step.k, Mapping.step_limit.k,
+    Mapping.dt.k, Mapping.gain.k,
+)  # fmt: skip
+M_ACTIVE, M_SIDE, M_CLUTCH_COUNT, M_ABSENT_COUNT, M_TIMEOUT = (
+    Mapping.active.k, Mapping.side.k, Mapping.clutch_count.k, Mapping.absent_count.k,
+    Mapping.timeout_ticks.k,
+)  # fmt: skip
+M_CLUTCH_AT, M_ABSENT_AT, M_COUPLED, M_ENGAGEMENTS = (
+    Mapping.clutch_at.k, Mapping.absent_at.k, Mapping.coupled.k, Mapping.engagements.k
+)  # fmt: skip
+M_SPACE, M_KIN_AT, M_JOINTS = Mapping.space.k, Mapping.kin_at.k, Mapping.joints.k
+N_MAPPING_VECTORS, N_MAPPING_SCALARS = len(Mapping.VECTORS), len(Mapping.SCALARS)
+
+
+@jit
+def _inside(f: np.ndarray, i: np.ndarray, at: int, count: int, cursor: int, tick: int) -> int:
+    """Ticks since the interval containing ``tick`` began, + 1 (0: in none); intervals
+    [start, end) at f[at:] (starts) and f[at + count:] (ends), walked forward by the cursor
+    at i[cursor] (ticks only increase)."""
+    k = i[cursor]
+    while k < count and tick >= f[at + count + k]:
+        k += 1
+    i[cursor] = k
+    if k < count and tick >= f[at + k]:
+        return tick - int(f[at + k]) + 1
+    return 0
+
+
+@jit
+def mapping_engage(
+    f: np.ndarray, i: np.ndarray, n: int, tick: int, effort: np.ndarray
+) -> int:  # fmt: skip
+    """This tick's coupling gain r from the script; PRESENCE_LOST when the operator has been
+    away too long (at the HSI), else 0. ``effort``: the torque r multiplies (its ramp's
+    limit)."""
+    s = N_MAPPING_VECTORS * n
+    tail = s + N_MAPPING_SCALARS
+    clutches, absences = i[M_CLUTCH_COUNT], i[M_ABSENT_COUNT]
+    clutched = _inside(f, i, tail, clutches, M_CLUTCH_AT, tick) > 0
+    away = _inside(f, i, tail + 2 * clutches, absences, M_ABSENT_AT, tick)
+    if i[M_SIDE] == HSI and i[M_TIMEOUT] >= 0 and away > i[M_TIMEOUT]:
+        return PRESENCE_LOST
+    coupled = not clutched and away == 0
+    r = f[s + M_GAIN]
+    if not coupled:
+        r = 0.0
+    elif r < 1.0:
+        step, peak = f[s + M_RAMP], 0.0
+        for j in range(n):
+            peak = max(peak, abs(effort[j]))
+        if peak * step > f[s + M_LIMIT]:
+            step = f[s + M_LIMIT] / peak
+        r = min(1.0, r + step)
+    if coupled and not i[M_COUPLED]:
+        i[M_ENGAGEMENTS] += 1
+    i[M_COUPLED] = 1 if coupled else 0
+    f[s + M_GAIN] = r
+    return 0
+
+
+@jit
+def hsi_map_input(f: np.ndarray, n: int, q: np.ndarray, v: np.ndarray) -> None:
+    """The HSI's port input r v_h into x; the indexing offset and the mapped position."""
+    s = N_MAPPING_VECTORS * n
+    r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
+    x, q_mapped, offset = vec(f, X, n), vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
+    for j in range(n):
+        x[j] = r * v[j]
+        offset[j] += (1.0 - r) * v[j] * dt
+        q_mapped[j] = alpha * (q[j] - offset[j])
+
+
+@jit
+def to_map_input(f: np.ndarray, n: int, tau_e: np.ndarray) -> None:
+    """beta tau_e into tau_mapped (before the gain: its ramp limits by it); r of it into x."""
+    s = N_MAPPING_VECTORS * n
+    beta = f[s + M_BETA]
+    tau_mapped = vec(f, TAU_MAPPED, n)
+    for j in range(n):
+        tau_mapped[j] = beta * tau_e[j]
+
+
+@jit
+def to_map_output(f: np.ndarray, n: int, q: np.ndarray, omega_t: np.ndarray) -> None:
+    """The TO's indexing offset (the channel's motion it did not follow while r < 1) and its
+    indexed position q_t + offset."""
+    s = N_MAPPING_VECTORS * n
+    r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
+    q_mapped, offset = vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
+    for j in range(n):
+        offset[j] += (1.0 - r) * alpha * omega_t[j] * dt
+        q_mapped[j] = q[j] + offset[j]
+
+
+@jit
+def to_map_gain(f: np.ndarray, n: int) -> None:
+    """x = r beta tau_e, after ``mapping_engage`` set r."""
+    s = N_MAPPING_VECTORS * n
+    r = f[s + M_GAIN]
+    x, tau_mapped = vec(f, X, n), vec(f, TAU_MAPPED, n)
+    for j in range(n):
+        x[j] = r * tau_mapped[j]
+
+
+@jit
+def map_kinematics(f: np.ndarray, i: np.ndarray, jac: np.ndarray, x: np.ndarray) -> None:
+    """PLANE: the tool's Jacobian rows x, y (of ``jac``, 6 x n, world-aligned), their damped
+    least-squares inverse J# = J^T (J J^T + l^2 I)^-1 and the tool's x, y (of ``x``), for the
+    next tick's map. The same J# maps flow in and effort out, so the map stays lossless
+    whatever l does to accuracy."""
+    k, n = i[M_KIN_AT], i[M_JOINTS]
+    jj, inv, pos = k, k + TASK * n, k + 4 * n
+    for a in range(TASK):
+        for j in range(n):
+            f[jj + a * n + j] = jac[a, j]
+        f[pos + a] = x[a]
+    # A = J J^T + l^2 I (2 x 2), then J# = J^T A^-1
+    a00 = a01 = a11 = 0.0
+    for j in range(n):
+        a00 += jac[0, j] * jac[0, j]
+        a01 += jac[0, j] * jac[1, j]
+        a11 += jac[1, j] * jac[1, j]
+    damping = DLS_DAMPING_M * DLS_DAMPING_M
+    a00 += damping
+    a11 += damping
+    det = a00 * a11 - a01 * a01
+    b00, b01, b11 = a11 / det, -a01 / det, a00 / det
+    for j in range(n):
+        f[inv + j * TASK] = jac[0, j] * b00 + jac[1, j] * b01
+        f[inv + j * TASK + 1] = jac[0, j] * b01 + jac[1, j] * b11
+
+
+@jit
+def hsi_plane_input(
+    f: np.ndarray, i: np.ndarray, n: int, v: np.ndarray, tau_h: np.ndarray
+) -> None:  # fmt: skip
+    """PLANE at the HSI: omega_c = r J v_h; the indexing offset and the indexed tool position
+    alpha (x_h - offset); the operator's force J#^T tau_h (for T_tau). ``n``: the port's
+    size; the robot's joints are the block's ``joints``."""
+    s, k = N_MAPPING_VECTORS * n, i[M_KIN_AT]
+    nj = i[M_JOINTS]
+    jj, inv, pos = k, k + TASK * nj, k + 4 * nj
+    r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
+    x, q_mapped, offset = vec(f, X, n), vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
+    force = vec(f, TAU_MAPPED, n)
+    for a in range(TASK):
+        xd = 0.0
+        fa = 0.0
+        for j in range(nj):
+            xd += f[jj + a * nj + j] * v[j]
+            fa += f[inv + j * TASK + a] * tau_h[j]
+        x[a] = r * xd
+        offset[a] += (1.0 - r) * xd * dt
+        q_mapped[a] = alpha * (f[pos + a] - offset[a])
+        force[a] = fa
+
+
+@jit
+def hsi_plane_render(
+    f: np.ndarray, i: np.ndarray, n: int, tau_h: np.ndarray, tau_c: np.ndarray,
+    error: np.ndarray,
+) -> None:  # fmt: skip
+    """PLANE at the HSI: C1's error tau_h - r J^T F_c."""
+    s, jj, nj = N_MAPPING_VECTORS * n, i[M_KIN_AT], i[M_JOINTS]
+    r = f[s + M_GAIN]
+    for j in range(nj):
+        rendered = 0.0
+        for a in range(TASK):
+            rendered += f[jj + a * nj + j] * tau_c[a]
+        error[j] = tau_h[j] - r * rendered
+
+
+@jit
+def to_plane_input(f: np.ndarray, i: np.ndarray, n: int, tau_e: np.ndarray) -> None:
+    """PLANE at the TO: the environment's force beta J#^T tau_e into tau_mapped."""
+    nj = i[M_JOINTS]
+    s, inv = N_MAPPING_VECTORS * n, i[M_KIN_AT] + TASK * nj
+    beta = f[s + M_BETA]
+    force = vec(f, TAU_MAPPED, n)
+    for a in range(TASK):
+        fa = 0.0
+        for j in range(nj):
+            fa += f[inv + j * TASK + a] * tau_e[j]
+        force[a] = beta * fa
+
+
+@jit
+def to_plane_output(
+    f: np.ndarray, i: np.ndarray, n: int, omega_t: np.ndarray, v: np.ndarray,
+    error: np.ndarray,
+) -> None:  # fmt: skip
+    """PLANE at the TO: C2's error r alpha J# omega_t - v_t; the indexing offset and the
+    indexed tool position x_t + offset."""
+    s, k, nj = N_MAPPING_VECTORS * n, i[M_KIN_AT], i[M_JOINTS]
+    inv, pos = k + TASK * nj, k + 4 * nj
+    r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
+    g = r * alpha
+    q_mapped, offset = vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
+    for j in range(nj):
+        v_ref = 0.0
+        for a in range(TASK):
+            v_ref += f[inv + j * TASK + a] * omega_t[a]
+        error[j] = g * v_ref - v[j]
+    for a in range(TASK):
+        offset[a] += (1.0 - r) * alpha * omega_t[a] * dt
+        q_mapped[a] = f[pos + a] + offset[a]
+
+
+def mapping_for(cfg: SessionConfig, joints: int, side: int) -> Mapping:
+    """Site ``side``'s map from the config (``mapping`` and the operator's script); the TO's
+    script is the HSI's shifted by the channel's delay (when the HSI's input reaches it)."""
+    spec, rate = cfg.mapping, cfg.rate_hz
+    shift = cfg.delay_ticks if side == TO else 0
+
+    def ticks(intervals: list) -> list[tuple[int, int]]:
+        return [(round(w.start_s * rate) + shift, round(w.end_s * rate) + shift)
+                for w in intervals]  # fmt: skip
+
+    timeout = spec.presence_timeout_s
+    space = SPACES[cfg.channel.space]
+    return Mapping(
+        TASK if space == PLANE else joints, side, cfg.dt, spec.motion_scale, spec.force_scale,
+        ticks(cfg.operator.clutch), ticks(cfg.operator.absent), spec.engage_ramp_s,
+        spec.engage_step_nm, -1 if timeout is None else round(timeout * rate),
+        space, joints,
+    )  # fmt: skip
