@@ -128,7 +128,7 @@ class ChannelSpec(Strict):
     # within the energy bound: passive, and it catches up lost samples), zero (a zero wave:
     # passive), and, unprotected, for comparison: hold (the last wave held) or integral (the
     # wave integral without the bound). With no loss all four compute the same.
-    wave_reconstruction: Literal["bounded", "zero", "hold", "integral"] = "bounded"
+    wave_reconstruction: Literal["bounded", "corrected", "zero", "hold", "integral"] = "bounded"
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # README, Passive over any network). None, the default, switches it off.

@@ -62,11 +62,13 @@ from teleop_rt.flat import Block, Int, Scalar, Vector, jit, vec
 
 HSI, TO = 0, 1  # a port's side
 DIRECT, WAVE, TDPA = 0, 1, 2  # channel modes
-ZERO, HOLD, INTEGRAL, BOUNDED = 0, 1, 2, 3  # a wave channel's reconstruction of missing waves
+ZERO, HOLD, INTEGRAL, BOUNDED, CORRECTED = 0, 1, 2, 3, 4  # a wave channel's reconstruction
 MODES = {"direct": DIRECT, "wave": WAVE, "tdpa": TDPA}
 CATCH_UP = 10  # the most missed packets the wave integral catches up in one tick
 HOLD_TICKS = 10  # TDPA holds the peer's last value this long through a gap, then zero
-RECONSTRUCTIONS = {"zero": ZERO, "hold": HOLD, "integral": INTEGRAL, "bounded": BOUNDED}
+RECONSTRUCTIONS = {"zero": ZERO, "hold": HOLD, "integral": INTEGRAL, "bounded": BOUNDED,
+                   "corrected": CORRECTED}
+WAVE_DRIFT_TIME_S = 0.25  # ``corrected``: the time constant it pays the integral's debt back in
 
 
 class Packet(Block):
@@ -111,11 +113,15 @@ class Port(Block):
     peer_x_sum = Vector("the peer's, as of its newest packet")
     out_sum = Vector("dt times the sum of this port's outputs (TDPA's TO: its position)")
     limited = Vector("energy the protection removed: the bound's, or TDPA's dissipation, J")
+    got_energy = Vector("dt / 2 times the sum of the squared waves that reached this port in "
+                        "time, J (the bound's honest budget)")
+    debt = Vector("``corrected``: the peer's wave integral minus the one used, after a packet")
     total_energy = Scalar("sum over joints, J")
     balance = Scalar("energy received minus emitted, as the method accounts it, J (joints: min)")
     min_balance = Scalar("its running minimum, J")
     alpha = Scalar("received-wave low-pass coefficient", param=True)
     drift_rate = Scalar("TDPA's position-drift compensation at the TO, 1/s (0: off)", param=True)
+    wave_drift_rate = Scalar("``corrected``: 1 / WAVE_DRIFT_TIME_S, 1/s", param=True)
     dt = Scalar(param=True)
     side = Int("HSI or TO", param=True)
     mode = Int("DIRECT, WAVE or TDPA", param=True)
@@ -149,6 +155,7 @@ class Port(Block):
         if drift_time_s is not None and not drift_time_s > 0:
             raise ValueError("the drift compensation's time constant must be > 0 s")
         self.drift_rate = 1.0 / drift_time_s if drift_time_s and side == TO else 0.0
+        self.wave_drift_rate = 1.0 / WAVE_DRIFT_TIME_S if reconstruction == CORRECTED else 0.0
         if mode == WAVE:
             self.b[:] = b
             self.sqrt_2b[:] = [math.sqrt(2.0 * x) for x in b]
@@ -191,7 +198,8 @@ E_IN, E_OUT, WAVE_SUM, WAVE_ENERGY, HELD = (
 PEER_SUM, PEER_ENERGY, USED_SUM, USED_ENERGY = (
     Port.peer_sum.k, Port.peer_energy.k, Port.used_sum.k, Port.used_energy.k
 )  # fmt: skip
-PEER_E_IN, LIMITED = Port.peer_e_in.k, Port.limited.k
+PEER_E_IN, LIMITED, GOT_ENERGY = Port.peer_e_in.k, Port.limited.k, Port.got_energy.k
+DEBT, WAVE_DRIFT_RATE = Port.debt.k, Port.wave_drift_rate.k
 RECONSTRUCTION, LAST_SEQ, ACTED = Port.reconstruction.k, Port.last_seq.k, Port.acted.k
 MISSING = Port.missing.k
 X_SUM, PEER_X_SUM, OUT_SUM, DRIFT_RATE = (
@@ -252,7 +260,7 @@ def account_balance(f: np.ndarray, i: np.ndarray, n: int) -> None:
     channel's) peer E_in received minus this port's E_out. Negative: the channel made energy."""
     s = N_PORT_VECTORS * n
     if i[MODE] == WAVE:
-        got, spent = PEER_ENERGY, USED_ENERGY
+        got, spent = GOT_ENERGY, USED_ENERGY
     else:
         got, spent = PEER_E_IN, E_OUT
     low = math.inf
@@ -268,7 +276,7 @@ def wave_step(
     f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.ndarray, tx: np.ndarray
 ) -> None:
     """Eq 9 on the received wave, reconstructed as the port's ``reconstruction`` says; the
-    wave energy received and emitted, for every reconstruction (the balance)."""
+    wave energy received in time and emitted, for every reconstruction (the balance)."""
     s = N_PORT_VECTORS * n
     alpha, filtered, dt = f[s + ALPHA], i[FILTERED] != 0, f[s + DT]
     half_dt = 0.5 * dt
@@ -277,35 +285,73 @@ def wave_step(
     w_in, w_out, received = vec(f, WAVE_IN, n), vec(f, WAVE_OUT, n), vec(rx, P_WAVE, n)
     held = vec(f, HELD, n)
     hsi, how, valid = i[SIDE] == HSI, i[RECONSTRUCTION], rx_i[P_VALID] != 0
+    corrected = how == CORRECTED
+    bounded = how == BOUNDED or corrected
+    rate = f[s + WAVE_DRIFT_RATE]
     missed = rx_i[P_SEQ] - i[LAST_SEQ] - 1  # packets missed since the last one used
+    catch_up = valid and 0 < missed <= CATCH_UP
+    # a held wave expires: after HOLD_TICKS ticks of silence the bound emits zeros and gives
+    # up what it had left (energy that only a stale wave would spend)
+    expired = bounded and not valid and i[MISSING] >= HOLD_TICKS
     acted = synced = False
     for j in range(n):
         used_sum = f[USED_SUM * n + j]
+        r = received[j]
+        e_r = r * r * half_dt  # (the term the sender added to its wave energy, bit for bit)
+        reserve = f[GOT_ENERGY * n + j] - f[USED_ENERGY * n + j]
         if valid:
             # in step: nothing missed and the integral as the peer's; after a long gap the
             # integral is not caught up (a jolt), only taken as it is
             synced = (missed == 0 and used_sum == f[PEER_SUM * n + j]) or missed > CATCH_UP
+            # honest credit: this sample's energy, and in a catch-up that of the samples it
+            # catches up (known from the peer's cumulative energy); after a long gap the
+            # skipped samples' energy is not credited: they never reached this port
+            if catch_up:
+                f[GOT_ENERGY * n + j] += rx[P_WAVE_ENERGY * n + j] - f[PEER_ENERGY * n + j]
+            else:
+                f[GOT_ENERGY * n + j] += e_r
             f[PEER_SUM * n + j] = rx[P_SUM * n + j]
             f[PEER_ENERGY * n + j] = rx[P_WAVE_ENERGY * n + j]
-        if how == ZERO or (valid and (how == HOLD or synced)):
-            w = received[j]  # (zero: zeros when none arrived; else the wave as it was sent)
+        debt = f[DEBT * n + j]
+        if corrected and valid:
+            # the samples this packet brings (in a catch-up: those missed, less what a hold
+            # emitted for them, and this one), plus a part of the debt: the integral the bound
+            # cut or an outage lost, paid back within the budget (Niemeyer & Slotine 2004)
+            w = (f[PEER_SUM * n + j] - used_sum - debt) / dt if catch_up else r
+            if debt != 0.0:
+                w += rate * debt
+        elif how == ZERO or (valid and (how == HOLD or synced)):
+            w = r  # (zero: zeros when none arrived; else the wave as it was sent)
         elif not valid:
-            w = held[j]
+            w = 0.0 if expired else held[j]
         else:  # catch the integral up in this tick: the samples missed and this one
             w = (f[PEER_SUM * n + j] - used_sum) / dt
         e = w * w * half_dt
-        # emit no more wave energy than was sent (compared as the sums themselves: with the
-        # same waves in the same order they are equal, bit for bit)
-        if how == BOUNDED and f[USED_ENERGY * n + j] + e > f[PEER_ENERGY * n + j]:
-            room = max(f[PEER_ENERGY * n + j] - f[USED_ENERGY * n + j], 0.0)
+        # emit no more wave energy than reached this port in time (compared as the sums
+        # themselves: with the same waves in the same order they are equal, bit for bit)
+        if bounded and f[USED_ENERGY * n + j] + e > f[GOT_ENERGY * n + j]:
+            room = max(f[GOT_ENERGY * n + j] - f[USED_ENERGY * n + j], 0.0)
             clipped = math.copysign(math.sqrt(room / half_dt), w)
             f[LIMITED * n + j] += e - clipped * clipped * half_dt
             w, e, acted = clipped, room, True
         f[USED_ENERGY * n + j] += e
+        if bounded and (expired or catch_up):
+            # what a catch-up did not spend of the skipped samples' energy is not kept (only
+            # this sample's is); an expired hold keeps nothing
+            keep = 0.0 if expired else reserve + e_r
+            f[GOT_ENERGY * n + j] = min(f[GOT_ENERGY * n + j], f[USED_ENERGY * n + j] + keep)
         # in step with the peer's integral after a packet (what the bound cut is not caught
         # up later: that would need energy the peer did not send)
-        f[USED_SUM * n + j] = f[PEER_SUM * n + j] if valid else used_sum + w * dt
-        held[j] = w
+        if corrected:  # the integral as used, and what it owes after a packet
+            f[USED_SUM * n + j] = used_sum + w * dt
+            if valid:
+                f[DEBT * n + j] = f[PEER_SUM * n + j] - f[USED_SUM * n + j]
+        else:
+            f[USED_SUM * n + j] = f[PEER_SUM * n + j] if valid else used_sum + w * dt
+        if not bounded:
+            held[j] = w
+        elif valid:
+            held[j] = r  # the sample as it arrived (not a catch-up's sum, nor the bound's cut)
         if filtered:
             w_in[j] += alpha * (w - w_in[j])
         else:
