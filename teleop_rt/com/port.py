@@ -37,7 +37,20 @@ stays passive when the network varies its delay, loses, duplicates or reorders p
                emitted never exceeds what the peer has sent, per joint. With consecutive packets
                and the integral in step it uses the received wave as it is, so with no loss it
                computes exactly what ``zero`` computes, bit for bit (the bound compares the same
-               sums in the same order, and never acts).
+               sums in the same order, and never acts). The budget is honest (issue 23): only
+               the energy of waves that reached the port in time (``got_energy``): each sample
+               used, and in a catch-up the samples it catches up, which only that tick may
+               spend; after a gap longer than ``CATCH_UP`` the skipped samples bring nothing
+               (crediting the peer's cumulative energy let a stale held wave spend it in the
+               next outage: a ratchet into a joint limit). A held wave expires after
+               ``HOLD_TICKS`` ticks of silence, and what it had left of the budget with it.
+  ``corrected`` ``bounded`` with position-drift compensation: the wave integral's debt (the
+               peer's integral minus the one used: what an outage lost or the bound cut) is
+               kept and paid back at ``1 / WAVE_DRIFT_TIME_S`` on the waves used, within the
+               same honest budget (wave integrals with position correction, Niemeyer &
+               Slotine, IJRR 2004; position tracking with wave variables, Chopra, Spong,
+               Hirche & Buss, ACC 2003). With no loss the debt is exactly 0: ``bounded`` bit
+               for bit.
 - ``tdpa``: the time-domain passivity approach (Ryu, Artigas & Preusche, Mechatronics 2010):
   velocity forward, torque back (the paper's force-feedback coupling), the last value held
   through a gap of up to ``HOLD_TICKS``, zero after; at each port a passivity observer of the
