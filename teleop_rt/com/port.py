@@ -129,6 +129,8 @@ class Port(Block):
     got_energy = Vector("dt / 2 times the sum of the squared waves that reached this port in "
                         "time, J (the bound's honest budget)")
     debt = Vector("``corrected``: the peer's wave integral minus the one used, after a packet")
+    out_energy = Vector("dt / 2 times the sum of the squared waves the filter gave the port, J")
+    banked = Vector("the bound's budget left after the last packet, J")
     total_energy = Scalar("sum over joints, J")
     balance = Scalar("energy received minus emitted, as the method accounts it, J (joints: min)")
     min_balance = Scalar("its running minimum, J")
@@ -213,6 +215,7 @@ PEER_SUM, PEER_ENERGY, USED_SUM, USED_ENERGY = (
 )  # fmt: skip
 PEER_E_IN, LIMITED, GOT_ENERGY = Port.peer_e_in.k, Port.limited.k, Port.got_energy.k
 DEBT, WAVE_DRIFT_RATE = Port.debt.k, Port.wave_drift_rate.k
+OUT_ENERGY, BANKED = Port.out_energy.k, Port.banked.k
 RECONSTRUCTION, LAST_SEQ, ACTED = Port.reconstruction.k, Port.last_seq.k, Port.acted.k
 MISSING = Port.missing.k
 X_SUM, PEER_X_SUM, OUT_SUM, DRIFT_RATE = (
@@ -276,12 +279,25 @@ def account_balance(f: np.ndarray, i: np.ndarray, n: int) -> None:
         got, spent = GOT_ENERGY, USED_ENERGY
     else:
         got, spent = PEER_E_IN, E_OUT
+    bounded = i[MODE] == WAVE and (i[RECONSTRUCTION] == BOUNDED or i[RECONSTRUCTION] == CORRECTED)
     low = math.inf
     for j in range(n):
-        low = min(low, f[got * n + j] - f[spent * n + j])
+        if bounded:
+            low = min(low, f[GOT_ENERGY * n + j] - charged(f, n, j))
+        else:
+            low = min(low, f[got * n + j] - f[spent * n + j])
     f[s + BALANCE] = low
     if not low >= f[s + MIN_BALANCE]:  # NaN counts as a new minimum
         f[s + MIN_BALANCE] = low
+
+
+@jit
+def charged(f: np.ndarray, n: int, j: int) -> float:
+    """What the bound has charged to its budget, J: the energy of the waves it emitted into
+    the received-wave filter while that is within the budget (the filter's output has no more:
+    its output is a convex combination of its inputs), else the filter's output's own."""
+    used = f[USED_ENERGY * n + j]
+    return used if used <= f[GOT_ENERGY * n + j] else f[OUT_ENERGY * n + j]
 
 
 @jit
@@ -311,7 +327,6 @@ def wave_step(
         used_sum = f[USED_SUM * n + j]
         r = received[j]
         e_r = r * r * half_dt  # (the term the sender added to its wave energy, bit for bit)
-        reserve = f[GOT_ENERGY * n + j] - f[USED_ENERGY * n + j]
         if valid:
             # in step: nothing missed and the integral as the peer's; after a long gap the
             # integral is not caught up (a jolt), only taken as it is
@@ -319,7 +334,7 @@ def wave_step(
             # honest credit: this sample's energy, and in a catch-up that of the samples it
             # catches up (known from the peer's cumulative energy); after a long gap the
             # skipped samples' energy is not credited: they never reached this port
-            if catch_up:
+            if missed > 0 and bounded:
                 f[GOT_ENERGY * n + j] += rx[P_WAVE_ENERGY * n + j] - f[PEER_ENERGY * n + j]
             else:
                 f[GOT_ENERGY * n + j] += e_r
@@ -340,19 +355,38 @@ def wave_step(
         else:  # catch the integral up in this tick: the samples missed and this one
             w = (f[PEER_SUM * n + j] - used_sum) / dt
         e = w * w * half_dt
+        got = f[GOT_ENERGY * n + j]
         # emit no more wave energy than reached this port in time (compared as the sums
-        # themselves: with the same waves in the same order they are equal, bit for bit)
-        if bounded and f[USED_ENERGY * n + j] + e > f[GOT_ENERGY * n + j]:
-            room = max(f[GOT_ENERGY * n + j] - f[USED_ENERGY * n + j], 0.0)
-            clipped = math.copysign(math.sqrt(room / half_dt), w)
-            f[LIMITED * n + j] += e - clipped * clipped * half_dt
-            w, e, acted = clipped, room, True
+        # themselves: with the same waves in the same order they are equal, bit for bit);
+        # with the filter, what counts is what the filter gives the port: a held wave may
+        # spend the energy the filter's lag left unspent (about 1.5 / alpha samples' worth of
+        # a steady wave), which the catch-up's skipped samples then pay back
+        if bounded and f[USED_ENERGY * n + j] + e > got:
+            acted = True  # (engaged: what the filter gives the port is checked, cut if need be)
+            room = max(got - f[OUT_ENERGY * n + j], 0.0)
+            y = w_in[j] + alpha * (w - w_in[j]) if filtered else w
+            e_y = y * y * half_dt
+            if f[OUT_ENERGY * n + j] + e_y > got:
+                y_c = math.copysign(min(abs(y), math.sqrt(room / half_dt)), y)
+                f[LIMITED * n + j] += e_y - y_c * y_c * half_dt
+                w = w_in[j] + (y_c - w_in[j]) / alpha if filtered else y_c
+                e = w * w * half_dt
         f[USED_ENERGY * n + j] += e
-        if bounded and (expired or catch_up):
-            # what a catch-up did not spend of the skipped samples' energy is not kept (only
-            # this sample's is); an expired hold keeps nothing
-            keep = 0.0 if expired else reserve + e_r
-            f[GOT_ENERGY * n + j] = min(f[GOT_ENERGY * n + j], f[USED_ENERGY * n + j] + keep)
+        if bounded and (expired or (valid and missed > 0)):
+            # what a catch-up did not spend of the skipped samples' energy is not kept beyond
+            # the budget left after the last packet and this sample's; an expired hold keeps
+            # only the energy the filter holds ((1 - alpha) / alpha y^2 dt / 2: what received
+            # waves may still draw out of it, Jensen), nothing for a stale wave
+            y = w_in[j] + alpha * (w - w_in[j]) if filtered else w
+            if expired:
+                keep = (1.0 - alpha) / alpha * y * y * half_dt if filtered else 0.0
+                f[GOT_ENERGY * n + j] = min(got, f[OUT_ENERGY * n + j] + y * y * half_dt + keep)
+            else:
+                keep = f[BANKED * n + j] + (e_r if catch_up else 0.0)
+                spent = f[USED_ENERGY * n + j]
+                if spent > got:
+                    spent = f[OUT_ENERGY * n + j] + y * y * half_dt
+                f[GOT_ENERGY * n + j] = min(got, spent + keep)
         # in step with the peer's integral after a packet (what the bound cut is not caught
         # up later: that would need energy the peer did not send)
         if corrected:  # the integral as used, and what it owes after a packet
@@ -369,6 +403,9 @@ def wave_step(
             w_in[j] += alpha * (w - w_in[j])
         else:
             w_in[j] = w
+        f[OUT_ENERGY * n + j] += w_in[j] * w_in[j] * half_dt
+        if bounded and valid:
+            f[BANKED * n + j] = f[GOT_ENERGY * n + j] - charged(f, n, j)
         if hsi:  # tau_c = b omega_c - sqrt(2b) v_l ; u_l = sqrt(2b) omega_c - v_l
             effort[j] = b[j] * flow[j] - s2b[j] * w_in[j]
             w_out[j] = s2b[j] * flow[j] - w_in[j]
