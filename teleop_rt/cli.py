@@ -282,6 +282,15 @@ def _cmd_check(args: argparse.Namespace) -> int:
     cfg = _load_config(args)
     session = Session(cfg)  # builds models and backends: catches joint-count mismatches too
     _print_warnings(session)
+    from teleop_rt.analysis.free_space_probe import free_space_stop
+
+    stop = free_space_stop(cfg)
+    if stop is not None:
+        raise ConfigError(
+            f"channel.wave_filter_hz: null: this unfiltered wave channel (delay "
+            f"{cfg.delay_ticks} ticks) stops in free space on a clean link ({stop}); set "
+            "channel.wave_filter_hz (30 damps it)"
+        )
     if args.print_config:
         import yaml
 

@@ -154,10 +154,12 @@ class ChannelSpec(Strict):
     # ringing of the discrete terminations against stiff contact). None switches it off.
     wave_filter_hz: PositiveFloat | None = 30.0
     # What a wave channel does with a packet that did not arrive: bounded (the wave integral
-    # within the energy bound: passive, and it catches up lost samples), zero (a zero wave:
-    # passive), and, unprotected, for comparison: hold (the last wave held) or integral (the
-    # wave integral without the bound). With no loss all four compute the same.
-    wave_reconstruction: Literal["bounded", "zero", "hold", "integral"] = "bounded"
+    # within an honest energy bound: passive, and it catches up lost samples), corrected
+    # (bounded, and the integral an outage lost paid back within the same budget: no position
+    # drift), zero (a zero wave: passive), and, unprotected, for comparison: hold (the last
+    # wave held) or integral (the wave integral without the bound). With no loss all five
+    # compute the same.
+    wave_reconstruction: Literal["bounded", "corrected", "zero", "hold", "integral"] = "bounded"
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # docs/passivity.md). None, the default, switches it off.

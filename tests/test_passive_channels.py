@@ -43,7 +43,8 @@ CLASSES = {
     "reordering": {"delay_ms": 20, "reorder_percent": 25, "reorder_gap": 3},
     "duplication": {"delay_ms": 20, "jitter_ms": 3, "duplicate_percent": 20},
 }
-PROTECTED = {"bounded wave": ["channel.mode=wave"], "tdpa": ["channel.mode=tdpa"]}
+PROTECTED = {"bounded wave": ["channel.mode=wave"], "tdpa": ["channel.mode=tdpa"],
+             "corrected wave": ["channel.mode=wave", "channel.wave_reconstruction=corrected"]}
 
 
 def write_traces(folder: Path) -> dict[str, Path]:

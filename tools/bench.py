@@ -235,6 +235,8 @@ def full_tick(cfg, ticks: int, repeat: int, tmp: Path) -> dict:
 CHANNEL_KINDS = {  # label -> overrides; the first is the baseline
     "plain wave (zero)": ["channel.mode=wave", "channel.wave_reconstruction=zero"],
     "protected wave (bounded)": ["channel.mode=wave", "channel.wave_reconstruction=bounded"],
+    "drift-corrected wave (corrected)": ["channel.mode=wave",
+                                         "channel.wave_reconstruction=corrected"],
     "TDPA": ["channel.mode=tdpa"],
 }
 

@@ -997,6 +997,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         help="a few cases, both tasks (tests, CI); refused with --out docs",
     )
     parser.add_argument(
+        "--acceptance",
+        action="store_true",
+        help="issue 23's acceptance study instead (tools/transparency_study.py): "
+        "transparency_under_loss.md",
+    )
+    parser.add_argument(
         "--out",
         type=Path,
         default=None,
@@ -1030,6 +1036,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"network_study: error: {problem}", file=sys.stderr)
         return 2
     log(f"writing into {out}")
+    if args.acceptance:
+        from transparency_study import study as acceptance  # tools/, beside this script
+
+        acceptance(out, quick=args.quick)
+        return 0
     study(args.quick, out)
     return 0
 

@@ -37,7 +37,20 @@ stays passive when the network varies its delay, loses, duplicates or reorders p
                emitted never exceeds what the peer has sent, per joint. With consecutive packets
                and the integral in step it uses the received wave as it is, so with no loss it
                computes exactly what ``zero`` computes, bit for bit (the bound compares the same
-               sums in the same order, and never acts).
+               sums in the same order, and never acts). The budget is honest (issue 23): only
+               the energy of waves that reached the port in time (``got_energy``): each sample
+               used, and in a catch-up the samples it catches up, which only that tick may
+               spend; after a gap longer than ``CATCH_UP`` the skipped samples bring nothing
+               (crediting the peer's cumulative energy let a stale held wave spend it in the
+               next outage: a ratchet into a joint limit). A held wave expires after
+               ``HOLD_TICKS`` ticks of silence, and what it had left of the budget with it.
+  ``corrected`` ``bounded`` with position-drift compensation: the wave integral's debt (the
+               peer's integral minus the one used: what an outage lost or the bound cut) is
+               kept and paid back at ``1 / WAVE_DRIFT_TIME_S`` on the waves used, within the
+               same honest budget (wave integrals with position correction, Niemeyer &
+               Slotine, IJRR 2004; position tracking with wave variables, Chopra, Spong,
+               Hirche & Buss, ACC 2003). With no loss the debt is exactly 0: ``bounded`` bit
+               for bit.
 - ``tdpa``: the time-domain passivity approach (Ryu, Artigas & Preusche, Mechatronics 2010):
   velocity forward, torque back (the paper's force-feedback coupling), the last value held
   through a gap of up to ``HOLD_TICKS``, zero after; at each port a passivity observer of the
@@ -62,11 +75,13 @@ from teleop_rt.flat import Block, Int, Scalar, Vector, jit, vec
 
 HSI, TO = 0, 1  # a port's side
 DIRECT, WAVE, TDPA = 0, 1, 2  # channel modes
-ZERO, HOLD, INTEGRAL, BOUNDED = 0, 1, 2, 3  # a wave channel's reconstruction of missing waves
+ZERO, HOLD, INTEGRAL, BOUNDED, CORRECTED = 0, 1, 2, 3, 4  # a wave channel's reconstruction
 MODES = {"direct": DIRECT, "wave": WAVE, "tdpa": TDPA}
 CATCH_UP = 10  # the most missed packets the wave integral catches up in one tick
 HOLD_TICKS = 10  # TDPA holds the peer's last value this long through a gap, then zero
-RECONSTRUCTIONS = {"zero": ZERO, "hold": HOLD, "integral": INTEGRAL, "bounded": BOUNDED}
+RECONSTRUCTIONS = {"zero": ZERO, "hold": HOLD, "integral": INTEGRAL, "bounded": BOUNDED,
+                   "corrected": CORRECTED}
+WAVE_DRIFT_TIME_S = 0.25  # ``corrected``: the time constant it pays the integral's debt back in
 
 
 class Packet(Block):
@@ -112,11 +127,17 @@ class Port(Block):
     peer_x_sum = Vector("the peer's, as of its newest packet")
     out_sum = Vector("dt times the sum of this port's outputs (TDPA's TO: its position)")
     limited = Vector("energy the protection removed: the bound's, or TDPA's dissipation, J")
+    got_energy = Vector("dt / 2 times the sum of the squared waves that reached this port in "
+                        "time, J (the bound's honest budget)")
+    debt = Vector("``corrected``: the peer's wave integral minus the one used, after a packet")
+    out_energy = Vector("dt / 2 times the sum of the squared waves the filter gave the port, J")
+    banked = Vector("the bound's budget left after the last packet, J")
     total_energy = Scalar("sum over joints, J")
     balance = Scalar("energy received minus emitted, as the method accounts it, J (joints: min)")
     min_balance = Scalar("its running minimum, J")
     alpha = Scalar("received-wave low-pass coefficient", param=True)
     drift_rate = Scalar("TDPA's position-drift compensation at the TO, 1/s (0: off)", param=True)
+    wave_drift_rate = Scalar("``corrected``: 1 / WAVE_DRIFT_TIME_S, 1/s", param=True)
     dt = Scalar(param=True)
     side = Int("HSI or TO", param=True)
     mode = Int("DIRECT, WAVE or TDPA", param=True)
@@ -176,6 +197,7 @@ class Port(Block):
         if drift_time_s is not None and not drift_time_s > 0:
             raise ValueError("the drift compensation's time constant must be > 0 s")
         self.drift_rate = 1.0 / drift_time_s if drift_time_s and side == TO else 0.0
+        self.wave_drift_rate = 1.0 / WAVE_DRIFT_TIME_S if reconstruction == CORRECTED else 0.0
         if mode == WAVE:
             self.b[:] = b
             self.sqrt_2b[:] = [math.sqrt(2.0 * x) for x in b]
@@ -218,7 +240,9 @@ E_IN, E_OUT, WAVE_SUM, WAVE_ENERGY, HELD = (
 PEER_SUM, PEER_ENERGY, USED_SUM, USED_ENERGY = (
     Port.peer_sum.k, Port.peer_energy.k, Port.used_sum.k, Port.used_energy.k
 )  # fmt: skip
-PEER_E_IN, LIMITED = Port.peer_e_in.k, Port.limited.k
+PEER_E_IN, LIMITED, GOT_ENERGY = Port.peer_e_in.k, Port.limited.k, Port.got_energy.k
+DEBT, WAVE_DRIFT_RATE = Port.debt.k, Port.wave_drift_rate.k
+OUT_ENERGY, BANKED = Port.out_energy.k, Port.banked.k
 RECONSTRUCTION, LAST_SEQ, ACTED = Port.reconstruction.k, Port.last_seq.k, Port.acted.k
 MISSING, TERMINATED = Port.missing.k, Port.terminated.k
 X_SUM, PEER_X_SUM, OUT_SUM, DRIFT_RATE = (
@@ -279,15 +303,28 @@ def account_balance(f: np.ndarray, i: np.ndarray, n: int) -> None:
     channel's) peer E_in received minus this port's E_out. Negative: the channel made energy."""
     s = N_PORT_VECTORS * n
     if i[MODE] == WAVE:
-        got, spent = PEER_ENERGY, USED_ENERGY
+        got, spent = GOT_ENERGY, USED_ENERGY
     else:
         got, spent = PEER_E_IN, E_OUT
+    bounded = i[MODE] == WAVE and (i[RECONSTRUCTION] == BOUNDED or i[RECONSTRUCTION] == CORRECTED)
     low = math.inf
     for j in range(n):
-        low = min(low, f[got * n + j] - f[spent * n + j])
+        if bounded:
+            low = min(low, f[GOT_ENERGY * n + j] - charged(f, n, j))
+        else:
+            low = min(low, f[got * n + j] - f[spent * n + j])
     f[s + BALANCE] = low
     if not low >= f[s + MIN_BALANCE]:  # NaN counts as a new minimum
         f[s + MIN_BALANCE] = low
+
+
+@jit
+def charged(f: np.ndarray, n: int, j: int) -> float:
+    """What the bound has charged to its budget, J: the energy of the waves it emitted into
+    the received-wave filter while that is within the budget (the filter's output has no more:
+    its output is a convex combination of its inputs), else the filter's output's own."""
+    used = f[USED_ENERGY * n + j]
+    return used if used <= f[GOT_ENERGY * n + j] else f[OUT_ENERGY * n + j]
 
 
 @jit
@@ -295,7 +332,7 @@ def wave_step(
     f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.ndarray, tx: np.ndarray
 ) -> None:
     """Eq 9 on the received wave, reconstructed as the port's ``reconstruction`` says; the
-    wave energy received and emitted, for every reconstruction (the balance)."""
+    wave energy received in time and emitted, for every reconstruction (the balance)."""
     s = N_PORT_VECTORS * n
     alpha, filtered, dt = f[s + ALPHA], i[FILTERED] != 0, f[s + DT]
     half_dt = 0.5 * dt
@@ -305,39 +342,98 @@ def wave_step(
     held = vec(f, HELD, n)
     hsi, how, valid = i[SIDE] == HSI, i[RECONSTRUCTION], rx_i[P_VALID] != 0
     terminated = i[TERMINATED] != 0
+    corrected = how == CORRECTED
+    bounded = how == BOUNDED or corrected
+    rate = f[s + WAVE_DRIFT_RATE]
     missed = rx_i[P_SEQ] - i[LAST_SEQ] - 1  # packets missed since the last one used
+    catch_up = valid and 0 < missed <= CATCH_UP
+    # a held wave expires: after HOLD_TICKS ticks of silence the bound emits zeros and gives
+    # up what it had left (energy that only a stale wave would spend)
+    expired = bounded and not valid and i[MISSING] >= HOLD_TICKS
     acted = synced = False
     for j in range(n):
         used_sum = f[USED_SUM * n + j]
+        r = received[j]
+        e_r = r * r * half_dt  # (the term the sender added to its wave energy, bit for bit)
         if valid:
             # in step: nothing missed and the integral as the peer's; after a long gap the
             # integral is not caught up (a jolt), only taken as it is
             synced = (missed == 0 and used_sum == f[PEER_SUM * n + j]) or missed > CATCH_UP
+            # honest credit: this sample's energy, and in a catch-up that of the samples it
+            # catches up (known from the peer's cumulative energy); after a long gap the
+            # skipped samples' energy is not credited: they never reached this port
+            if missed > 0 and bounded:
+                f[GOT_ENERGY * n + j] += rx[P_WAVE_ENERGY * n + j] - f[PEER_ENERGY * n + j]
+            else:
+                f[GOT_ENERGY * n + j] += e_r
             f[PEER_SUM * n + j] = rx[P_SUM * n + j]
             f[PEER_ENERGY * n + j] = rx[P_WAVE_ENERGY * n + j]
-        if how == ZERO or (valid and (how == HOLD or synced)):
-            w = received[j]  # (zero: zeros when none arrived; else the wave as it was sent)
+        debt = f[DEBT * n + j]
+        if corrected and valid:
+            # the samples this packet brings (in a catch-up: those missed, less what a hold
+            # emitted for them, and this one), plus a part of the debt: the integral the bound
+            # cut or an outage lost, paid back within the budget (Niemeyer & Slotine 2004)
+            w = (f[PEER_SUM * n + j] - used_sum - debt) / dt if catch_up else r
+            if debt != 0.0:
+                w += rate * debt
+        elif how == ZERO or (valid and (how == HOLD or synced)):
+            w = r  # (zero: zeros when none arrived; else the wave as it was sent)
         elif not valid:
-            w = held[j]
+            w = 0.0 if expired else held[j]
         else:  # catch the integral up in this tick: the samples missed and this one
             w = (f[PEER_SUM * n + j] - used_sum) / dt
         e = w * w * half_dt
-        # emit no more wave energy than was sent (compared as the sums themselves: with the
-        # same waves in the same order they are equal, bit for bit)
-        if how == BOUNDED and f[USED_ENERGY * n + j] + e > f[PEER_ENERGY * n + j]:
-            room = max(f[PEER_ENERGY * n + j] - f[USED_ENERGY * n + j], 0.0)
-            clipped = math.copysign(math.sqrt(room / half_dt), w)
-            f[LIMITED * n + j] += e - clipped * clipped * half_dt
-            w, e, acted = clipped, room, True
+        got = f[GOT_ENERGY * n + j]
+        # emit no more wave energy than reached this port in time (compared as the sums
+        # themselves: with the same waves in the same order they are equal, bit for bit);
+        # with the filter, what counts is what the filter gives the port: a held wave may
+        # spend the energy the filter's lag left unspent (about 1.5 / alpha samples' worth of
+        # a steady wave), which the catch-up's skipped samples then pay back
+        if bounded and f[USED_ENERGY * n + j] + e > got:
+            acted = True  # (engaged: what the filter gives the port is checked, cut if need be)
+            room = max(got - f[OUT_ENERGY * n + j], 0.0)
+            y = w_in[j] + alpha * (w - w_in[j]) if filtered else w
+            e_y = y * y * half_dt
+            if f[OUT_ENERGY * n + j] + e_y > got:
+                y_c = math.copysign(min(abs(y), math.sqrt(room / half_dt)), y)
+                f[LIMITED * n + j] += e_y - y_c * y_c * half_dt
+                w = w_in[j] + (y_c - w_in[j]) / alpha if filtered else y_c
+                e = w * w * half_dt
         f[USED_ENERGY * n + j] += e
+        if bounded and (expired or (valid and missed > 0)):
+            # what a catch-up did not spend of the skipped samples' energy is not kept beyond
+            # the budget left after the last packet and this sample's; an expired hold keeps
+            # only the energy the filter holds ((1 - alpha) / alpha y^2 dt / 2: what received
+            # waves may still draw out of it, Jensen), nothing for a stale wave
+            y = w_in[j] + alpha * (w - w_in[j]) if filtered else w
+            if expired:
+                keep = (1.0 - alpha) / alpha * y * y * half_dt if filtered else 0.0
+                f[GOT_ENERGY * n + j] = min(got, f[OUT_ENERGY * n + j] + y * y * half_dt + keep)
+            else:
+                keep = f[BANKED * n + j] + (e_r if catch_up else 0.0)
+                spent = f[USED_ENERGY * n + j]
+                if spent > got:
+                    spent = f[OUT_ENERGY * n + j] + y * y * half_dt
+                f[GOT_ENERGY * n + j] = min(got, spent + keep)
         # in step with the peer's integral after a packet (what the bound cut is not caught
         # up later: that would need energy the peer did not send)
-        f[USED_SUM * n + j] = f[PEER_SUM * n + j] if valid else used_sum + w * dt
-        held[j] = w
+        if corrected:  # the integral as used, and what it owes after a packet
+            f[USED_SUM * n + j] = used_sum + w * dt
+            if valid:
+                f[DEBT * n + j] = f[PEER_SUM * n + j] - f[USED_SUM * n + j]
+        else:
+            f[USED_SUM * n + j] = f[PEER_SUM * n + j] if valid else used_sum + w * dt
+        if not bounded:
+            held[j] = w
+        elif valid:
+            held[j] = r  # the sample as it arrived (not a catch-up's sum, nor the bound's cut)
         if filtered:
             w_in[j] += alpha * (w - w_in[j])
         else:
             w_in[j] = w
+        f[OUT_ENERGY * n + j] += w_in[j] * w_in[j] * half_dt
+        if bounded and valid:
+            f[BANKED * n + j] = f[GOT_ENERGY * n + j] - charged(f, n, j)
         if terminated:  # a matched damper: omega = w_in / sqrt(2b), tau = -+ b omega, no wave
             flow[j] = w_in[j] / s2b[j]
             effort[j] = -b[j] * flow[j] if hsi else b[j] * flow[j]
