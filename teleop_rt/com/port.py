@@ -244,7 +244,7 @@ PEER_E_IN, LIMITED, GOT_ENERGY = Port.peer_e_in.k, Port.limited.k, Port.got_ener
 DEBT, WAVE_DRIFT_RATE = Port.debt.k, Port.wave_drift_rate.k
 OUT_ENERGY, BANKED = Port.out_energy.k, Port.banked.k
 RECONSTRUCTION, LAST_SEQ, ACTED = Port.reconstruction.k, Port.last_seq.k, Port.acted.k
-MISSING, TERMINATED = Port.missing.k, Port.terminated.k
+MISSING, TERMINATED, CODEC = Port.missing.k, Port.terminated.k, Port.codec.k
 X_SUM, PEER_X_SUM, OUT_SUM, DRIFT_RATE = (
     Port.x_sum.k, Port.peer_x_sum.k, Port.out_sum.k, Port.drift_rate.k
 )  # fmt: skip
@@ -342,6 +342,7 @@ def wave_step(
     held = vec(f, HELD, n)
     hsi, how, valid = i[SIDE] == HSI, i[RECONSTRUCTION], rx_i[P_VALID] != 0
     terminated = i[TERMINATED] != 0
+    coded = i[CODEC] != 0  # the deadband codec (teleop_rt.com.codec) is on
     corrected = how == CORRECTED
     bounded = how == BOUNDED or corrected
     rate = f[s + WAVE_DRIFT_RATE]
@@ -362,7 +363,10 @@ def wave_step(
             # honest credit: this sample's energy, and in a catch-up that of the samples it
             # catches up (known from the peer's cumulative energy); after a long gap the
             # skipped samples' energy is not credited: they never reached this port
-            if missed > 0 and bounded:
+            # (with the deadband codec a held tick repeats the declared energy and the next
+            # packet brings the energy of the samples sent while silent: credit what the peer
+            # declared, never the held sample's own)
+            if bounded and (missed > 0 or coded):
                 f[GOT_ENERGY * n + j] += rx[P_WAVE_ENERGY * n + j] - f[PEER_ENERGY * n + j]
             else:
                 f[GOT_ENERGY * n + j] += e_r
