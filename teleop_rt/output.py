@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import functools
 import os
+import textwrap
 from pathlib import Path
 from typing import IO, TYPE_CHECKING
 
@@ -108,6 +109,16 @@ def open_output(path: Path, option: str, force: bool = False) -> IO[bytes]:
         ) from None
     except OSError as err:
         raise OutputError(f"{option} {path}: cannot write ({err.strerror})") from None
+
+
+CHARS_PER_INCH = 9.0  # of a title at matplotlib's default 12 pt suptitle: wrap before the edge
+
+
+def wrap_title(text: str, width_in: float, scale: float = 1.0) -> str:
+    """``text`` broken into lines that fit a figure ``width_in`` inches wide (each of its own
+    lines wrapped at words; ``scale``: the font's size against the default)."""
+    chars = max(20, int(width_in * CHARS_PER_INCH / scale))
+    return "\n".join(textwrap.fill(line, chars) for line in text.splitlines())
 
 
 def save_figure(fig: Figure, path: str | Path, option: str = "--plot", force: bool = False) -> Path:

@@ -301,3 +301,30 @@ def test_bode_legend_names_the_filter_only_when_there_is_one() -> None:
         p = ImpedanceParams(**BASE, delay_s=0.02, wave_filter_hz=filter_hz)
         label, title = continuous_label(p, 1e-3), _filter_text(p, 1e-3)
         assert ("matched" in label) == ("matched" in title) == (filter_hz is not None)
+
+
+def test_bode_plot_title_is_wrapped_inside_the_figure(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # issue 28: the one-line title ran past both edges of the 8-inch figure
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from teleop_rt import output
+
+    drawn = []
+    save = output.save_figure
+    monkeypatch.setattr(
+        output, "save_figure", lambda fig, *a, **k: (drawn.append(fig), save(fig, *a, **k))[1]
+    )
+    image = tmp_path / "bode.png"
+    argv = ["bode", str(CONFIGS / "stiff_wall.yaml"), "--omegas", "10,40", "--plot", str(image),
+            "--set", "channel.delay_ms=50", "--set", "channel.wave_filter_hz=30"]  # fmt: skip
+    assert main(argv) == 0 and image.stat().st_size > 10_000
+    capsys.readouterr()
+    (fig,) = drawn
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    title = fig._suptitle
+    box, whole = title.get_window_extent(canvas.get_renderer()), fig.bbox
+    assert "\n" in title.get_text() and "Z_e =" in title.get_text()
+    assert whole.x0 <= box.x0 and box.x1 <= whole.x1 and box.y1 <= whole.y1

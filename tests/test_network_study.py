@@ -69,6 +69,8 @@ def test_quick_run_writes_the_report_and_figures_into_out(tmp_path: Path) -> Non
         data = (out / "figures" / name).read_bytes()
         assert data.startswith(PNG) and len(data) > 10_000, name
     report = (out / "network_study.md").read_text()
+    # no empty parentheses where a quick run lacks a sweep (the fixed-jitter playout's D list)
+    assert not re.search(r"\(\s*\)", report.replace("protection()", "")), "empty ()"
     for name in FIGURES:
         assert f"(figures/{name})" in report
     found = tables(report)
@@ -143,3 +145,56 @@ def test_out_is_checked_before_the_work(tmp_path: Path) -> None:
         assert proc.returncode == 2
         assert proc.stderr.startswith(f"network_study: error: --out {target}: {reason}")
         assert len(proc.stderr.splitlines()) == 1
+
+
+def _inside(box, outer, slack: float = 1.0) -> bool:
+    return (box.x0 >= outer.x0 - slack and box.x1 <= outer.x1 + slack
+            and box.y0 >= outer.y0 - slack and box.y1 <= outer.y1 + slack)  # fmt: skip
+
+
+def test_the_study_grid_legend_holds_every_line_and_no_text_is_clipped() -> None:
+    """The full 6 x 6 grid drawn from made-up figures (every channel of every sweep, one run
+    stopped): one legend, outside every panel, naming each channel, the no-network reference
+    and the stop mark; no legend inside a panel; the titles (wrapped) and every label inside
+    the figure; the fonts at the study's size."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    sys.path.insert(0, str(ROOT / "tools"))
+    import network_study as ns
+
+    st, name = ns.FULL, "paper_experiment"
+    figures = {"t_p": 1e-3, "t_tau": 0.1, "mass": [0.05, 0.05], "stiffness": 300.0,
+               "drift_end_rad": 1e-3, "min_balance_j": -1e-6}  # fmt: skip
+    rows = [{"config": name, "case": ns.make_case("delay", 0).__class__("reference", 0.0),
+             "channel": "zero", "complete": True, "diverged": False, **figures}]  # fmt: skip
+    for sweep, values in st.grid[name].items():
+        for ch in st.channels:
+            for v in values:
+                rows.append({"config": name, "case": ns.make_case(sweep, v), "channel": ch,
+                             "complete": ch != "direct", "diverged": False, **figures})  # fmt: skip
+    fig = ns.sweep_figure({"rows": rows}, st, name)
+    panels = list(fig.axes)
+    assert len(panels) == len(ns.PANELS) * len(st.grid[name]) == 36
+    assert all(ax.get_legend() is None for ax in panels) and len(fig.legends) == 1
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert labels == [ns.CHANNEL[ch].label for ch in st.channels] + [
+        "no network (D = 0)", "safety stop or divergence"]  # fmt: skip
+    canvas = FigureCanvasAgg(fig)  # as print_png draws it: then the boxes are final
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    whole = fig.bbox
+    legend = fig.legends[0].get_window_extent(renderer)
+    assert _inside(legend, whole)
+    assert not any(legend.overlaps(ax.get_window_extent(renderer)) for ax in panels)
+    titles = {ax: ax._left_title for ax in panels}  # set_title(loc="left"): not ax.title
+    texts = [fig._suptitle, *titles.values(), *(ax.xaxis.label for ax in panels),
+             *(ax.yaxis.label for ax in panels)]  # fmt: skip
+    for text in texts:
+        if text is not None and text.get_text():
+            assert _inside(text.get_window_extent(renderer), whole), text.get_text()
+    tops = panels[:: len(ns.PANELS)]  # made column by column: each column's first is on top
+    columns = [titles[ax].get_window_extent(renderer) for ax in tops]
+    assert all(titles[ax].get_text() for ax in tops)
+    for left, right in zip(columns, columns[1:], strict=False):
+        assert left.x1 < right.x0  # a column's title ends before the next one's begins
+    assert titles[panels[0]].get_fontsize() >= ns.FONT_PT

@@ -31,8 +31,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from matplotlib import rc_context
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
@@ -42,7 +44,7 @@ sys.path.insert(0, str(ROOT))
 from teleop_rt import config  # noqa: E402
 from teleop_rt.analysis import experiment  # noqa: E402
 from teleop_rt.analysis.discrete import filter_group_delay_s  # noqa: E402
-from teleop_rt.output import report_folder_problem  # noqa: E402
+from teleop_rt.output import report_folder_problem, wrap_title  # noqa: E402
 from teleop_rt.session import Session  # noqa: E402
 
 CONFIGS = {
@@ -408,10 +410,38 @@ def reference(results: dict, name: str) -> dict:
     return rows_of(results, name, "reference")[0]
 
 
+FONT_PT = 14  # the study grid is wide: its text at this size stays readable once shrunk
+STOP_MARK = {"marker": "x", "color": "r", "ms": 10, "mew": 2, "ls": "none"}
+
+
+def sweep_legend(st: Settings) -> list:
+    """The grid's one legend: every channel's line, the no-network reference, the stop mark."""
+    handles = []
+    for ch in st.channels:
+        color, marker, ls = STYLE[ch]
+        handles.append(Line2D([], [], ls=ls, color=color, marker=marker, ms=5, mfc="none",
+                              lw=1.1, label=CHANNEL[ch].label))  # fmt: skip
+    handles.append(Line2D([], [], color="k", lw=0.7, ls=":", label="no network (D = 0)"))
+    handles.append(Line2D([], [], **STOP_MARK, label="safety stop or divergence"))
+    return handles
+
+
 def plot_sweeps(results: dict, st: Settings, name: str, path: Path) -> None:
+    FigureCanvasAgg(sweep_figure(results, st, name)).print_png(str(path))
+
+
+def sweep_figure(results: dict, st: Settings, name: str) -> Figure:
+    """A panel per figure (rows) and sweep (columns): every channel, the reference, the
+    stops; one legend below the panels, titles wrapped to their width."""
+    with rc_context({"font.size": FONT_PT}):  # fonts are fixed when each text is made
+        return _sweep_figure(results, st, name)
+
+
+def _sweep_figure(results: dict, st: Settings, name: str) -> Figure:
     sweeps = list(st.grid[name])
     ref = reference(results, name)
-    fig = Figure(figsize=(3.6 * len(sweeps) + 1.5, 2.6 * len(PANELS) + 1.0), layout="constrained")
+    width = 4.4 * len(sweeps) + 1.5
+    fig = Figure(figsize=(width, 3.0 * len(PANELS) + 2.5), layout="constrained")
     for col, sweep in enumerate(sweeps):
         for row, (key, label, scale) in enumerate(PANELS):
             ax = fig.add_subplot(len(PANELS), len(sweeps), row * len(sweeps) + col + 1)
@@ -427,7 +457,7 @@ def plot_sweeps(results: dict, st: Settings, name: str, path: Path) -> None:
                 bad = [(xi, yi) for xi, yi, r in zip(x, y, rs, strict=True)
                        if not r["complete"] or r["diverged"]]  # fmt: skip
                 if bad:
-                    ax.plot(*zip(*bad, strict=True), "x", color="r", ms=10, mew=2)
+                    ax.plot(*zip(*bad, strict=True), **STOP_MARK)
             ref_y = _value(ref, key)
             if scale != "log" or ref_y > 0:
                 ax.axhline(ref_y, color="k", lw=0.7, ls=":", label="no network (D = 0)")
@@ -435,19 +465,19 @@ def plot_sweeps(results: dict, st: Settings, name: str, path: Path) -> None:
             if scale == "symlog":  # these are >= 0
                 ax.set_ylim(bottom=0.0)
             ax.grid(True, which="both", alpha=0.3)
-            if row == 0:
-                ax.set_title(SWEEPS[sweep][1], fontsize="small", loc="left")
+            if row == 0:  # wrapped to its column's width
+                column = width / len(sweeps) - 0.8  # inches, less the tick labels
+                ax.set_title(wrap_title(SWEEPS[sweep][1], column, FONT_PT / 12),
+                             fontsize="medium", loc="left")  # fmt: skip
             if row == len(PANELS) - 1:
                 ax.set_xlabel(SWEEPS[sweep][0])
             if col == 0:
                 ax.set_ylabel(label, fontsize="small")
-            if row == 0 and col == 0:
-                ax.legend(fontsize="x-small", loc="best")
-    fig.suptitle(
-        f"Network study, {TITLES[name]} ({name}.yaml): channels against delay, jitter and loss; "
-        "red x: safety stop or divergence"
-    )
-    FigureCanvasAgg(fig).print_png(str(path))
+    handles = sweep_legend(st)  # outside the axes: it covers no data
+    fig.legend(handles=handles, loc="outside lower center", ncols=min(len(handles), 4))
+    fig.suptitle(wrap_title(f"Network study, {TITLES[name]} ({name}.yaml): channels against "
+                            "delay, jitter and loss", width, FONT_PT / 12))  # fmt: skip
+    return fig
 
 
 def plot_traces(results: dict, st: Settings, path: Path) -> None:
@@ -471,8 +501,7 @@ def plot_traces(results: dict, st: Settings, path: Path) -> None:
             label = CHANNEL[r["channel"]].label
             for x, ls in ((s["x_t"], "-"), (s["x_h"], "--")):
                 pen = experiment.penetration(x, geo.wall_point, geo.wall_normal) * 1e3
-                tag = f"{label} (TO solid, HSI dashed)" if ls == "-" else None
-                axes[0].plot(s["t"], pen, ls, color=color, lw=1.0, label=tag)
+                axes[0].plot(s["t"], pen, ls, color=color, lw=1.0)
             axes[1].plot(s["t"], s["energy"], color=color, lw=1.0, label=label)
             axes[2].plot(s["t"], s["balance"], color=color, lw=1.0, label=label)
         case = rows[0]["case"]
@@ -480,7 +509,6 @@ def plot_traces(results: dict, st: Settings, path: Path) -> None:
         axes[0].set_ylabel("depth beyond the wall surface (mm)")
         sub.suptitle(f"{TITLES[name]}: {case.label}")
         axes[0].set_title("tools at the wall", fontsize="medium", loc="left")
-        axes[0].legend(fontsize="x-small", loc="lower left")
         axes[1].set_ylabel("two-port channel energy (J)")
         axes[1].set_title("energy that entered the channel (eq 7)", fontsize="medium", loc="left")
         axes[2].set_yscale("symlog", linthresh=1e-6)
@@ -490,6 +518,13 @@ def plot_traces(results: dict, st: Settings, path: Path) -> None:
         for ax in axes:
             ax.grid(True, alpha=0.3)
             ax.set_xlabel("t (s)")
+    # one legend for both rows (the same channels), outside the axes: it covers no data
+    handles = [Line2D([], [], color="k", lw=0.8, ls=":", label="TO, no network")]
+    handles += [Line2D([], [], color=STYLE[ch][0], lw=1.0, label=CHANNEL[ch].label)
+                for ch in st.channels]  # fmt: skip
+    handles += [Line2D([], [], color="0.3", lw=1.0, ls=ls, label=f"{what} (tools at the wall)")
+                for ls, what in (("-", "TO"), ("--", "HSI"))]  # fmt: skip
+    fig.legend(handles=handles, loc="outside lower center", ncols=4)
     FigureCanvasAgg(fig).print_png(str(path))
 
 
@@ -634,6 +669,7 @@ def definitions(st: Settings) -> list[str]:
 def playout_section(st: Settings) -> list[str]:
     jitters = sorted({v for g in st.grid.values() for v in g.get("jitter_fixed", ())})
     fixed_d = ", ".join(f"{make_case('jitter_fixed', v).playout_ms} ms" for v in jitters)
+    fixed_d = f"({fixed_d})" if jitters else "(a sweep this run did not make)"
     return [
         "Every case has a network delay, and the receiver's playout rule "
         "(`teleop_rt/com/playout.py`) decides what of it reaches the ports:",
@@ -652,7 +688,7 @@ def playout_section(st: Settings) -> list[str]:
         "(`correlation_percent`: the delay wanders over about 100 packets and packets "
         "overtake each other far less), `newest` playout at D = 1 ms.",
         f"* **jitter, fixed**: the uncorrelated network, `fixed` playout at D = 20 ms + 3 jitter "
-        f"({fixed_d}): jitter within D is absorbed and becomes the constant delay D; only the "
+        f"{fixed_d}: jitter within D is absorbed and becomes the constant delay D; only the "
         "tail beyond D is lost (late). It costs latency instead of passivity.",
         "",
         "The in-process link of a session with no network (D = 0) couples the ports directly "

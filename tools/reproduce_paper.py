@@ -589,7 +589,9 @@ def plot_experiment(data: dict, path: Path) -> None:
     ax2.axhline(5000.0, color="C3", lw=0.6, ls=":")
     ax2.set_ylabel("N/m (wall: 5000)", color="C3")
     handles = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
-    ax.legend(handles=handles, loc="center right", fontsize="x-small")
+    # below the panel, not over it: the three curves cross its whole height
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.06), ncols=2,
+              fontsize="x-small")  # fmt: skip
     # task time
     ax = fig.add_subplot(grid[len(shown) + 1, 0])
     task = np.array([row["task_time_s"] for row in rows])

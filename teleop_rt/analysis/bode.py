@@ -588,7 +588,7 @@ def plot_bode(
     the extension, an existing file overwritten only with ``force`` (teleop_rt.output)."""
     from matplotlib.figure import Figure
 
-    from teleop_rt.output import save_figure
+    from teleop_rt.output import save_figure, wrap_title
 
     w = result.omega
     dense = np.geomspace(w.min() / 1.5, w.max() * 1.5, 300)
@@ -614,12 +614,13 @@ def plot_bode(
     ax_p.set_xlabel("omega (rad/s)")
     ax_m.legend(loc="best", fontsize="small")
     p = result.params
-    fig.suptitle(
+    text = (
         title
         or f"displayed impedance, joint {result.joint}: T_d = {p.delay_s * 1000:g} ms, "
         f"b = {p.b:g}, filter {_filter_text(p, result.dt)}, Z_e = {p.env_mass:g} s + "
         f"{p.env_damping:g} + {p.env_stiffness:g}/s"
     )
+    fig.suptitle(wrap_title(text, fig.get_figwidth()))
     save_figure(fig, path, "--plot", force)
 
 

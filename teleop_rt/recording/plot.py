@@ -37,7 +37,12 @@ PATH_POINTS = 4_000  # tool path samples (forward kinematics per sample)
 HSI_STYLE: dict[str, Any] = {"ls": "--", "color": "C0"}
 TO_STYLE: dict[str, Any] = {"ls": "-", "color": "C1"}
 ENV_COLORS = {"wall": "0.35", "foam": "C8", "spring": "C2", "damper": "C2", "mass": "C5"}
-ORIGINAL_STYLE = {"lw": 4.0, "alpha": 0.3}  # a replay's original run, under the replay
+ORIGINAL_STYLE: dict[str, Any] = {"lw": 4.0, "alpha": 0.3}  # a replay's original run, under it
+
+
+def _faint(style: dict[str, str]) -> dict[str, Any]:
+    """``style`` as the original run of a replay is drawn."""
+    return {**style, **ORIGINAL_STYLE}
 
 
 def make_figure(data: LogData, title: str | None = None, original: LogData | None = None) -> Figure:
@@ -79,8 +84,8 @@ def make_figure(data: LogData, title: str | None = None, original: LogData | Non
     ]
     if original is not None:
         handles += [
-            Line2D([], [], **HSI_STYLE, **ORIGINAL_STYLE, label="HSI, original run"),
-            Line2D([], [], **TO_STYLE, **ORIGINAL_STYLE, label="TO, original run"),
+            Line2D([], [], **_faint(HSI_STYLE), label="HSI, original run"),
+            Line2D([], [], **_faint(TO_STYLE), label="TO, original run"),
         ]
     if paths is not None:
         handles += _draw_paths(fig.add_subplot(grid[:, 2]), paths)
@@ -88,7 +93,7 @@ def make_figure(data: LogData, title: str | None = None, original: LogData | Non
         ax = fig.add_subplot(grid[n, :2])
         if original is not None:
             was = original.topics["/channel"]
-            ax.plot(*_envelope(was["t"], was["total_energy"]), "-", color="C2", **ORIGINAL_STYLE)
+            ax.plot(*_envelope(was["t"], was["total_energy"]), **_faint({"color": "C2"}))
         ax.plot(*_envelope(channel["t"], energy), "-", color="C2")
         ax.set_ylabel("channel energy (J)")
         ax.set_xlabel("t (s)")
@@ -110,9 +115,8 @@ def _draw_original(ax_q, ax_tau, original: LogData, j: int) -> None:
     """Joint ``j`` of the run a replay replays, wide and faint, under the replay's lines."""
     hsi, to = original.topics["/hsi"], original.topics["/to"]
     for rows, style, sign in ((to, TO_STYLE, -1.0), (hsi, HSI_STYLE, 1.0)):
-        ax_q.plot(*_envelope(rows["t"], rows["q"][:, j]), **style, **ORIGINAL_STYLE)
-        ax_tau.plot(*_envelope(rows["t"], sign * rows["tau_ext"][:, j]), **style,
-                    **ORIGINAL_STYLE)  # fmt: skip
+        ax_q.plot(*_envelope(rows["t"], rows["q"][:, j]), **_faint(style))
+        ax_tau.plot(*_envelope(rows["t"], sign * rows["tau_ext"][:, j]), **_faint(style))
 
 
 def default_title(data: LogData, show_energy: bool = True, why_no_path: str | None = None) -> str:
