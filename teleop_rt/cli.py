@@ -114,6 +114,11 @@ def _build_parser() -> argparse.ArgumentParser:
         help="serve this site live to Foxglove (WebSocket; default 127.0.0.1:8765, port 0: any "
         "free one), from its log's writer",
     )  # fmt: skip
+    site.add_argument(
+        "--cpu", type=_non_negative_int, metavar="N",
+        help="pin the loop to CPU N (default: the HSI the last CPU it may use, the TO the one "
+        "before, so that two sites on one host spin on different CPUs)",
+    )  # fmt: skip
     site.add_argument("--record-ticks", metavar="NPZ", help=argparse.SUPPRESS)  # for run --link
 
     check = sub.add_parser("check", help="validate a config (and load its robots) without running")

@@ -74,7 +74,7 @@ def cmd_site(args, load_config, live=None) -> int:
     summary = run_site(cfg, args.site, realtime=True, overrun=args.overrun,
                        max_missed=args.max_missed, record=record, on_peer=say, log=log,
                        live=live, metadata=metadata, on_live=say_live,
-                       on_wait=waiting)  # fmt: skip
+                       on_wait=waiting, cpu=args.cpu)  # fmt: skip
     if args.json:
         json.dump(summary.to_dict(), sys.stdout, indent=2)
         print()

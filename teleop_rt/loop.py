@@ -241,7 +241,7 @@ def _pin_cpu(cpu: int | None, notes: list[str]) -> set[int] | None:
     if len(allowed) < 2:
         notes.append(f"CPU affinity left as is (only CPU {allowed} allowed)")
         return None
-    target = allowed[cpu]
+    target = allowed[cpu % len(allowed)]
     try:
         os.sched_setaffinity(0, {target})
     except OSError as err:

@@ -60,6 +60,7 @@ def run_loop(
     at_start: Callable[[], None] | None = None,
     finish: Callable[[LoopOutcome], dict] | None = None,
     spin_ns: int | None = None,
+    cpu: int | None = -1,
 ) -> LoopOutcome:
     """Run ``step`` ``total`` times, one per period ``dt`` in real time (else back to back).
 
@@ -69,12 +70,14 @@ def run_loop(
     (tests' observers); ``bring_to_rest(clock)`` after a safety finding (the staged stop, paced
     by the clock in real time). Whatever ends the run, every backend is stopped together and
     ``recorder`` is closed with the summary ``finish(outcome)`` gives. ``spin_ns``: how long
-    before each deadline the clock stops sleeping and spins (None: ``TickClock``'s default)."""
+    before each deadline the clock stops sleeping and spins (None: ``TickClock``'s default);
+    ``cpu``: the real-time loop's CPU, an index into the CPUs it may use (-1 the last; None
+    leaves the affinity alone)."""
     period_ns = int(round(dt * 1e9))
     stats = TimingStats(total, period_ns)
     spin = {} if spin_ns is None else {"spin_ns": spin_ns}
     clock = TickClock(period_ns, realtime, overrun, max_missed=max_missed, **spin)
-    grant = acquire_realtime() if realtime else None
+    grant = acquire_realtime(cpu=cpu) if realtime else None
     perf = time.perf_counter_ns
     out = LoopOutcome(stats, clock, realtime, perf(), StopSignals())
     out.notes += grant.notes if grant else []

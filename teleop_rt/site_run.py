@@ -12,6 +12,7 @@ the handshake agreed on (``teleop_rt.recording.pair`` does the same from the two
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ import numpy as np
 
 from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink, wait_until_ns
 from teleop_rt.config import SessionConfig
+from teleop_rt.errors import ConfigError
 from teleop_rt.exit_signals import Terminated
 from teleop_rt.loop import TickClock
 from teleop_rt.runner import LoopOutcome, run_loop
@@ -37,6 +39,20 @@ SENDER_PRIORITY = 81  # the link's sender thread: above the loop's SCHED_FIFO 80
 # 100 us late, well within the network's own jitter), and the spin costs ~5 us per tick
 # instead of ~150 (15 % of a core: a third of a site's CPU; see docs/benchmarks.md).
 SITE_SPIN_NS = 50_000
+# Each role's CPU by default, as an index into the CPUs the process may use: two sites started
+# by hand on one host spin on different CPUs (the HSI on the last, the TO on the one before).
+SITE_CPU_INDEX = {"hsi": -1, "to": -2}
+
+
+def site_cpu_index(name: str, cpu: int | None) -> int:
+    """The index (into this process's allowed CPUs) that site ``name``'s loop pins to: CPU
+    ``cpu`` if given (one of those allowed, else a ConfigError), else its role's default."""
+    if cpu is None:
+        return SITE_CPU_INDEX[name]
+    allowed = sorted(os.sched_getaffinity(0))
+    if cpu not in allowed:
+        raise ConfigError(f"--cpu {cpu}: this process may run on CPUs {allowed} only")
+    return allowed.index(cpu)
 
 
 @dataclass
@@ -100,11 +116,14 @@ def run_site(
     metadata: dict[str, str] | None = None,
     on_live: Callable[[LiveAddress], None] | None = None,
     on_wait: Callable[[], None] | None = None,
+    cpu: int | None = None,
 ) -> SiteSummary:
     """Run site ``name`` ('hsi' or 'to') of ``cfg`` against its peer over the config's link;
     ``log``: record it there (``live``: and serve it, from the log's writer); ``metadata``:
     further ``teleop_rt`` metadata of the log (the command line's config path and overrides);
-    ``on_wait()`` when the site starts waiting for its peer (signals now end the wait)."""
+    ``on_wait()`` when the site starts waiting for its peer (signals now end the wait);
+    ``cpu``: the CPU its loop pins to (None: its role's, ``SITE_CPU_INDEX``)."""
+    cpu_index = site_cpu_index(name, cpu)
     site: Site = (HsiSite if name == "hsi" else ToSite)(cfg, backend)
     site.warm_up()
     ZenohLink.check(cfg, name)
@@ -189,7 +208,7 @@ def run_site(
         run_loop(
             step, cfg.n_ticks, period_s, [site.backend], stop_safely, realtime=realtime,
             overrun=overrun, max_missed=max_missed, before_start=handshake, at_start=at_start,
-            finish=finish, recorder=recorder, spin_ns=SITE_SPIN_NS,
+            finish=finish, recorder=recorder, spin_ns=SITE_SPIN_NS, cpu=cpu_index,
         )  # fmt: skip
     except (HandshakeError, KeyboardInterrupt, Terminated):
         if recorder is not None and not shaken[0]:  # no session: no log of one

@@ -224,3 +224,39 @@ def test_an_endpoint_in_use_is_one_line_naming_it_and_exit_2(proto: str, tmp_pat
         f"[{proto}/127.0.0.1:{port + 1}], and the peer's connect the same"
     ], done.stderr
     assert ".rs:" not in done.stderr and "…" not in done.stderr and "Traceback" not in done.stderr
+
+
+def _pinned(notes: list[str]) -> int:
+    (line,) = [n for n in notes if n.startswith("pinned to CPU")]
+    return int(line.split()[3])
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs")
+def test_two_sites_started_by_hand_spin_on_different_cpus(tmp_path: Path) -> None:
+    """Each role pins its loop to a CPU of its own by default (the HSI the last it may use,
+    the TO the one before): two sites on one host never share one; each summary says which."""
+    port = free_port()
+    errs = {n: tmp_path / f"{n}.err" for n in ("hsi", "to")}
+    procs = {n: site(n, port, "--set", "channel.delay_ms=20", "--duration", "1", "--no-log",
+                     stderr=errs[n]) for n in ("hsi", "to")}  # fmt: skip
+    try:
+        outs = {n: p.communicate(timeout=180)[0] for n, p in procs.items()}
+    finally:
+        for p in procs.values():
+            if p.poll() is None:
+                p.kill()
+    for n, p in procs.items():
+        assert p.returncode == 0, errs[n].read_text()[-2000:]
+    cpus = {n: _pinned(json.loads(out)["notes"]) for n, out in outs.items()}
+    allowed = sorted(os.sched_getaffinity(0))
+    assert cpus == {"hsi": allowed[-1], "to": allowed[-2]}
+
+
+def test_a_cpu_the_site_may_not_use_is_one_line_and_exit_2(tmp_path: Path) -> None:
+    bad = max(os.sched_getaffinity(0)) + 1
+    r = subprocess.run([sys.executable, "-m", "teleop_rt", "site", "hsi", str(PAPER), "--no-log",
+                        "--cpu", str(bad), *endpoints(free_port())], capture_output=True,
+                       text=True, timeout=120)  # fmt: skip
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"--cpu {bad}" in lines[0] and "Traceback" not in r.stderr
