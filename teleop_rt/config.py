@@ -655,7 +655,9 @@ def _unknown_key(loc: tuple) -> str | None:
     where = "operator" if section == "operator" else f"environment.{section}"
     msg = f"unknown key for {where} kind {kind!r} (its keys: {', '.join(keys)})"
     if any(key in cls.model_fields for other, cls in kinds.items() if other != kind):
-        example = ", ".join([f"kind: {kind}", *(f"{k}: ..." for k in keys)])
+        # the kind's own keys (those every kind has, the operator's clutch and absent, stay)
+        own = [k for k in keys if not all(k in cls.model_fields for cls in kinds.values())]
+        example = ", ".join([f"kind: {kind}", *(f"{k}: ..." for k in own)])
         msg += (
             f"; changing the kind with --set leaves the other kind's keys behind: give the "
             f"whole section instead, --set '{where}={{{example}}}'"

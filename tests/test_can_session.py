@@ -143,10 +143,11 @@ def test_a_drive_that_never_enables_is_a_safe_stop_at_start() -> None:
     session = Session(cfg)
     original = session.hsi.backend._open_bus
 
-    def open_bus() -> None:
-        original()
+    def open_bus():
+        bus = original()
         drive = session.hsi.backend.emulator.drives[0]
         drive._controlword = lambda cw: None  # ignores every controlword
+        return bus
 
     session.hsi.backend._open_bus = open_bus
     summary = session.run()
@@ -239,9 +240,10 @@ def test_a_pdo_longer_than_its_mapping_is_read_counted_and_noted() -> None:
     backend = session.hsi.backend
     original = backend._open_bus
 
-    def open_bus() -> None:
-        original()
+    def open_bus():
+        bus = original()
         backend.emulator.inject(Fault("long_tpdo", 1, 0))  # from world tick 0: start-up too
+        return bus
 
     backend._open_bus = open_bus
     summary = session.run()

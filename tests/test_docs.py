@@ -20,8 +20,11 @@ from teleop_rt.cli import _build_parser, main
 
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = sorted([ROOT / "README.md", *(ROOT / "docs").glob("*.md")])
-# written by tools/reproduce_paper.py and tools/network_study.py: one line per paragraph
-GENERATED = {"paper_reproduction.md", "network_study.md"}
+# written by tools/reproduce_paper.py, network_study.py (--codec: codec_study.py, --acceptance:
+# transparency_study.py): one line per paragraph
+GENERATED = {
+    "paper_reproduction.md", "network_study.md", "codec_study.md", "transparency_under_loss.md"
+}
 # pages a sibling branch adds (issue 25's index links them ahead of the merge); once a page
 # exists its links are checked like any other
 PENDING = {"codec.md", "performance.md", "transparency_under_loss.md", "task_space.md"}
