@@ -148,3 +148,17 @@ def test_with_a_healthy_to_the_stop_holds_it_in_contact() -> None:
     session, spies, note = run_spied(fault=hsi_bias)
     assert_every_write_safe(session, spies)
     assert re.search(r"^after the stop: TO at rest after \d+ ticks, then zero torque$", note)
+
+
+def test_a_non_finite_command_is_a_stop_with_every_check_switched_off() -> None:
+    # safety.enabled: false and torque_limits: off leave no limit to compare a command with;
+    # a non-finite one (kp = 1e308 over a virtual mass of 1e-300 overflows to inf - inf: NaN)
+    # must still stop the run (run_spied asserts it) before it reaches a motor; measurements
+    # are still finite at that tick, so only the command guard can catch it (issue 25's mutant)
+    session, spies, _ = run_spied(
+        "to.controller.kp=1e308", "to.virtual_mass=1e-300", "safety.enabled=false",
+        "safety.torque_limits='off'",
+    )
+    for name, spy in spies.items():
+        taus = np.array([r[1] for r in spy.rows]).reshape(len(spy.rows), -1)
+        assert len(taus) > 0 and np.isfinite(taus).all(), f"{name}: a non-finite torque written"
