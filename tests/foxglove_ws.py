@@ -92,7 +92,9 @@ class FoxgloveClient:
         deadline = time.monotonic() + timeout
         while not until(got):
             left = deadline - time.monotonic()
-            assert left > 0, f"timed out with {len(got)} messages"
+            assert left > 0, (
+                f"timed out with {len(got)} messages on {sorted({m.topic for m in got})}"
+            )
             msg = self._handle(self.ws.recv(timeout=left))
             if msg is not None:
                 got.append(msg)
