@@ -12,6 +12,7 @@ it ends.
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -67,11 +68,21 @@ def exit_on_signals() -> Iterator[None]:
             raised = True
             raise KeyboardInterrupt if signum == signal.SIGINT else Terminated(signum)
 
+    def unraisable(info: sys.UnraisableHookArgs) -> None:
+        # a stop signal whose exception Python dropped (raised in a finaliser): it is
+        # recorded in _received and answered there, not a traceback for the user
+        if isinstance(info.exc_value, (Terminated, KeyboardInterrupt)):
+            return
+        hook(info)
+
     sigs = TERMINATING
+    hook = sys.unraisablehook
+    sys.unraisablehook = unraisable
     previous = {sig: signal.signal(sig, handle) for sig in sigs}
     try:
         yield
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        sys.unraisablehook = hook
         _received.clear()
