@@ -404,12 +404,12 @@ def wave_step(
                 w = w_in[j] + (y_c - w_in[j]) / alpha if filtered else y_c
                 e = w * w * half_dt
         f[USED_ENERGY * n + j] += e
+        y = w_in[j] + alpha * (w - w_in[j]) if filtered else w  # what the filter gives the port
         if bounded and (expired or (valid and missed > 0)):
             # what a catch-up did not spend of the skipped samples' energy is not kept beyond
             # the budget left after the last packet and this sample's; an expired hold keeps
             # only the energy the filter holds ((1 - alpha) / alpha y^2 dt / 2: what received
             # waves may still draw out of it, Jensen), nothing for a stale wave
-            y = w_in[j] + alpha * (w - w_in[j]) if filtered else w
             if expired:
                 keep = (1.0 - alpha) / alpha * y * y * half_dt if filtered else 0.0
                 f[GOT_ENERGY * n + j] = min(got, f[OUT_ENERGY * n + j] + y * y * half_dt + keep)
@@ -431,11 +431,8 @@ def wave_step(
             held[j] = w
         elif valid:
             held[j] = r  # the sample as it arrived (not a catch-up's sum, nor the bound's cut)
-        if filtered:
-            w_in[j] += alpha * (w - w_in[j])
-        else:
-            w_in[j] = w
-        f[OUT_ENERGY * n + j] += w_in[j] * w_in[j] * half_dt
+        w_in[j] = y
+        f[OUT_ENERGY * n + j] += y * y * half_dt
         if bounded and valid:
             f[BANKED * n + j] = f[GOT_ENERGY * n + j] - charged(f, n, j)
         if terminated:  # a matched damper: omega = w_in / sqrt(2b), tau = -+ b omega, no wave
