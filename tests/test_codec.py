@@ -24,7 +24,7 @@ from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink, _first_differenc
 from teleop_rt.errors import ConfigError
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
-from tests.test_passive_channels import CLASSES, PASSIVE_J, SWEEP, schedules
+from tests.test_passive_channels import CLASSES, PASSIVE_J, SWEEP, drive, schedules
 
 WEBER, FLOOR, MAX_TICKS = 0.1, 0.01, 50
 
@@ -69,16 +69,6 @@ class CodecHarness:
     def lowest(self) -> float:
         h, t = self.ports
         return min(h.balance, t.balance, h.total_energy + t.total_energy)
-
-
-def drive(harness: CodecHarness, schedule) -> float:
-    d_h, d_t, l_h, l_t, x_h, x_t = schedule
-    low = 0.0
-    for k in range(len(d_h)):
-        inputs = (np.full(harness.n, x_h[k]), np.full(harness.n, x_t[k]))
-        harness.step(k, inputs, (d_h[k], d_t[k]), (l_h[k], l_t[k]))
-        low = min(low, harness.lowest())
-    return low
 
 
 @settings(max_examples=120, deadline=None)

@@ -20,13 +20,16 @@ DT = 1e-3
 PASSIVE_J = -1e-9
 
 
-def drive(waves: np.ndarray, arrives: np.ndarray) -> dict[str, np.ndarray]:
-    """The TO's port (b = 2, no filter, tau_t = 0) fed the peer's packet k at tick k when
-    ``arrives[k]``, else none; per tick the wave it used, its honest balance and the
-    wave energy it has used."""
-    port = make_port(TO, "wave", [2.0], 5, DT, None, "bounded")
+def drive(
+    waves: np.ndarray, arrives: np.ndarray, filter_hz: float | None = None
+) -> dict[str, np.ndarray]:
+    """The TO's port (b = 2, tau_t = 0; ``filter_hz``: the received-wave filter) fed the peer's
+    packet k at tick k when ``arrives[k]``, else none; per tick the wave it used (what the
+    filter gave the port), its honest balance, the wave energy it has used and emitted, and
+    its budget at the end."""
+    port = make_port(TO, "wave", [2.0], 5, DT, filter_hz, "bounded")
     rx, tx = Packet(1), Packet(1)
-    used, balance, energy = (np.zeros(waves.size) for _ in range(3))
+    used, balance, energy, emitted = (np.zeros(waves.size) for _ in range(4))
     wave_sum = wave_energy = 0.0
     for k, w in enumerate(waves):
         wave_sum += w * DT
@@ -39,7 +42,9 @@ def drive(waves: np.ndarray, arrives: np.ndarray) -> dict[str, np.ndarray]:
             rx.valid = 1
         port_step(port.f, port.i, 1, rx.f, rx.i, tx.f)
         used[k], balance[k], energy[k] = port.wave_in[0], port.balance, port.used_energy[0]
-    return {"used": used, "balance": balance, "energy": energy}
+        emitted[k] = port.out_energy[0]
+    return {"used": used, "balance": balance, "energy": energy, "emitted": emitted,
+            "got": port.got_energy[0]}  # fmt: skip
 
 
 def test_a_packet_after_a_long_outage_brings_no_credit_for_a_stale_wave() -> None:
@@ -99,26 +104,6 @@ def test_a_catch_up_spends_only_the_energy_of_the_samples_it_catches_up() -> Non
     assert np.all(out["used"][26:] == w0) and out["balance"].min() >= PASSIVE_J
 
 
-def drive_filtered(waves: np.ndarray, arrives: np.ndarray) -> dict[str, np.ndarray]:
-    """As ``drive``, with the 30 Hz received-wave filter: what the filter gives the port."""
-    port = make_port(TO, "wave", [2.0], 5, DT, 30.0, "bounded")
-    rx, tx = Packet(1), Packet(1)
-    out, balance, emitted = (np.zeros(waves.size) for _ in range(3))
-    wave_sum = wave_energy = 0.0
-    for k, w in enumerate(waves):
-        wave_sum += w * DT
-        wave_energy += w * w * 0.5 * DT
-        port_input(port.f, port.i, 1, np.zeros(1), tx.f)
-        rx.f[:], rx.i[:] = 0.0, 0
-        if arrives[k]:
-            rx.wave[0], rx.wave_sum[0], rx.wave_energy[0] = w, wave_sum, wave_energy
-            rx.tick = rx.seq = k
-            rx.valid = 1
-        port_step(port.f, port.i, 1, rx.f, rx.i, tx.f)
-        out[k], balance[k] = port.wave_in[0], port.balance
-        emitted[k] = port.out_energy[0]
-    return {"out": out, "balance": balance, "emitted": emitted, "got": port.got_energy[0]}
-
 
 def test_a_standing_wave_is_held_through_a_short_burst_on_the_filters_unspent_energy() -> None:
     """A steady wave (a static push) and a burst of 6 lost packets: the filter's lag left
@@ -128,9 +113,9 @@ def test_a_standing_wave_is_held_through_a_short_burst_on_the_filters_unspent_en
     ticks, w0 = 400, 0.5
     arrives = np.ones(ticks, bool)
     arrives[300:306] = False
-    out = drive_filtered(np.full(ticks, w0), arrives)
+    out = drive(np.full(ticks, w0), arrives, filter_hz=30.0)
     assert out["balance"].min() >= PASSIVE_J
     got = np.cumsum(np.where(arrives, w0 * w0 * 0.5 * DT, 0.0))
     assert np.all(out["emitted"] <= got + 1e-15)  # emitted <= received in time, every tick
-    assert np.all(np.abs(out["out"][300:306] - w0) < 1e-6 * w0)  # held, not decayed
-    assert np.abs(out["out"][306:] - w0).max() < 0.05 * w0
+    assert np.all(np.abs(out["used"][300:306] - w0) < 1e-6 * w0)  # held, not decayed
+    assert np.abs(out["used"][306:] - w0).max() < 0.05 * w0
