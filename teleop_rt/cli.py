@@ -471,7 +471,7 @@ def _print_summary(summary, as_json: bool, recorder, can_status: dict | None = N
         print()
     else:
         print_summary(summary)
-        if recorder is not None:
+        if status is not None:
             print(f"log: {recorder.path}" + ("" if status["complete"] else " (INCOMPLETE)"))
         if can_status is not None:
             whole = "" if can_status["complete"] else ", INCOMPLETE"
@@ -526,7 +526,7 @@ def _cmd_metrics(args: argparse.Namespace) -> int:
     if len(args.log) == 2:
         from teleop_rt.recording.pair import pair_main
 
-        return pair_main(*args.log, args.json, args.t_from, args.t_to)
+        return pair_main(args.log[0], args.log[1], args.json, args.t_from, args.t_to)
     return metrics_main(args.log[0], args.json, args.t_from, args.t_to)
 
 
@@ -732,7 +732,8 @@ def _bode_environment(cfg, args) -> tuple[tuple[float, float, float], str, list[
 
     given = (args.env_mass, args.env_damping, args.env_stiffness)
     if any(v is not None for v in given):
-        env = tuple(0.0 if v is None else v for v in given)
+        mass, damping, stiffness = (0.0 if v is None else float(v) for v in given)
+        env = (mass, damping, stiffness)
         ignored = "; the config's environment not used"
         return env, "command line (joint space)" + (ignored if cfg.environment else ""), []
     if args.joint < 0:

@@ -157,7 +157,7 @@ def run_two_sites(args, cfg) -> int:
         files = [Path(tmp) / f"{s}.npz" for s in ("hsi", "to")]
         pair = None
         if all(f.exists() for f in files):
-            t_p, t_tau, ticks = pair_transparency(*files, cfg.dt)
+            t_p, t_tau, ticks = pair_transparency(files[0], files[1], cfg.dt)
             pair = {"ticks": ticks, "t_p": t_p, "t_tau": t_tau,
                     "t_p_total": sum(t_p), "t_tau_total": sum(t_tau)}  # fmt: skip
     combined = {"name": cfg.name, "link": "zenoh", "pair": pair, "sites": summaries,

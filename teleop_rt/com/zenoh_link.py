@@ -531,7 +531,7 @@ class ZenohLink(Link):
             self.transport.send(data, now)
         else:  # each surviving copy to the sender thread, with its instant
             delays = impairment.delays_ms
-            for k in range(impairment.decide(packet.tick)):  # type: ignore[union-attr]
+            for k in range(impairment.decide(packet.tick)):
                 self.transport.send_at(data, now + int(delays[k] * 1e6))
         self.sent += 1
 

@@ -35,9 +35,10 @@ PERSON_HAND_DAMPING_N_S_PER_M = 40.0
 
 def replay_config(data: LogData, overrides: list[str]) -> SessionConfig:
     """The logged session's config with overrides, on the simulated backend."""
-    if data.config() is None:  # the attachment alone first: its errors name it, not --set
-        raise LogError(f"{data.path}: the log holds no config.yaml attachment; cannot replay")
     raw = data.raw_config()
+    if raw is None:
+        raise LogError(f"{data.path}: the log holds no config.yaml attachment; cannot replay")
+    data.config()  # the attachment alone first: its errors name it, not --set
     raw["backend"] = "sim"
     for side in ("hsi", "to"):  # a robot's own backend too (a CAN robot replays simulated)
         if isinstance(raw.get(side), dict):

@@ -164,7 +164,7 @@ def compare(original: LogData, replay: LogData) -> dict:
     same = k == original.ticks == replay.ticks
     for topic in (name, *COMPARED):
         x, y = original.topics[topic][:k], replay.topics[topic][:k]
-        same = same and all(np.array_equal(x[f], y[f]) for f in x.dtype.names if f != "t")
+        same = same and all(np.array_equal(x[f], y[f]) for f in (x.dtype.names or ()) if f != "t")
     return {"max_abs_q_difference_rad": dq, "identical": bool(same)}
 
 
@@ -184,6 +184,7 @@ def replay_site_main(args, data: LogData, gap_note: str | None, recorder_for) ->
         **({"config": data.meta["config"]} if "config" in data.meta else {}),
     }
     scratch = None
+    path: Path | None
     if args.no_log:  # the figures are read from a log: a temporary one
         scratch = tempfile.TemporaryDirectory(prefix="teleop-rt-replay-")
         path = Path(scratch.name) / f"replay.{data.site}.mcap"
