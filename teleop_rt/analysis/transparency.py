@@ -37,6 +37,13 @@ class TransparencyAccumulator(Block):
             as_floats(q_h), as_floats(q_t), as_floats(tau_h), as_floats(tau_e),
         )  # fmt: skip
 
+    def add_series(
+        self, q_h: np.ndarray, q_t: np.ndarray, tau_h: np.ndarray, tau_e: np.ndarray
+    ) -> None:
+        """Add whole (ticks, joints) series, tick by tick (``add`` per row, compiled)."""
+        rows = (np.ascontiguousarray(x, dtype=np.float64) for x in (q_h, q_t, tau_h, tau_e))
+        accumulate_series(self.f, self.i, self.n, *rows)
+
 
 T_P, T_TAU, OFFSET = (
     TransparencyAccumulator.t_p.k,
@@ -71,9 +78,12 @@ def accumulate(
         t_tau[j] += e * e * dt
 
 
-def transparency(
-    q_h: np.ndarray, q_t: np.ndarray, tau_h: np.ndarray, tau_e: np.ndarray, dt: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """(T_p, T_tau) per joint from whole time series of shape (ticks, joints)."""
-    alpha_err = (q_h - q_h[:1]) - (q_t - q_t[:1])
-    return (alpha_err**2).sum(axis=0) * dt, ((tau_h - tau_e) ** 2).sum(axis=0) * dt
+@jit
+def accumulate_series(
+    f: np.ndarray, i: np.ndarray, n: int,
+    q_h: np.ndarray, q_t: np.ndarray, tau_h: np.ndarray, tau_e: np.ndarray,
+) -> None:  # fmt: skip
+    """``accumulate`` over the rows of (ticks, joints) series, one tick after the other: a log
+    gives the live figures because it is summed by the live arithmetic itself."""
+    for k in range(q_h.shape[0]):
+        accumulate(f, i, n, q_h[k], q_t[k], tau_h[k], tau_e[k])

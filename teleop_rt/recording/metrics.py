@@ -1,9 +1,8 @@
 """The live session summary's numbers, recomputed from a log alone.
 
-T_p and T_tau (eq 18) repeat the live TransparencyAccumulator operation by operation:
-e = q_h - q_t - offset, then t_p += e * e * dt tick after tick. ``np.cumsum`` adds sequentially
-as the live loop does (``np.sum`` adds pairwise and differs in the last bits), so a whole log
-gives the live figures bit for bit. Timing goes through ``TimingStats.summary`` itself.
+T_p and T_tau (eq 18) go through the live TransparencyAccumulator itself, tick after tick, so
+a whole log gives the live figures bit for bit. Timing goes through ``TimingStats.summary``
+itself.
 
 Windows (``t_from <= t < t_to``) keep the offset of the session start (q_h - q_t at tick 0):
 alpha in eq 18 is the angle moved since the start of the session, not of the window. The
@@ -18,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from teleop_rt.analysis.transparency import TransparencyAccumulator
 from teleop_rt.loop import TimingStats, format_percentiles
 from teleop_rt.recording.reader import LogData, LogError, check_window, read_log, require_ticks
 
@@ -64,23 +64,12 @@ def transparency_sums(
     dt: float,
     offset: np.ndarray | None = None,
 ) -> tuple[list[float], list[float]]:
-    """T_p and T_tau per joint (eq 18) of aligned (ticks, joints) series, with the live
-    accumulator's arithmetic; ``offset``: q_h - q_t at the session start (default: the first
-    row's). The one function for a session's log, two sites' logs and their tick records."""
-    n = q_h.shape[1]
-    if offset is None:
-        offset = q_h[0] - q_t[0] if len(q_h) else np.zeros(n)
-    e = q_h - q_t - offset
-    t_p = _sequential_sum(e * e * dt, n)
-    e = tau_h - tau_e
-    return t_p, _sequential_sum(e * e * dt, n)
-
-
-def _sequential_sum(terms: np.ndarray, n: int) -> list[float]:
-    """Column sums added one tick after the other, starting from 0.0 (as the live loop)."""
-    if len(terms) == 0:
-        return [0.0] * n
-    return [float(x) for x in np.cumsum(terms, axis=0)[-1]]
+    """T_p and T_tau per joint (eq 18) of aligned (ticks, joints) series, by the live
+    accumulator; ``offset``: q_h - q_t at the session start (default: the first row's). The one
+    function for a session's log, two sites' logs and their tick records."""
+    acc = TransparencyAccumulator(q_h.shape[1], dt, None if offset is None else list(offset))
+    acc.add_series(q_h, q_t, tau_h, tau_e)
+    return acc.t_p.tolist(), acc.t_tau.tolist()
 
 
 def _timing(timing: np.ndarray, period_ns: int) -> dict:
