@@ -17,6 +17,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from teleop_rt.declarations import OVERRUN_DEFAULT, OVERRUN_POLICIES
 from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop, TeleopError
 from teleop_rt.exit_signals import Terminated, exit_on_signals
 from teleop_rt.std_streams import guarded
@@ -33,6 +34,10 @@ def _build_parser() -> argparse.ArgumentParser:
     # what the logs record: the release with the git commit when run from a checkout
     parser.add_argument("--version", action="version", version=f"teleop-rt {software_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def add_overrun_arg(p: argparse.ArgumentParser, what: str) -> None:
+        p.add_argument("--overrun", choices=OVERRUN_POLICIES, default=OVERRUN_DEFAULT,
+                       help=f"{what} (default: {OVERRUN_DEFAULT})")  # fmt: skip
 
     def add_backend_arg(p: argparse.ArgumentParser, one_robot: bool = False) -> None:
         # a site runs one robot: its backend is just NAME (hsi:/to: would name the other too)
@@ -60,12 +65,7 @@ def _build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="pace ticks to the wall clock (default: fast mode, as fast as possible)",
     )
-    run.add_argument(
-        "--overrun",
-        choices=["catch_up", "skip", "stop"],
-        default="catch_up",
-        help="what a late tick does in real-time mode (default: catch_up)",
-    )
+    add_overrun_arg(run, "what a late tick does in real-time mode")
     run.add_argument(
         "--max-missed",
         type=_non_negative_int,
@@ -100,10 +100,7 @@ def _build_parser() -> argparse.ArgumentParser:
     site.add_argument("site", choices=["hsi", "to"], help="which site this process runs")
     add_config_args(site)
     site.add_argument("--duration", type=_positive_float, metavar="S", help="seconds to run")
-    site.add_argument(
-        "--overrun", choices=["catch_up", "skip", "stop"], default="catch_up",
-        help="what a late tick does (default: catch_up)",
-    )  # fmt: skip
+    add_overrun_arg(site, "what a late tick does")
     site.add_argument("--max-missed", type=_non_negative_int, metavar="N",
                       help="a safety stop (exit 3) at the (N+1)th missed deadline")  # fmt: skip
     add_backend_arg(site, one_robot=True)

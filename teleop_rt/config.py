@@ -23,7 +23,13 @@ from pydantic import (
     model_validator,
 )
 
-from teleop_rt.com.impairment import ImpairmentSpec
+from teleop_rt.com.impairment_spec import ImpairmentSpec
+from teleop_rt.declarations import (
+    DEFAULT_RECONSTRUCTION,
+    MAX_DELAY_MS,
+    ChannelMode,
+    Reconstruction,
+)
 from teleop_rt.errors import ConfigError, quote
 from teleop_rt.hal.can.config import CanSpec
 from teleop_rt.inputs import file_problem, read_bounded, shown
@@ -36,7 +42,6 @@ PerJointPositive = PositiveFloat | list[PositiveFloat]
 PerJointNonNeg = NonNegFloat | list[NonNegFloat]
 
 MAX_CONFIG_BYTES = 1_000_000
-MAX_DELAY_MS = 10_000.0  # 10 s one way: beyond any teleoperation link, and bounded memory
 MIN_RATE_HZ, MAX_RATE_HZ = 10, 100_000
 MAX_TICKS = 100_000_000  # timing statistics are preallocated per tick (16 bytes each)
 # Counts of ticks: a detection window longer than the longest session never fires, and every
@@ -147,7 +152,7 @@ class ChannelSpec(Strict):
     passivity approach (tdpa: delayed velocity forward, torque back, with passivity observers
     and controllers), or, for comparison, plain delayed force feedback (direct, not passive)."""
 
-    mode: Literal["wave", "tdpa", "direct"] = "wave"
+    mode: ChannelMode = "wave"
     delay_ms: Annotated[float, Field(ge=0, le=MAX_DELAY_MS, allow_inf_nan=False)] = 0.0
     wave_impedance: PerJointPositive = 2.0  # b, N m s/rad per joint
     # First-order low-pass on each received wave (keeps the channel passive; damps the
@@ -159,7 +164,7 @@ class ChannelSpec(Strict):
     # drift), zero (a zero wave: passive), and, unprotected, for comparison: hold (the last
     # wave held) or integral (the wave integral without the bound). With no loss all five
     # compute the same.
-    wave_reconstruction: Literal["bounded", "corrected", "zero", "hold", "integral"] = "bounded"
+    wave_reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # docs/passivity.md). None, the default, switches it off.
@@ -543,7 +548,7 @@ class SessionConfig(Strict):
     @classmethod
     def _duration_ticks(cls, v: float, info: Any) -> float:
         rate = info.data.get("rate_hz")
-        if rate is not None and not (v * rate <= MAX_TICKS and math.floor(v * rate + 0.5) >= 1):
+        if rate is not None and not (v * rate <= MAX_TICKS and ticks_in(v, rate) >= 1):
             raise ValueError(
                 f"{v:g} s is {v * rate:.3g} ticks at rate_hz = {rate}; "
                 f"a session runs 1 to {MAX_TICKS} ticks"
@@ -562,7 +567,7 @@ class SessionConfig(Strict):
 
     @model_validator(mode="after")
     def _delay_whole_ticks(self) -> SessionConfig:
-        ticks = self.channel.delay_ms * self.rate_hz / 1000.0
+        ticks = self._delay_in_ticks()
         if abs(ticks - round(ticks)) > 1e-9:
             raise ValueError(
                 f"channel.delay_ms = {self.channel.delay_ms} is not a whole number of "
@@ -615,13 +620,21 @@ class SessionConfig(Strict):
     def backends(self) -> dict[str, str]:
         return {side: self.backend_for(side) for side in ("hsi", "to")}
 
+    def _delay_in_ticks(self) -> float:
+        return self.channel.delay_ms * self.rate_hz / 1000.0
+
     @property
     def delay_ticks(self) -> int:
-        return round(self.channel.delay_ms * self.rate_hz / 1000.0)
+        return round(self._delay_in_ticks())
 
     @property
     def n_ticks(self) -> int:
-        return math.floor(self.duration_s * self.rate_hz + 0.5)  # half up, not half even
+        return ticks_in(self.duration_s, self.rate_hz)
+
+
+def ticks_in(seconds: float, rate_hz: float) -> int:
+    """The whole ticks in ``seconds`` at ``rate_hz``, rounded half up (not half even)."""
+    return math.floor(seconds * rate_hz + 0.5)
 
 
 def _format_error(err: ValidationError) -> str:

@@ -32,10 +32,10 @@ from typing import Any, BinaryIO, ClassVar
 
 import numpy as np
 
+from teleop_rt.declarations import OVERRUN_DEFAULT, OVERRUN_POLICIES
 from teleop_rt.errors import SafetyStop
 from teleop_rt.exit_signals import unanswered
 
-OVERRUN_POLICIES = ("catch_up", "skip", "stop")
 MCL_CURRENT, MCL_FUTURE = 1, 2  # <sys/mman.h>
 CPU_DMA_LATENCY = "/dev/cpu_dma_latency"  # the kernel's PM QoS request for wake-up latency
 
@@ -51,7 +51,7 @@ class TickClock:
         self,
         period_ns: int,
         realtime: bool,
-        overrun: str = "catch_up",
+        overrun: str = OVERRUN_DEFAULT,
         spin_ns: int = 200_000,
         now_ns=time.monotonic_ns,
         sleep=time.sleep,

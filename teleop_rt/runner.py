@@ -10,6 +10,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
+from teleop_rt.declarations import OVERRUN_DEFAULT
 from teleop_rt.errors import RecordingFailure, SafetyStop
 from teleop_rt.hal.stopping import stop_all
 from teleop_rt.loop import StopSignals, TickClock, TimingStats, acquire_realtime
@@ -51,7 +52,7 @@ def run_loop(
     backends: Sequence[Backend],
     bring_to_rest: Callable[[TickClock], str],
     realtime: bool = False,
-    overrun: str = "catch_up",
+    overrun: str = OVERRUN_DEFAULT,
     max_missed: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     after_tick: Callable[[], None] | None = None,

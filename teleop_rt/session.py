@@ -1,7 +1,7 @@
 """A one-process session: the two sites (``teleop_rt.site``) joined by an in-process link,
 stepped in lock-step, in fast mode or in real time.
 
-One tick k (see ../shared/docs/architecture.md), in this order:
+One tick k (see docs/architecture.md), in this order:
 1. wait for the deadline (real-time mode);
 2. each site reads its backend (q, v, tau_ext) and checks its measurements;
 3. the link hands each site's port the packet due (eq 10: the peer's of D ticks ago, or of
@@ -32,6 +32,7 @@ from teleop_rt.com.channel import ChannelMonitor, monitor_step
 from teleop_rt.com.link import InProcessLink, Link
 from teleop_rt.com.port import WAVE
 from teleop_rt.config import SessionConfig
+from teleop_rt.declarations import OVERRUN_DEFAULT
 from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
 from teleop_rt.hal.base import FusedPlants
@@ -334,7 +335,7 @@ class Session:
         self,
         ticks: int | None = None,
         realtime: bool = False,
-        overrun: str = "catch_up",
+        overrun: str = OVERRUN_DEFAULT,
         progress: Callable[[int, int], None] | None = None,
         observer: Callable[[Session], None] | None = None,
         recorder: Recorder | None = None,

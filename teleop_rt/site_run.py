@@ -23,6 +23,7 @@ import numpy as np
 
 from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink, wait_until_ns
 from teleop_rt.config import SessionConfig
+from teleop_rt.declarations import OVERRUN_DEFAULT
 from teleop_rt.errors import ConfigError
 from teleop_rt.exit_signals import Terminated
 from teleop_rt.loop import TickClock
@@ -107,7 +108,7 @@ def run_site(
     name: str,
     backend: str | None = None,
     realtime: bool = True,
-    overrun: str = "catch_up",
+    overrun: str = OVERRUN_DEFAULT,
     max_missed: int | None = None,
     record: Path | None = None,
     on_peer: Callable[[str], None] | None = None,

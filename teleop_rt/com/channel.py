@@ -16,21 +16,26 @@ import numpy as np
 from teleop_rt.com.codec import codec_receive, codec_send
 from teleop_rt.com.link import InProcessLink, link_deliver, link_offsets, link_push
 from teleop_rt.com.port import (
-    DIRECT,
     EFFORT,
     FLOW,
     HSI,
-    MODES,
     P_SEQ,
     P_TICK,
     P_VALID,
-    RECONSTRUCTIONS,
     TO,
-    WAVE,
     Packet,
     Port,
     port_input,
     port_step,
+)
+from teleop_rt.declarations import (
+    DEFAULT_RECONSTRUCTION,
+    DIRECT,
+    MODES,
+    RECONSTRUCTIONS,
+    WAVE,
+    ChannelMode,
+    Reconstruction,
 )
 from teleop_rt.flat import Block, Packed, Scalar, Vector, as_floats, floats_of, ints_of, jit
 
@@ -157,8 +162,8 @@ def two_port_step(
 
 
 def make_port(
-    side: int, mode: str, wave_impedance: list[float], delay_ticks: int, dt: float,
-    filter_hz: float | None, reconstruction: str = "bounded",
+    side: int, mode: ChannelMode, wave_impedance: list[float], delay_ticks: int, dt: float,
+    filter_hz: float | None, reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION,
     drift_time_s: float | None = None,
 ) -> Port:  # fmt: skip
     """Site ``side``'s port of a channel of ``mode`` ('wave', 'tdpa' or 'direct'; a wave
@@ -169,8 +174,8 @@ def make_port(
 
 
 def make_ports(
-    mode: str, wave_impedance: list[float], delay_ticks: int, dt: float,
-    filter_hz: float | None, reconstruction: str = "bounded",
+    mode: ChannelMode, wave_impedance: list[float], delay_ticks: int, dt: float,
+    filter_hz: float | None, reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION,
     drift_time_s: float | None = None,
 ) -> tuple[Port, Port]:  # fmt: skip
     """The HSI's and the TO's port of a channel of ``mode`` (a two-port in one object)."""

@@ -15,7 +15,5 @@ class DirectChannel(TwoPort):
     """Velocity forward, torque back, each delayed by ``delay_ticks`` whole ticks."""
 
     def __init__(self, n: int, delay_ticks: int, dt: float) -> None:
-        if delay_ticks < 0:
-            raise ValueError("delay_ticks must be >= 0")
         port_h, port_t = make_ports("direct", [1.0] * n, delay_ticks, dt, None)
         super().__init__(n, port_h, port_t, delay_ticks, dt)

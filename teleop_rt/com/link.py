@@ -20,6 +20,7 @@ from abc import ABC, abstractmethod
 import numpy as np
 
 from teleop_rt.com.port import HSI, N_PACKET_VECTORS, P_UNSENT, P_WAVE, Packet
+from teleop_rt.declarations import require_delay_ticks
 from teleop_rt.flat import Block, Int, jit, jit_inline
 
 N_PACKET_SCALARS, N_PACKET_INTS = len(Packet.SCALARS), len(Packet.INTS)
@@ -63,9 +64,7 @@ class InProcessLink(Block, Link):
     slot = Int("this tick's slot of both lines")
 
     def __init__(self, n: int, delay_ticks: int) -> None:
-        if delay_ticks < 0:
-            raise ValueError("delay_ticks must be >= 0")
-        super().__init__(n, tail=2 * delay_ticks * entry_size(n))
+        super().__init__(n, tail=2 * require_delay_ticks(delay_ticks) * entry_size(n))
         self.delay_ticks = delay_ticks
         self._sent: list[Packet | None] = [None, None]  # this tick's packets
         self._ended = [False, False]

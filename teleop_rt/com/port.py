@@ -71,16 +71,23 @@ import math
 
 import numpy as np
 
+from teleop_rt.declarations import (
+    BOUNDED,
+    CORRECTED,
+    DEFAULT_RECONSTRUCTION,
+    DIRECT,
+    HOLD,
+    RECONSTRUCTIONS,
+    TDPA,
+    WAVE,
+    ZERO,
+    require_delay_ticks,
+)
 from teleop_rt.flat import Block, Int, Scalar, Vector, jit, vec
 
 HSI, TO = 0, 1  # a port's side
-DIRECT, WAVE, TDPA = 0, 1, 2  # channel modes
-ZERO, HOLD, INTEGRAL, BOUNDED, CORRECTED = 0, 1, 2, 3, 4  # a wave channel's reconstruction
-MODES = {"direct": DIRECT, "wave": WAVE, "tdpa": TDPA}
 CATCH_UP = 10  # the most missed packets the wave integral catches up in one tick
 HOLD_TICKS = 10  # TDPA holds the peer's last value this long through a gap, then zero
-RECONSTRUCTIONS = {"zero": ZERO, "hold": HOLD, "integral": INTEGRAL, "bounded": BOUNDED,
-                   "corrected": CORRECTED}
 WAVE_DRIFT_TIME_S = 0.25  # ``corrected``: the time constant it pays the integral's debt back in
 
 
@@ -182,14 +189,13 @@ class Port(Block):
         dt: float,
         mode: int = WAVE,
         filter_hz: float | None = None,
-        reconstruction: int = BOUNDED,
+        reconstruction: int = RECONSTRUCTIONS[DEFAULT_RECONSTRUCTION],
         drift_time_s: float | None = None,
     ) -> None:
         b = [float(x) for x in wave_impedance]
         if mode == WAVE and any(not x > 0 for x in b):
             raise ValueError("wave impedance b must be > 0 on every joint")
-        if delay_ticks < 0:
-            raise ValueError("delay_ticks must be >= 0")
+        require_delay_ticks(delay_ticks)
         super().__init__(len(b))
         self.side, self.mode, self.delay_ticks, self.dt = side, mode, delay_ticks, dt
         self.reconstruction = reconstruction

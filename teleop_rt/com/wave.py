@@ -40,8 +40,6 @@ class WaveChannel(TwoPort):
         filter_hz: float | None = None,
     ) -> None:
         b = [float(x) for x in wave_impedance]
-        if delay_ticks < 0:
-            raise ValueError("delay_ticks must be >= 0")
         port_h, port_t = make_ports("wave", b, delay_ticks, dt, filter_hz)
         super().__init__(len(b), port_h, port_t, delay_ticks, dt)
         self.filter_hz = port_h.filter_hz

@@ -2,7 +2,7 @@
 with multicast scouting off and explicit endpoints, a publisher of this site's packets and a
 subscriber to the peer's (``teleop_rt.com.zenoh_link`` puts packets on it).
 
-Why these settings (../shared/docs/network.md has the figures measured here): each packet is
+Why these settings (docs/network.md has the figures measured here): each packet is
 worth something only while it is fresh, so it is sent at once (``express``: no batching), at
 ``Priority.REAL_TIME``, and dropped rather than queued when the link is congested
 (``CongestionControl.DROP``); a UDP link by default, since over TCP one stalled segment delays

@@ -1,0 +1,36 @@
+"""Names, codes, defaults and limits that the config, the command line and the implementations
+share, each declared once here. The module imports nothing of the package (nor numpy), so that
+the config and the command line read them without loading an implementation."""
+
+from __future__ import annotations
+
+from typing import Literal, get_args
+
+# --- the channel (teleop_rt.com.port) ---------------------------------------------------------
+ChannelMode = Literal["wave", "tdpa", "direct"]  # the config's names (channel.mode)
+DIRECT, WAVE, TDPA = 0, 1, 2  # the kernels' codes
+MODES: dict[ChannelMode, int] = {"direct": DIRECT, "wave": WAVE, "tdpa": TDPA}
+
+# what a wave channel puts in place of a packet that did not arrive (channel.wave_reconstruction;
+# the methods in teleop_rt.com.port's docstring)
+Reconstruction = Literal["bounded", "corrected", "zero", "hold", "integral"]
+ZERO, HOLD, INTEGRAL, BOUNDED, CORRECTED = 0, 1, 2, 3, 4  # the kernels' codes
+RECONSTRUCTIONS: dict[Reconstruction, int] = {
+    "zero": ZERO, "hold": HOLD, "integral": INTEGRAL, "bounded": BOUNDED, "corrected": CORRECTED,
+}  # fmt: skip
+DEFAULT_RECONSTRUCTION: Reconstruction = "bounded"
+
+MAX_DELAY_MS = 10_000.0  # 10 s one way: beyond any teleoperation link, and bounded memory
+
+
+def require_delay_ticks(delay_ticks: int) -> int:
+    """``delay_ticks`` if it is a delay (>= 0 whole ticks), else ValueError."""
+    if delay_ticks < 0:
+        raise ValueError("delay_ticks must be >= 0")
+    return delay_ticks
+
+
+# --- the real-time loop (teleop_rt.loop.TickClock) --------------------------------------------
+Overrun = Literal["catch_up", "skip", "stop"]  # what a late tick does
+OVERRUN_POLICIES: tuple[str, ...] = get_args(Overrun)
+OVERRUN_DEFAULT: Overrun = "catch_up"
