@@ -36,8 +36,6 @@ come, when the start time is known; the header's profile is ``ros2`` (ros2msg sc
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import datetime as _dt
 import json
 import multiprocessing
@@ -51,6 +49,7 @@ import foxglove
 import numpy as np
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
+from teleop_rt.process_name import set_process_name
 from teleop_rt.recording.schema import CDR_HEADER, LogLayout
 
 if TYPE_CHECKING:
@@ -90,7 +89,7 @@ def writer_main(
     ("summary", dict) at the end."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    _set_process_name(PROCESS_NAME)
+    set_process_name(PROCESS_NAME)
     log_layout = LogLayout(*layout)
     shm = SharedMemory(name=shm_name)
     try:
@@ -245,15 +244,6 @@ class _Sink:
 
     def close(self) -> None:
         os.close(self.fd)
-
-
-def _set_process_name(name: str) -> None:
-    """Linux: the name ps, top and /proc/PID/comm show (prctl PR_SET_NAME); elsewhere nothing."""
-    try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        libc.prctl(15, name.encode()[:15], 0, 0, 0)
-    except (OSError, AttributeError):  # pragma: no cover - not Linux
-        pass
 
 
 def _describe(writer, start_ns: int, metadata: dict[str, str], attachments) -> int:
