@@ -27,7 +27,7 @@ import numpy as np
 from teleop_rt.config import SafetySpec, SessionConfig, per_joint
 from teleop_rt.errors import SafetyStop
 from teleop_rt.flat import Block, Int, Scalar, Vector, as_floats, jit, vec
-from teleop_rt.hal.base import Feedback
+from teleop_rt.hal.signals import Feedback
 from teleop_rt.model import RobotModel
 
 

@@ -26,7 +26,8 @@ from teleop_rt.config import SafetySpec, SessionConfig, per_joint
 from teleop_rt.control import ComputedTorque, Pid
 from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
-from teleop_rt.hal.base import Backend, create_backend
+from teleop_rt.hal.base import Backend
+from teleop_rt.hal.registry import create_backend
 from teleop_rt.mapping import PLANE, PRESENCE_LOST, TASK, Mapping, map_kinematics, mapping_for
 from teleop_rt.model import RobotModel
 from teleop_rt.safety import RobotGuard

@@ -33,7 +33,7 @@ from teleop_rt.com.port import (
 )
 from teleop_rt.control import A_DES, OUT, TAU, ct_finish, ct_prepare, pid_step
 from teleop_rt.flat import Block, Int, Vector, floats_of, ints_of, jit, vec
-from teleop_rt.hal.base import FB_AGE_TICKS, FB_Q, FB_TAU_EXT, FB_V
+from teleop_rt.hal.signals import FB_AGE_TICKS, FB_Q, FB_TAU_EXT, FB_V
 from teleop_rt.mapping import (
     M_ACTIVE,
     M_ALPHA,

@@ -32,10 +32,10 @@ from teleop_rt.config import (
     per_joint,
 )
 from teleop_rt.flat import Block, Int, Scalar, Vector, jit
-from teleop_rt.hal.base import W_CONTACTS as SNAP_CONTACTS
-from teleop_rt.hal.base import W_FORCE as SNAP_FORCE
-from teleop_rt.hal.base import W_REFERENCE as SNAP_REFERENCE
-from teleop_rt.hal.base import W_REFERENCE_VELOCITY as SNAP_REFERENCE_VELOCITY
+from teleop_rt.hal.signals import W_CONTACTS as SNAP_CONTACTS
+from teleop_rt.hal.signals import W_FORCE as SNAP_FORCE
+from teleop_rt.hal.signals import W_REFERENCE as SNAP_REFERENCE
+from teleop_rt.hal.signals import W_REFERENCE_VELOCITY as SNAP_REFERENCE_VELOCITY
 from teleop_rt.model import RobotModel
 
 # load_kind codes; a hand's trajectory is the block right after the hand

@@ -24,10 +24,10 @@ import yaml
 from teleop_rt import config
 from teleop_rt.cli import main
 from teleop_rt.errors import BackendError, ConfigError, SafetyStop
-from teleop_rt.hal.base import create_backend
 from teleop_rt.hal.can.backend import CanBackend
 from teleop_rt.hal.can.config import DEFAULT_EDS
 from teleop_rt.hal.can.emulator import FAULT, OE, QSA, SOD, DriveEmulator, Fault, emulated_bus
+from teleop_rt.hal.registry import create_backend
 from teleop_rt.model import RobotModel
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -501,7 +501,7 @@ def test_an_unopenable_bus_is_one_clear_error() -> None:
 
 def test_registering_the_backend_does_not_import_python_can() -> None:
     code = (
-        "import sys; from teleop_rt.hal.base import available_backends; "
+        "import sys; from teleop_rt.hal.registry import available_backends; "
         "assert 'can' in available_backends(); "
         "assert 'canopen' not in sys.modules and 'can' not in sys.modules"
     )

@@ -31,8 +31,8 @@ import pytest
 from teleop_rt import config
 from teleop_rt.cli import main
 from teleop_rt.hal import sim
-from teleop_rt.hal.base import register_backend
 from teleop_rt.hal.can.emulator import QSA, SOD, Fault
+from teleop_rt.hal.registry import register_backend
 from teleop_rt.recording.reader import read_log
 from teleop_rt.recording.recorder import Recorder
 from teleop_rt.session import Session
@@ -58,7 +58,7 @@ class _OneTickLate(sim.SimBackend):
 
 @register_backend("test_sim_one_tick_late")
 def _one_tick_late(cfg, side, model, operator=None):
-    backend = sim._make_sim(cfg, side, model, operator)
+    backend = sim.make_sim(cfg, side, model, operator)
     backend.__class__ = _OneTickLate
     backend._previous = [0.0] * backend.n
     return backend

@@ -15,7 +15,7 @@ import pytest
 from teleop_rt import config
 from teleop_rt.cli import main
 from teleop_rt.errors import ConfigError, SafetyStop
-from teleop_rt.hal.base import Feedback
+from teleop_rt.hal.signals import Feedback
 from teleop_rt.recording.reader import read_log
 from teleop_rt.recording.recorder import Recorder
 from teleop_rt.safety import RobotGuard, check_all

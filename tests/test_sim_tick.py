@@ -12,7 +12,7 @@ import pytest
 from teleop_rt import config
 from teleop_rt.errors import SafetyStop
 from teleop_rt.hal import sim
-from teleop_rt.hal.base import register_backend
+from teleop_rt.hal.registry import register_backend
 from teleop_rt.lockstep import SESSION_BLOCKS
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
@@ -136,7 +136,7 @@ class _CountingReads(sim.SimBackend):
 
 def _counting(cls):
     def factory(cfg, side, model, operator=None):
-        backend = sim._make_sim(cfg, side, model, operator)
+        backend = sim.make_sim(cfg, side, model, operator)
         backend.__class__ = cls
         backend.calls = 0
         return backend
@@ -150,7 +150,7 @@ register_backend("test_sim_counting_reads")(_counting(_CountingReads))
 
 @register_backend("test_sim_write_replaced")
 def _write_replaced(cfg, side, model, operator=None):
-    backend = sim._make_sim(cfg, side, model, operator)
+    backend = sim.make_sim(cfg, side, model, operator)
     plain = backend.write
     backend.calls = 0
 

@@ -49,7 +49,8 @@ from teleop_rt import config  # noqa: E402
 from teleop_rt.com.link import InProcessLink  # noqa: E402
 from teleop_rt.errors import TeleopError  # noqa: E402
 from teleop_rt.flat import Packed  # noqa: E402
-from teleop_rt.hal.base import Backend, Feedback, register_backend  # noqa: E402
+from teleop_rt.hal.base import Backend, Feedback  # noqa: E402
+from teleop_rt.hal.registry import register_backend  # noqa: E402
 from teleop_rt.loop import acquire_realtime  # noqa: E402
 from teleop_rt.recording.recorder import Recorder  # noqa: E402
 from teleop_rt.session import Session  # noqa: E402

@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 
 from teleop_rt import config  # noqa: E402
 from teleop_rt.errors import SafetyStop, TeleopError  # noqa: E402
-from teleop_rt.hal.base import create_backend  # noqa: E402
+from teleop_rt.hal.registry import create_backend  # noqa: E402
 from teleop_rt.loop import TickClock, acquire_realtime  # noqa: E402
 from teleop_rt.model import RobotModel  # noqa: E402
 

@@ -23,17 +23,8 @@ import pinocchio as pin
 from teleop_rt.config import FaultSpec, SessionConfig
 from teleop_rt.errors import ConfigError
 from teleop_rt.flat import Block, Int, Packed, Scalar, Vector, as_floats, jit
-from teleop_rt.hal.base import (
-    FB_AGE_TICKS,
-    FB_Q,
-    FB_TAU_EXT,
-    FB_V,
-    W_FORCE,
-    Backend,
-    Feedback,
-    FusedPlants,
-    register_backend,
-)
+from teleop_rt.hal.base import Backend, FusedPlants
+from teleop_rt.hal.signals import FB_AGE_TICKS, FB_Q, FB_TAU_EXT, FB_V, W_FORCE, Feedback
 from teleop_rt.model import RobotModel, friction_torque
 from teleop_rt.world import (
     Load,
@@ -428,8 +419,7 @@ class SimBackend(Backend):
         state.t = t0 + h
 
 
-@register_backend("sim")
-def _make_sim(
+def make_sim(
     cfg: SessionConfig, side: str, model: RobotModel | None, operator: Load | None = None
 ) -> SimBackend:
     spec = getattr(cfg, side)

@@ -44,9 +44,10 @@ import time
 from typing import TYPE_CHECKING
 
 from teleop_rt.errors import BackendError, ConfigError, SafetyStop
-from teleop_rt.hal.base import Backend, Feedback, register_backend
+from teleop_rt.hal.base import Backend
 from teleop_rt.hal.can import codec
 from teleop_rt.hal.can.config import CanSpec
+from teleop_rt.hal.signals import Feedback
 
 if TYPE_CHECKING:
     import threading
@@ -782,8 +783,7 @@ class CanBackend(Backend):
         return out
 
 
-@register_backend("can")
-def _make_can(
+def make_can(
     cfg: SessionConfig, side: str, model: RobotModel, operator: Load | None = None
 ) -> CanBackend:
     return CanBackend(cfg, side, model.nv, operator)

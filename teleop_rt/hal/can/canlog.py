@@ -29,6 +29,7 @@ from typing import Any
 import can
 
 from teleop_rt.errors import ConfigError
+from teleop_rt.process_name import set_process_name
 
 FORMATS = (".asc", ".blf", ".log", ".csv", ".trc", ".txt")  # python-can's own, no extra package
 CHANNELS = {"hsi": 0, "to": 1}
@@ -233,11 +234,9 @@ class TappedBus(can.BusABC):
 
 def _writer_main(shm_name: str, capacity: int, path: str) -> None:
     """The writer process: records to ``can.Message`` to python-can's writer for the file."""
-    from teleop_rt.recording.writer import _set_process_name
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    _set_process_name(PROCESS_NAME)
+    set_process_name(PROCESS_NAME)
     shm = SharedMemory(name=shm_name)
     buf = shm.buf
     assert buf is not None  # (None only once the mapping is closed)
@@ -313,9 +312,9 @@ def status_line(status: dict) -> str | None:
 
 def open_can_log(session, path: Path, wait_for_room: bool) -> CanLog:
     """A CAN log for every CAN backend of the session (their buses are tapped when opened)."""
-    from teleop_rt.hal.can.backend import CanBackend
-
-    backends = [s.backend for s in session.sites if isinstance(s.backend, CanBackend)]
+    # a CAN backend is one with a bus to tap (CanBackend.can_tap): found by that attribute,
+    # so that the log does not import the backend, which imports the log's TappedBus
+    backends = [s.backend for s in session.sites if hasattr(s.backend, "can_tap")]
     if not backends:
         raise ConfigError(
             "--can-log records CAN frames: no robot runs on the can backend "

@@ -487,9 +487,9 @@ class DriveEmulator:
     # --- world ---------------------------------------------------------------------------
     def reset_world(self) -> None:
         """A fresh plant at the config's initial pose, joints held until all drives enable."""
-        from teleop_rt.hal.sim import _make_sim
+        from teleop_rt.hal.sim import make_sim
 
-        self.plant: SimBackend = _make_sim(self.cfg, self.side, None, operator=self.operator)
+        self.plant: SimBackend = make_sim(self.cfg, self.side, None, operator=self.operator)
         self.released = False
         self.world_tick = 0
         self.tau = [0.0] * len(self.drives)
