@@ -422,6 +422,8 @@ class SimBackend(Backend):
 def make_sim(
     cfg: SessionConfig, side: str, model: RobotModel | None, operator: Load | None = None
 ) -> SimBackend:
+    """The simulated robot of side ``side`` (the registry's "sim"); ``operator`` replaces the
+    config's operator model on the HSI (replay drives it from a log)."""
     spec = getattr(cfg, side)
     plant = RobotModel.from_spec(spec.robot, side, cfg.plant.coulomb_smoothing_rad_s)
     q0 = initial_configuration(spec.robot.q0_rad, plant, side)

@@ -786,4 +786,5 @@ class CanBackend(Backend):
 def make_can(
     cfg: SessionConfig, side: str, model: RobotModel, operator: Load | None = None
 ) -> CanBackend:
+    """Side ``side``'s robot on CiA 402 drives (the registry's "can")."""
     return CanBackend(cfg, side, model.nv, operator)
