@@ -136,6 +136,11 @@ class DeadbandSpec(Strict):
     # velocity-adaptive deadband (Kammerl et al., Presence 2010): the Weber fraction grows
     # with the port's velocity, weber * (1 + gain |omega|); 0 keeps it constant
     velocity_gain_s_per_rad: NonNegFloat = 0.0
+    # how the peer reconstructs a site's signal between its packets: linear extrapolates the
+    # last two (Hinterseer et al., IEEE Trans. Signal Process. 56(2), 2008), hold keeps the
+    # last one; None: the channel mode's measured best (teleop_rt.com.codec.PREDICTIONS_BY_MODE)
+    prediction_hsi: Literal["linear", "hold"] | None = None
+    prediction_to: Literal["linear", "hold"] | None = None
 
     @model_validator(mode="after")
     def _intervals(self) -> DeadbandSpec:

@@ -374,9 +374,11 @@ def port_for(cfg: SessionConfig, n: int, side: int) -> Port:
                      ch.wave_reconstruction, ch.tdpa_drift_time_s)  # fmt: skip
     if ch.codec != "none":
         db, own = ch.deadband, "hsi" if side == HSI else "to"
+        of_hsi, of_to = codec.predictions(ch.mode, db.prediction_hsi, db.prediction_to)
+        mine, peers = (of_hsi, of_to) if side == HSI else (of_to, of_hsi)
         codec.configure(port, getattr(db, f"weber_{own}"), getattr(db, f"floor_{own}"),
                         db.min_interval_ticks, db.max_interval_ticks,
-                        db.velocity_gain_s_per_rad)  # fmt: skip
+                        db.velocity_gain_s_per_rad, mine, peers)  # fmt: skip
     return port
 
 

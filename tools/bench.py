@@ -15,8 +15,9 @@ and read the medians, not the maxima):
    the ticks that started more than a whole period late; then the host's own wake-up latency
    under the same grant for S seconds, measured by cyclictest (rt-tests) if it is installed;
 5. what each channel kind costs: the full tick (recording off) at a 20 ms delay with the plain
-   wave channel (zero reconstruction), the protected wave (bounded) and TDPA, alternated in
-   one run, and the difference to the plain wave channel (issue 17's target: <= 2 us);
+   wave channel (zero reconstruction), the protected wave (bounded), TDPA, and the last two
+   with the deadband codec (issue 24), alternated in one run, and the difference to the plain
+   wave channel (issue 17's target: <= 2 us);
 6. what the workspace mapping costs (teleop_rt.mapping): identity, joint scaling with a clutch
    script, the plane's per-site Jacobian map, alternated in one run;
 7. how the tick grows with the number of joints (planar chains generated from one template).
@@ -239,6 +240,8 @@ CHANNEL_KINDS = {  # label -> overrides; the first is the baseline
     "drift-corrected wave (corrected)": ["channel.mode=wave",
                                          "channel.wave_reconstruction=corrected"],
     "TDPA": ["channel.mode=tdpa"],
+    "protected wave + deadband codec": ["channel.mode=wave", "channel.codec=deadband"],
+    "TDPA + deadband codec": ["channel.mode=tdpa", "channel.codec=deadband"],
 }
 
 
