@@ -46,6 +46,7 @@ from teleop_rt.loop import TickClock
 from teleop_rt.mapping import JOINT
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
+from teleop_rt.task_limits import tool_limits_figures
 
 if TYPE_CHECKING:
     from teleop_rt.recording.recorder import Recorder
@@ -116,6 +117,7 @@ class Summary:
     saturated_ticks: int = 0  # ticks in which a commanded torque hit its effort limit
     link: dict | None = None  # what an impaired link did (sent, lost, late, ...; per site)
     channel: dict | None = None  # the channel kind and its protection's activity per port
+    tool_limits: dict | None = None  # what the TO's task-space limits did (safety.tool)
 
     @property
     def t_p_total(self) -> float:
@@ -390,4 +392,5 @@ class Session:
             saturated_ticks=self.saturated_ticks,
             link=self.link_stats(),
             channel=channel_figures(self.cfg, {"hsi": self.hsi.port, "to": self.to.port}),
+            tool_limits=tool_limits_figures(self.to.mapping),
         )

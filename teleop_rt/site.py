@@ -37,6 +37,7 @@ from teleop_rt.site_tick import (
     site_before_models,
     site_sense,
 )
+from teleop_rt.task_limits import TOOL_FORCE
 
 if TYPE_CHECKING:
     from teleop_rt.world import Load
@@ -290,6 +291,11 @@ class Site:
     def stop_for(self, code: int) -> SafetyStop:
         """The SafetyStop that words a finding of this site's compiled checks."""
         self.found_fault = True
+        if code == TOOL_FORCE:
+            m = self.mapping
+            return SafetyStop(f"tick {self.tick}: {self.name} tool force "
+                              f"{m.peak_tool_force:.4g} N above {m.force_limit:g} N "
+                              "(safety.tool.force_limit_n)")  # fmt: skip
         if code == PRESENCE_LOST:
             timeout = self.mapping.timeout_ticks * self.dt
             return SafetyStop(f"tick {self.tick}: {self.name}: the operator has been away for "
