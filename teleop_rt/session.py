@@ -181,7 +181,7 @@ class Session:
         self.tick = 0
         compiled_link = isinstance(self.link, InProcessLink)
         # the fused plants take one joint count (a pair of other robots runs read / write)
-        same = self.hsi.n == self.to.n == n
+        same = self.hsi.n == self.to.n
         pair = self.hsi.backend.fuse(self.to.backend) if fuse and compiled_link and same else None
         self._pack(pair)
         self.compiled_link = compiled_link
@@ -213,7 +213,7 @@ class Session:
         lockstep_after(f.copy(), i.copy(), o, n, np.zeros(hsi.n), np.zeros(to.n))
         self._pair_plants = pair
         if pair is not None:
-            pair.bind(p.f, p.i, p.offsets)
+            pair.bind(p.f, p.i, p.offsets, self.n)
             self.fused = True
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray]:

@@ -125,3 +125,27 @@ def test_a_pair_stays_passive_under_every_impairment(
     assert_passive_and_bounded(session)
     link = session.summary.link["to"]
     assert link["lost"] + link["skipped"] > 0
+
+
+def test_a_pair_of_one_joint_count_in_the_plane_runs_fused_as_read_write() -> None:
+    """Two UR5s coupled in the plane (6 joints each, a port of 2): the fused simulated plants
+    (their joint count now apart from the port's) give what the read / write path gives, bit
+    for bit."""
+    ur5 = config.load(TASK_SPACE / "scara_ur5_plane.yaml").to
+    overrides = [
+        "duration_s=2", "channel.delay_ms=20",
+        "to.robot=" + json.dumps({"example_robot": "ur5", "ee_frame": "tool0",
+                                  "q0_rad": ur5.robot.q0_rad}),
+        "to.virtual_mass=" + json.dumps(ur5.virtual_mass),
+        "to.controller=" + json.dumps({"kind": "p", "kp": ur5.controller.kp}),
+        "environment=[{kind: wall, point_m: [0.0, 0.08], normal: [0, 1], "
+        "stiffness_n_per_m: 5000, damping_n_s_per_m: 20}]",
+    ]  # fmt: skip
+    cfg = pair("ur5_scara_plane", *overrides)
+    fused, plain = Session(cfg), Session(cfg)
+    assert fused.fused and (fused.hsi.n, fused.to.n, fused.n) == (6, 6, 2)
+    plain.fused = False
+    a, b = fused.run(), plain.run()
+    assert (a.t_p, a.t_tau, a.channel_energy_j) == (b.t_p, b.t_tau, b.channel_energy_j)
+    assert np.array_equal(fused.to.feedback.q, plain.to.feedback.q)
+    assert a.t_tau_total > 0 and a.stopped_early is None
