@@ -23,8 +23,9 @@ import pytest
 
 from teleop_rt import config
 from teleop_rt.analysis.discrete import filter_group_delay_s
-from teleop_rt.session import Session
+from teleop_rt.session import Session, Summary
 from tests.conftest import CONFIGS
+from tests.test_mapping import CLUTCH, STROKES, TAU_STEP_BOUND_NM, WINDOW, re_engaged
 from tests.test_passive_channels import CLASSES, assert_passive_and_bounded, run, write_traces
 
 PASSIVE_J = -1e-9
@@ -149,3 +150,63 @@ def test_a_pair_of_one_joint_count_in_the_plane_runs_fused_as_read_write() -> No
     assert (a.t_p, a.t_tau, a.channel_energy_j) == (b.t_p, b.t_tau, b.channel_energy_j)
     assert np.array_equal(fused.to.feedback.q, plain.to.feedback.q)
     assert a.t_tau_total > 0 and a.stopped_early is None
+
+
+# the ratchet in the plane: the SCARA's tool back and forth (3 cm, 2 cm) a stroke a second,
+# the clutch pressed for the middle of the return stroke 10 times, then of the forward stroke
+# 10 times (tests/test_mapping.py's CLUTCH): the UR5's tool is indexed ~0.25 m in and back out
+# (the joint test's 9 cm strokes would index it out of its reach)
+RATCHET_SWEEP = [
+    {"t_s": 0.5 + k, "position_m": [0.36, 0.0] if k % 2 == 0 else [0.33, -0.02]}
+    for k in range(2 * STROKES + 1)
+]
+
+
+def ratchet_in_the_plane(delay_ms: int, *ramp: str) -> tuple[np.ndarray, Summary]:
+    """Per tick of the ratchet (SCARA -> UR5, free space): tau_h (N m), the HSI's gain, the
+    stored wave energy, the tools' raw x, y (Pinocchio); and the summary."""
+    cfg = pair("scara_ur5_plane", f"channel.delay_ms={delay_ms}", "environment=[]",
+               f"duration_s={2.0 * STROKES + 1.5}",
+               "operator.waypoints=" + json.dumps(RATCHET_SWEEP),
+               "operator.clutch=" + json.dumps(CLUTCH), *ramp)  # fmt: skip
+    session = Session(cfg)
+    h, t = session.hsi.model, session.to.model
+    rows: list[np.ndarray] = []
+    summary = session.run(observer=lambda s: rows.append(np.concatenate([
+        s.hsi.signals.tau, [s.hsi.mapping.gain, s.channel.stored_energy()],
+        h.tool_position(s.hsi.feedback.q)[:2], t.tool_position(s.to.feedback.q)[:2],
+    ])))  # fmt: skip
+    assert summary.stopped_early is None
+    assert session.hsi.mapping.engagements == session.to.mapping.engagements == STROKES
+    return np.array(rows), summary
+
+
+def largest_step_after_re_engaging(rows: np.ndarray) -> float:
+    starts = re_engaged(rows[:, 2])
+    assert len(starts) == STROKES
+    window = np.zeros(len(rows), bool)
+    for k in starts:
+        window[k : k + WINDOW] = True
+    step = np.abs(np.diff(rows[:, :2], axis=0)).max(axis=1)
+    return float(step[window[1:]].max())
+
+
+@pytest.mark.parametrize("delay_ms", [0, 50])
+def test_twenty_re_engagements_in_the_plane(delay_ms: int) -> None:
+    """The clutch in task space, SCARA driving the UR5: 20 re-engagements, after each tau_h
+    changes by at most the bound per tick (without the ramp at 50 ms by more); the channel
+    never makes energy and is empty when the coupling comes back; the offset is taken up:
+    the summary's indexed T_p is over 1000 times below the raw tools' (m^2 s)."""
+    rows, summary = ratchet_in_the_plane(delay_ms)
+    assert largest_step_after_re_engaging(rows) <= TAU_STEP_BOUND_NM
+    assert summary.min_channel_energy_j >= PASSIVE_J
+    stored, starts = rows[:, 3], re_engaged(rows[:, 2])
+    assert stored[starts - 1].max() <= 1e-9 * max(1.0, stored.max())
+    assert delay_ms == 0 or stored.max() > 1e-3
+    moved = (rows[:, 4:6] - rows[0, 4:6]) - (rows[:, 6:8] - rows[0, 6:8])
+    raw = float((moved**2).sum()) * 1e-3
+    assert raw > 1000 * summary.t_p_total
+    if delay_ms:
+        jumped, _ = ratchet_in_the_plane(delay_ms, "mapping.engage_ramp_s=0",
+                                         "mapping.engage_step_nm=1e9")  # fmt: skip
+        assert largest_step_after_re_engaging(jumped) > TAU_STEP_BOUND_NM
