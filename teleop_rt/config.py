@@ -239,6 +239,48 @@ class WorkspaceLimits(Strict):
     to: WorkspaceBox | None = None
 
 
+class VirtualWall(Strict):
+    """A virtual wall in the TO's plane: the line through point_m (x, y) with unit normal
+    pointing to the allowed side; beyond it a unilateral spring-damper pushes the TO's tool
+    back, rendered as part of its environment (teleop_rt.task_limits)."""
+
+    point_m: list[FiniteFloat]
+    normal: list[FiniteFloat]
+    stiffness_n_per_m: PositiveFloat
+    damping_n_s_per_m: NonNegFloat = 0.0
+
+    @field_validator("point_m", "normal")
+    @classmethod
+    def _xy(cls, v: list[float], info: Any) -> list[float]:
+        if len(v) != 2:
+            raise ValueError(f"{info.field_name} needs 2 numbers (x, y: the plane), got {len(v)}")
+        return list(v)
+
+    @field_validator("normal")
+    @classmethod
+    def _nonzero(cls, v: list[float]) -> list[float]:
+        if math.hypot(*v) < 1e-9:
+            raise ValueError("normal must not be the zero vector")
+        return v
+
+
+class ToolLimits(Strict):
+    """The TO's limits in task space (channel.space: plane; teleop_rt.task_limits): all off by
+    default, so joint-space runs compute what they did."""
+
+    # the tool's speed in the plane: above it the TO's coupling gain is capped (a lossless
+    # transformer: motion and fed-back force scaled alike) until it is below again
+    speed_limit_m_s: PositiveFloat | None = None
+    # the TO's measured force at the tool (J#^T tau_e) above this: a safety stop
+    force_limit_n: PositiveFloat | None = None
+    walls: list[VirtualWall] = Field(default_factory=list)
+
+    @property
+    def active(self) -> bool:
+        return (self.speed_limit_m_s is not None or self.force_limit_n is not None
+                or bool(self.walls))  # fmt: skip
+
+
 class SafetySpec(Strict):
     """The safety layer (teleop_rt/safety.py): limits come from the URDFs."""
 
@@ -258,6 +300,8 @@ class SafetySpec(Strict):
     tracking_error_ticks: Annotated[int, Field(ge=0, le=MAX_TICKS)] = 20
     # the tool frame outside its box is a stop (one forward-kinematics call per boxed robot)
     workspace: WorkspaceLimits = WorkspaceLimits()
+    # the TO's tool speed, force and virtual walls in task space (none by default)
+    tool: ToolLimits = ToolLimits()
     # plausibility of the measurements (sensor faults), checked whatever ``enabled`` says:
     # |tau_ext| above this (N m per joint; default 3 x the URDF effort limit) and |v| above
     # this (rad/s per joint; default 2 x the URDF velocity limit) stop within the tick
@@ -600,6 +644,15 @@ class SessionConfig(Strict):
                 "channel.codec: the deadband codec holds a wave channel's waves within the "
                 f"energy bound; channel.wave_reconstruction must be bounded, not "
                 f"{ch.wave_reconstruction}"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _tool_limits_in_task_space(self) -> SessionConfig:
+        if self.safety.tool.active and self.channel.space == "joint":
+            raise ValueError(
+                "safety.tool: the tool's limits act in task space; they need "
+                "channel.space: plane"
             )
         return self
 

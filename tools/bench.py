@@ -20,7 +20,9 @@ and read the medians, not the maxima):
    wave channel (issue 17's target: <= 2 us);
 6. what the workspace mapping costs (teleop_rt.mapping): identity, joint scaling with a clutch
    script, the plane's per-site Jacobian map, alternated in one run;
-7. how the tick grows with the number of joints (planar chains generated from one template).
+7. how the tick grows with the number of joints (planar chains generated from one template),
+   joint to joint and coupled in the plane: what the task-space map adds per site (issue 26's
+   target: <= 2 us for 6 joints).
 Times are min / median / p99 over R repeats of N ticks (the repeat with the lowest median).
 """
 
@@ -410,15 +412,21 @@ def chain_config(n: int, tmp: Path) -> Path:
     return path
 
 
+PLANE = ["channel.space=plane", "channel.wave_impedance=50"]  # the task-space map (b in N s/m)
+
+
 def scaling(joints: list[int], ticks: int, repeat: int, tmp: Path) -> list[dict]:
-    """Full tick per joint count; the repeats go round the joint counts, so a change of the
-    machine's speed during the run hits every count alike."""
-    configs = {n: config.load(chain_config(n, tmp)) for n in joints}
-    runs: dict[int, list[np.ndarray]] = {n: [] for n in joints}
+    """Full tick per joint count, joint to joint and (``plane``) coupled in task space (each
+    site's Jacobian map, ``teleop_rt.mapping``); the repeats go round the joint counts and the
+    two maps, so a change of the machine's speed during the run hits every one alike."""
+    configs = {(n, space): config.load(chain_config(n, tmp), PLANE if space else [])
+               for n in joints for space in (False, True)}  # fmt: skip
+    runs: dict[tuple[int, bool], list[np.ndarray]] = {key: [] for key in configs}
     for _ in range(repeat):
-        for n in joints:
-            runs[n].append(time_ticks(Session(configs[n]).step, ticks))
-    return [{"joints": n, **best_of(runs[n])} for n in joints]
+        for key, cfg in configs.items():
+            runs[key].append(time_ticks(Session(cfg).step, ticks))
+    return [{"joints": n, **best_of(runs[n, False]), "plane": best_of(runs[n, True])}
+            for n in joints]  # fmt: skip
 
 
 def main() -> int:
@@ -556,10 +564,13 @@ def run(args, cfg, joints: list[int]) -> int:
             print("\nscaling with the number of joints (planar chains, full tick, recording off)")
             rows = scaling(joints, max(args.ticks // 2, 100), args.repeat, tmp)
             base = rows[0]["median"]
-            print(f"  {'joints':>6}  {'min':>6}  {'median':>6}  {'p99':>6} us   median / first row")
+            print(f"  {'joints':>6}  {'min':>6}  {'median':>6}  {'p99':>6} us   median / first row"
+                  "   plane: median, and what the task-space map adds per site")  # fmt: skip
             for r in rows:
+                plane = r["plane"]["median"]
                 print(f"  {r['joints']:>6}  {r['min']:6.1f}  {r['median']:6.1f}  {r['p99']:6.1f}"
-                      f"      {r['median'] / base:5.2f}")  # fmt: skip
+                      f"      {r['median'] / base:5.2f}          {plane:6.1f}  "
+                      f"{(plane - r['median']) / 2:+5.2f} us")  # fmt: skip
             out["scaling"] = rows
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))

@@ -81,8 +81,11 @@ class FusedPlants(ABC):
     blocks: list[Block]
 
     @abstractmethod
-    def bind(self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray) -> None:
-        """The packed buffers and the session's offsets (all blocks), once packed."""
+    def bind(
+        self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray, port_n: int | None = None
+    ) -> None:  # fmt: skip
+        """The packed buffers and the session's offsets (all blocks), once packed; ``port_n``:
+        the channel's size where it is not the joints' (a task-space channel)."""
 
     @abstractmethod
     def before(self) -> int:
