@@ -156,10 +156,12 @@ class ChannelSpec(Strict):
     # What a wave channel does with a packet that did not arrive: bounded (the wave integral
     # within an honest energy bound: passive, and it catches up lost samples), corrected
     # (bounded, and the integral an outage lost paid back within the same budget: no position
-    # drift), zero (a zero wave: passive), and, unprotected, for comparison: hold (the last
-    # wave held) or integral (the wave integral without the bound). With no loss all five
-    # compute the same.
-    wave_reconstruction: Literal["bounded", "corrected", "zero", "hold", "integral"] = "bounded"
+    # drift), reflected (corrected, and a port may emit beyond its budget what it reflects,
+    # taken off the energy it declares to the peer: a push is held through a loss), zero (a
+    # zero wave: passive), and, unprotected, for comparison: hold (the last wave held) or
+    # integral (the wave integral without the bound). With no loss all six compute the same.
+    wave_reconstruction: Literal["bounded", "corrected", "reflected", "zero", "hold",
+                                 "integral"] = "bounded"
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # docs/passivity.md). None, the default, switches it off.

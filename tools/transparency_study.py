@@ -38,6 +38,7 @@ CHANNELS = {
     "zero": ("channel.mode=wave", "channel.wave_reconstruction=zero"),
     "bounded": ("channel.mode=wave", "channel.wave_reconstruction=bounded"),
     "corrected": ("channel.mode=wave", "channel.wave_reconstruction=corrected"),
+    "reflected": ("channel.mode=wave", "channel.wave_reconstruction=reflected"),
     "tdpa": ("channel.mode=tdpa",),
 }
 FORCE_SHARE = 0.7  # the wall force under burst loss against the clean link's
