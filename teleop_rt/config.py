@@ -160,8 +160,9 @@ class ChannelSpec(Strict):
     # taken off the energy it declares to the peer: a push is held through a loss), zero (a
     # zero wave: passive), and, unprotected, for comparison: hold (the last wave held) or
     # integral (the wave integral without the bound). With no loss all six compute the same.
+    # With the deadband codec the default is bounded (the codec holds waves within its bound).
     wave_reconstruction: Literal["bounded", "corrected", "reflected", "zero", "hold",
-                                 "integral"] = "bounded"
+                                 "integral"] = "reflected"
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # docs/passivity.md). None, the default, switches it off.
@@ -171,6 +172,15 @@ class ChannelSpec(Strict):
     # is up), the receiver holding the last one passively in between (docs/codec.md)
     codec: Literal["none", "deadband"] = "none"
     deadband: DeadbandSpec = DeadbandSpec()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _codec_default_bounded(cls, data: Any) -> Any:
+        """The deadband codec's wave reconstruction, unless given: bounded (the one it keeps
+        passive; teleop_rt.com.codec)."""
+        if isinstance(data, dict) and data.get("codec", "none") != "none":
+            data = {"wave_reconstruction": "bounded", **data}
+        return data
     # what the channel couples (teleop_rt.mapping): joint j to joint j, or the tools' x-y
     # velocity and force in the world plane (each site through its own Jacobian; 2 joints
     # a side; wave_impedance then in N s/m)
