@@ -25,6 +25,7 @@ from pydantic import (
 
 from teleop_rt.com.impairment_spec import ImpairmentSpec
 from teleop_rt.declarations import (
+    CODEC_RECONSTRUCTION,
     DEFAULT_RECONSTRUCTION,
     MAX_DELAY_MS,
     ChannelMode,
@@ -166,9 +167,11 @@ class ChannelSpec(Strict):
     # What a wave channel does with a packet that did not arrive: bounded (the wave integral
     # within an honest energy bound: passive, and it catches up lost samples), corrected
     # (bounded, and the integral an outage lost paid back within the same budget: no position
-    # drift), zero (a zero wave: passive), and, unprotected, for comparison: hold (the last
-    # wave held) or integral (the wave integral without the bound). With no loss all five
-    # compute the same.
+    # drift), reflected (corrected, and a port may emit beyond its budget what it reflects,
+    # taken off the energy it declares to the peer: a push is held through a loss), zero (a
+    # zero wave: passive), and, unprotected, for comparison: hold (the last wave held) or
+    # integral (the wave integral without the bound). With no loss all six compute the same.
+    # With the deadband codec the default is bounded (the codec holds waves within its bound).
     wave_reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
@@ -179,6 +182,15 @@ class ChannelSpec(Strict):
     # is up), the receiver holding the last one passively in between (docs/codec.md)
     codec: Literal["none", "deadband"] = "none"
     deadband: DeadbandSpec = DeadbandSpec()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _codec_default_bounded(cls, data: Any) -> Any:
+        """The deadband codec's wave reconstruction, unless given: bounded (the one it keeps
+        passive; teleop_rt.com.codec)."""
+        if isinstance(data, dict) and data.get("codec", "none") != "none":
+            data = {"wave_reconstruction": CODEC_RECONSTRUCTION, **data}
+        return data
     # what the channel couples (teleop_rt.mapping): joint j to joint j, or the tools' x-y
     # velocity and force in the world plane (each site through its own Jacobian; 2 joints
     # a side; wave_impedance then in N s/m)
@@ -639,10 +651,10 @@ class SessionConfig(Strict):
                 "channel.codec: the deadband codec needs channel.delay_ms of at least one tick "
                 "(with no delay the ports couple directly, every tick)"
             )
-        if ch.mode == "wave" and ch.wave_reconstruction != "bounded":
+        if ch.mode == "wave" and ch.wave_reconstruction != CODEC_RECONSTRUCTION:
             raise ValueError(
                 "channel.codec: the deadband codec holds a wave channel's waves within the "
-                f"energy bound; channel.wave_reconstruction must be bounded, not "
+                f"energy bound; channel.wave_reconstruction must be {CODEC_RECONSTRUCTION}, not "
                 f"{ch.wave_reconstruction}"
             )
         return self

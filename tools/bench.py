@@ -241,6 +241,8 @@ CHANNEL_KINDS = {  # label -> overrides; the first is the baseline
     "protected wave (bounded)": ["channel.mode=wave", "channel.wave_reconstruction=bounded"],
     "drift-corrected wave (corrected)": ["channel.mode=wave",
                                          "channel.wave_reconstruction=corrected"],
+    "energy-reflecting wave (reflected)": ["channel.mode=wave",
+                                           "channel.wave_reconstruction=reflected"],
     "TDPA": ["channel.mode=tdpa"],
     "protected wave + deadband codec": ["channel.mode=wave", "channel.codec=deadband"],
     "TDPA + deadband codec": ["channel.mode=tdpa", "channel.codec=deadband"],
