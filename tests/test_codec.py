@@ -21,6 +21,7 @@ from teleop_rt.com.channel import make_port
 from teleop_rt.com.codec import codec_receive, codec_send
 from teleop_rt.com.port import HSI, TO, Packet, port_input, port_step
 from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink, _first_difference
+from teleop_rt.declarations import CODEC_RECONSTRUCTION
 from teleop_rt.errors import ConfigError
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
@@ -38,7 +39,8 @@ class CodecHarness:
                  max_ticks: int = MAX_TICKS, predictions: tuple[str, str] = ("linear", "hold"),
                  ) -> None:  # fmt: skip
         self.n = n
-        self.ports = [make_port(side, mode, [1.5] * n, 1, 1e-3, filter_hz) for side in (HSI, TO)]
+        self.ports = [make_port(side, mode, [1.5] * n, 1, 1e-3, filter_hz, CODEC_RECONSTRUCTION)
+                      for side in (HSI, TO)]  # fmt: skip
         for side, port in enumerate(self.ports):  # predictions: of the HSI's, of the TO's packets
             codec.configure(port, WEBER, FLOOR, 1, max_ticks, 0.0, predictions[side],
                             predictions[1 - side])  # fmt: skip
