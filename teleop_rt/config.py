@@ -333,6 +333,10 @@ class RecordingSpec(Strict):
     on_loss: Literal["stop", "continue"] = "stop"
     # how far the writer may fall behind the loop before rows are lost (the ring's size)
     ring_s: Annotated[float, Field(gt=0, le=600, allow_inf_nan=False)] = 64.0
+    # the 3D scene's messages (/tf, /environment, /hand_target) per second of session time: its
+    # transforms are the writer's largest cost after the four 1 kHz topics (about 1 us a tick
+    # at 50 Hz); at most one per tick; 0: no 3D topics
+    scene_hz: Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)] = 50.0
 
 
 class Interval(Strict):
