@@ -34,7 +34,8 @@ if TYPE_CHECKING:
     from teleop_rt.recording.live import LiveAddress
     from teleop_rt.recording.recorder import Recorder
 
-SENDER_PRIORITY = 81  # the link's sender thread: above the loop's SCHED_FIFO 80
+SENDER_PRIORITY = 81  # the link's sender thread (with an impairment): above the loop's 80
+ZENOH_PRIORITY = 70  # Zenoh's threads: below the loop's SCHED_FIFO 80, above normal processes
 # A site's loop spins 50 us before each deadline, not the one-process loop's 200 us: the
 # sleep here overshoots by about 40-60 us, so a tick still starts on time at p50 (p99 about
 # 100 us late, well within the network's own jitter), and the spin costs ~5 us per tick
@@ -157,10 +158,17 @@ def run_site(
             on_peer(f"the {link.peer} site answered (session {link.session_id:x}); starting")
 
     cpu0 = [0.0]
+    zenoh_note: list[str] = []
 
     def at_start() -> None:  # both sites start their clocks at the agreed instant
         if realtime:
             link.transport.raise_priority(SENDER_PRIORITY)
+            raised = link.transport.raise_zenoh_threads(ZENOH_PRIORITY)
+            zenoh_note[:] = [
+                f"Zenoh's threads at SCHED_FIFO {ZENOH_PRIORITY}: {', '.join(raised)}"
+                if raised
+                else "Zenoh's threads left at normal priority (not granted)"
+            ]
         # a stop signal ends the wait at once (the loop then runs no tick: exit 130 / 143)
         wait_until_ns(start_ns[0])
         link.start()
@@ -194,7 +202,7 @@ def run_site(
                 link=link.stats(),
                 cpu_s=time.process_time() - cpu0[0],
                 spin_s=out.clock.spun_ns / 1e9,
-                notes=out.notes + clock_note,
+                notes=out.notes + zenoh_note + clock_note,
                 stopped_early=out.stopped_early,
                 stop_signal=out.stop.signum,
                 safety_stop=out.safety_stop,

@@ -1,23 +1,34 @@
-"""The link between two sites, measured: both sites as processes over Zenoh on loopback
-(``teleop-rt run --link zenoh``), and beside them the same config in one process.
+"""The link between two sites, measured against its floors in one run: raw UDP from Python,
+bare zenoh-python with the project's settings, the two sites over Zenoh (``teleop-rt run
+--link zenoh``) without and with the codec, alternated, and beside them the same config in one
+process.
 
-    python tools/bench_link.py [CONFIG] [--seconds 60] [--delay-ms 20] [--set KEY=VALUE ...]
-                               [--json OUT] [--codec PAIRS] [--port P]
+    python tools/bench_link.py [CONFIG] [--seconds 10] [--rounds 2] [--delay-ms 1]
+                               [--set KEY=VALUE ...] [--json OUT] [--port P] [--no-codec]
 
-Prints per direction the one-way delay (sender to receiver, CLOCK_MONOTONIC on this host),
-packets lost or late beyond the playout rule, and each site's CPU per tick (its loop and its
-link's threads) with the part of it the loop spent spinning before its deadlines (by design:
-``teleop_rt.loop.TickClock``), beside the one-process session's CPU per tick; then the goals
-(issue 16): one-way p50 <= 200 us, <= 0.1 % lost or late with no impairment, each site <= 30 %
-of a core. ``--set`` overrides go to both runs (e.g. a ``link.impairment``). This VM is
-shared: figures move with its neighbours' load (run it twice; compare within one run).
+Every row runs two processes on this host, each pinned to a CPU of its own (the HSI's on the
+first allowed CPU, the TO's on the second, as ``run --link zenoh`` does) under the loop's
+real-time grant, exchanging a packet of a site's size every tick at 1 kHz; the rows run in
+turn, ``--rounds`` times (``udp, zenoh, sites, codec, udp, ...``: the host's load moves all
+alike). The floors (``tools/link_floor.py``) do nothing but send and receive. Printed per row
+and direction: the one-way delay p50 / p99 (us, CLOCK_MONOTONIC on this host) of the packets
+that arrived, the packets lost or late (beyond the playout rule at D = ``--delay-ms``; for a
+floor, a delay over a tick), each process's CPU per tick (all its threads), for the sites
+their tick compute and the ``put`` on the tick; then the ratios (sites / bare Zenoh, codec /
+sites) against the goals of issues 27 and 24. The sites run without logs (their writer is a
+process of its own: tools/bench.py times it) and with a peer timeout of ``--peer-timeout-ms``
+(a stall of the shared host is then counted as late packets, not a stop); a run that fails
+anyway is reported in its row and the others go on. ``--set`` overrides go to the sites'
+runs; ``--sparse K`` adds bare Zenoh sending every Kth tick only (about the codec's rate).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import socket
+import statistics
 import subprocess
 import sys
 import time
@@ -30,181 +41,226 @@ from teleop_rt import config  # noqa: E402
 from teleop_rt.errors import TeleopError  # noqa: E402
 from teleop_rt.session import Session  # noqa: E402
 
+SITES = ("hsi", "to")
+START_LEAD_S = 2.0  # a floor's peers start their ticks this long after they were started
+GOALS = {"p50": 1.5, "cpu": 1.3, "bad_percent": 0.1, "codec_cpu": -30.0}  # issues 27, 24
+
 
 def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+    """A UDP port free on loopback whose successor is free too (a floor's TO takes P + 1)."""
+    for _ in range(100):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as a:
+            a.bind(("127.0.0.1", 0))
+            port = a.getsockname()[1]
+            try:
+                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as b:
+                    b.bind(("127.0.0.1", port + 1))
+                    return port
+            except OSError:
+                continue
+    raise TeleopError("no two consecutive free UDP ports on 127.0.0.1")
 
 
-def two_processes(
-    cfg_path: str, seconds: float, delay_ms: int, sets: list[str], port: int | None = None
-) -> dict:
-    at = f"udp/127.0.0.1:{port or free_port()}"
-    cmd = [
-        sys.executable,
-        "-m",
-        "teleop_rt",
-        "run",
-        cfg_path,
-        "--link",
-        "zenoh",
-        "--realtime",
-        "--duration",
-        str(seconds),
-        "--json",
-        "--set",
-        f"channel.delay_ms={delay_ms}",
-        "--set",
-        f"link.zenoh.hsi.listen=[{at}]",
-        "--set",
-        f"link.zenoh.to.connect=[{at}]",
-    ]
+def pinned(index: int):  # noqa: ANN201 - a preexec_fn
+    cpus = sorted(os.sched_getaffinity(0))
+    cpu = {cpus[index % len(cpus)]}
+    return lambda: os.sched_setaffinity(0, cpu)
+
+
+def floor(kind: str, seconds: float, port: int, every: int = 1) -> dict:
+    """Both peers of a floor; per receiving site its figures (``tools/link_floor.py``)."""
+    start = time.time_ns() + round(START_LEAD_S * 1e9)
+    tool = str(ROOT / "tools" / "link_floor.py")
+    procs = {
+        site: subprocess.Popen(
+            [
+                sys.executable,
+                tool,
+                kind,
+                site,
+                "--port",
+                str(port),
+                "--start",
+                str(start),
+                "--seconds",
+                str(seconds),
+                "--every",
+                str(every),
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            preexec_fn=pinned(i),
+        )  # fmt: skip
+        for i, site in enumerate(SITES)
+    }
+    out = {}
+    for site, p in procs.items():
+        stdout, stderr = p.communicate(timeout=seconds + 60)
+        if p.returncode != 0:
+            last = (stderr.strip().splitlines() or [f"exit {p.returncode}"])[-1]
+            raise TeleopError(f"the {kind} floor's {site} peer failed: {last}")
+        r = json.loads(stdout)
+        if r["one_way_us"] is None:
+            raise TeleopError(f"the {kind} floor's {site} peer received nothing")
+        out[site] = {"p50": r["one_way_us"]["p50"], "p99": r["one_way_us"]["p99"],
+                     "bad": r["lost"] + r["late"], "due": r["due"],
+                     "cpu_us": r["cpu_us_per_tick"]}  # fmt: skip
+    return out
+
+
+def two_sites(cfg_path: str, seconds: float, delay_ms: int, sets: list[str], port: int) -> dict:
+    """``teleop-rt run --link zenoh``; per site what it received and what it spent."""
+    at = f"udp/127.0.0.1:{port}"
+    cmd = [sys.executable, "-m", "teleop_rt", "run", cfg_path, "--link", "zenoh", "--realtime",
+           "--no-log", "--duration", str(seconds), "--json",
+           "--set", f"channel.delay_ms={delay_ms}", "--set", f"link.zenoh.hsi.listen=[{at}]",
+           "--set", f"link.zenoh.to.connect=[{at}]"]  # fmt: skip
     for o in sets:
         cmd += ["--set", o]
-    print(f"two sites over Zenoh ({at}), {seconds:g} s in real time ...", file=sys.stderr)
-    out = subprocess.run(cmd, capture_output=True, text=True, timeout=seconds + 300)
-    if out.returncode != 0:
-        last = (out.stderr.strip().splitlines() or [f"exit {out.returncode}"])[-1]
-        raise TeleopError(f"the two-site run failed: {last}")
-    return json.loads(out.stdout)
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=seconds + 120, cwd=ROOT)
+    try:
+        both = json.loads(done.stdout)
+    except ValueError:
+        last = (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
+        raise TeleopError(f"the two-site run failed: {last}") from None
+    out = {}
+    for site, other in zip(SITES, SITES[::-1], strict=True):
+        s = both["sites"][site]
+        if "error" in s or s.get("stopped_early"):
+            raise TeleopError(f"the {site} site: {s.get('error') or s['stopped_early']}")
+        link, peer = s["link"], s["link"]["from_peer"]
+        d, put = link["one_way_delay_us"] or {}, link.get("put_us") or {}
+        ticks = max(s["ticks"], 1)
+        due = both["sites"][other]["link"]["sent"]  # what the peer sent (with a codec: few)
+        out[site] = {"p50": d.get("p50", float("nan")), "p99": d.get("p99", float("nan")),
+                     "bad": max(due - peer["received"], 0) + peer["late"], "due": due,
+                     "cpu_us": 1e6 * s["cpu_s"] / ticks,
+                     "compute_p50": s["timing"]["compute_us"]["p50"],
+                     "put_p50": put.get("p50", float("nan")),
+                     "put_max": put.get("max", float("nan")),
+                     "sent": link["sent"] / ticks}  # fmt: skip
+    return out
 
 
-def one_process(cfg_path: str, seconds: float, delay_ms: int, sets: list[str]) -> dict:
-    print(f"the same in one process, {seconds:g} s in real time ...", file=sys.stderr)
-    cfg = config.load(cfg_path, [f"channel.delay_ms={delay_ms}", f"duration_s={seconds}", *sets])
+def one_process(cfg_path: str, seconds: float, delay_ms: int) -> float:
+    """CPU per tick of the same config as one session (both sites, in-process link), us."""
+    cfg = config.load(cfg_path, [f"channel.delay_ms={delay_ms}", f"duration_s={seconds}"])
     session = Session(cfg)
     cpu0 = time.process_time()
     summary = session.run(realtime=True)
-    return {"ticks": summary.ticks, "cpu_s": time.process_time() - cpu0,
-            "t_p_total": summary.t_p_total, "t_tau_total": summary.t_tau_total}  # fmt: skip
+    return 1e6 * (time.process_time() - cpu0) / max(summary.ticks, 1)
 
 
-def codec_compare(args: argparse.Namespace) -> int:
-    """Two-site runs without and with the codec, alternated (the host's load moves both
-    alike): each site's CPU (its whole process: loop, link threads), the packets it sent and
-    the one-way delay of those that arrived."""
-    runs: dict[str, list[dict]] = {"none": [], "deadband": []}
-    for k in range(args.codec):
-        for codec in ("none", "deadband"):
-            port = args.port + (2 * k + (codec == "deadband")) if args.port else None
-            sets = [*args.sets, f"channel.codec={codec}"]
-            runs[codec].append(two_processes(args.config, args.seconds, args.delay_ms, sets, port))
-    print(f"\n{args.config}, {args.seconds:g} s at 1 kHz, D = {args.delay_ms} ms, {args.codec} "
-          "alternated pairs (CPU: process time per second of the run)")  # fmt: skip
-    cpu: dict[str, dict[str, float]] = {}
-    for codec, rs in runs.items():
-        for name in ("hsi", "to"):
-            sites = [r["sites"][name] for r in rs]
-            share = [100 * s["cpu_s"] / (s["simulated_time_s"] or args.seconds) for s in sites]
-            # without the loop's spin before its deadlines (the same with or without a codec)
-            rest = [100 * (s["cpu_s"] - s.get("spin_s", 0.0)) / (s["simulated_time_s"]
-                    or args.seconds) for s in sites]  # fmt: skip
-            sent = [s["link"]["sent"] / max(s["ticks"], 1) for s in sites]
-            d = [s["link"]["one_way_delay_us"] or {} for r in rs for s in [r["sites"][name]]]
-            p50 = [x.get("p50", float("nan")) for x in d]
-            p99 = [x.get("p99", float("nan")) for x in d]
-            cpu.setdefault(name, {})[codec] = sum(share) / len(share)
-            cpu.setdefault(f"{name} without the spin", {})[codec] = sum(rest) / len(rest)
-            print(f"  {codec:8s} {name} site: CPU {', '.join(f'{c:.1f}' for c in share)} % of a "
-                  f"core (without the spin {', '.join(f'{c:.1f}' for c in rest)} %); sent "
-                  f"{100 * sum(sent) / len(sent):.1f} % of ticks; one-way delay to "
-                  f"it p50 {', '.join(f'{x:.0f}' for x in p50)} us, p99 "
-                  f"{', '.join(f'{x:.0f}' for x in p99)} us")  # fmt: skip
-    for name, c in cpu.items():
-        print(f"  {name}: CPU with the codec {100 * (c['deadband'] / c['none'] - 1):+.1f} % "
-              "against without (goal: at most -30 %)")  # fmt: skip
-    if args.json:
-        args.json.write_text(json.dumps(runs, indent=1))
-    return 0
+def median(runs: list[dict], site: str, key: str) -> float:
+    return statistics.median(r[site][key] for r in runs)
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
-    p.add_argument(
-        "config",
-        nargs="?",
-        default=str(ROOT / "configs" / "paper_experiment.yaml"),
-        help="session config (default: configs/paper_experiment.yaml)",
-    )
-    p.add_argument("--seconds", type=float, default=60.0, help="real-time run, s (default 60)")
-    p.add_argument(
-        "--delay-ms",
-        type=int,
-        default=20,
-        help="the channel's delay, the playout delay (default 20 ms)",
-    )
+    p.add_argument("config", nargs="?", default=str(ROOT / "configs" / "paper_experiment.yaml"),
+                   help="session config (default: configs/paper_experiment.yaml)")  # fmt: skip
+    p.add_argument("--seconds", type=float, default=10.0, help="each run, s (default 10)")
+    p.add_argument("--rounds", type=int, default=2, help="alternated rounds (default 2)")
+    p.add_argument("--delay-ms", type=int, default=1, help="the sites' channel delay, the "
+                   "playout delay (default 1: one tick)")  # fmt: skip
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
-                   help="a config override for both runs (repeatable)")  # fmt: skip
-    p.add_argument("--json", type=Path, help="also write the figures as JSON")
-    p.add_argument("--codec", type=int, default=0, metavar="PAIRS",
-                   help="instead: PAIRS alternated two-site runs without and with the deadband "
-                   "codec (issue 24), CPU per site and one-way delay compared")  # fmt: skip
-    p.add_argument("--port", type=int, help="the UDP port of the link (default: a free one)")
+                   help="a config override for the sites' runs (repeatable)")  # fmt: skip
+    p.add_argument("--json", type=Path, help="also write every run's figures as JSON")
+    p.add_argument("--port", type=int, help="the first UDP port (default: free ones)")
+    p.add_argument("--peer-timeout-ms", type=float, default=1000.0,
+                   help="the sites' link.peer_timeout_ms (default 1000: this shared VM stalls a "
+                   "process by 50-200 ms now and then; a stall is counted late here, not a "
+                   "stop)")  # fmt: skip
+    p.add_argument("--no-codec", action="store_true", help="leave out the codec's row")
+    p.add_argument("--sparse", type=int, default=0, metavar="K",
+                   help="also bare Zenoh on every Kth tick (a codec's rate)")  # fmt: skip
     args = p.parse_args()
-    if not 0 < args.seconds <= 3600 or args.delay_ms < 1 or args.codec < 0:
-        print("bench_link: error: --seconds in (0, 3600], --delay-ms >= 1, --codec >= 0",
-              file=sys.stderr)  # fmt: skip
+    if (not 0 < args.seconds <= 3600 or args.delay_ms < 1 or not 1 <= args.rounds <= 20
+            or args.sparse < 0):  # fmt: skip
+        print("bench_link: error: --seconds in (0, 3600], --delay-ms >= 1, --rounds in [1, 20], "
+              "--sparse >= 0", file=sys.stderr)  # fmt: skip
         return 2
-    if args.codec:
-        try:
-            return codec_compare(args)
-        except TeleopError as err:
-            print(f"bench_link: error: {err}", file=sys.stderr)
-            return 3
+    rows = ["udp", "zenoh", *(["sparse"] if args.sparse else []), "sites",
+            *([] if args.no_codec else ["codec"])]  # fmt: skip
+    runs: dict[str, list[dict]] = {row: [] for row in rows}
+    failed: dict[str, list[str]] = {row: [] for row in rows}
+    for r in range(args.rounds):
+        for j, row in enumerate(rows):
+            port = args.port + 2 * (r * len(rows) + j) if args.port else free_port()
+            print(f"round {r + 1}/{args.rounds}: {row}, {args.seconds:g} s ...", file=sys.stderr)
+            try:
+                if row in ("udp", "zenoh"):
+                    runs[row].append(floor(row, args.seconds, port))
+                elif row == "sparse":
+                    runs[row].append(floor("zenoh", args.seconds, port, args.sparse))
+                else:
+                    codec = ["channel.codec=deadband"] if row == "codec" else []
+                    sets = [f"link.peer_timeout_ms={args.peer_timeout_ms:g}", *args.sets, *codec]
+                    runs[row].append(two_sites(args.config, args.seconds, args.delay_ms, sets,
+                                               port))  # fmt: skip
+            except (TeleopError, subprocess.TimeoutExpired) as err:
+                failed[row].append(str(err))
+                print(f"  {row} failed: {err}", file=sys.stderr)
     try:
-        both = two_processes(args.config, args.seconds, args.delay_ms, args.sets)
-        local = one_process(args.config, args.seconds, args.delay_ms, args.sets)
+        local = one_process(args.config, args.seconds, args.delay_ms)
     except TeleopError as err:
         print(f"bench_link: error: {err}", file=sys.stderr)
         return 3
-    print(f"\n{args.config}, {args.seconds:g} s at 1 kHz, channel delay {args.delay_ms} ms")
-    goals = {"p50": 0.0, "bad": 0.0, "cpu": 0.0, "cpu_no_spin": 0.0}
-    for name, s in both["sites"].items():
-        peer = s["link"]["from_peer"]
-        d = s["link"].get("one_way_delay_us") or {}
-        due = peer["used"] + peer["lost"]  # the ticks that played a packet of the peer's
-        bad = peer["lost"]  # never arrived, or late (the playout counts a late one lost)
-        share = 100 * bad / max(due, 1)
-        goals["p50"] = max(goals["p50"], d.get("p50", float("inf")))
-        goals["bad"] = max(goals["bad"], share)
-        print(
-            f"  to the {name} site: one-way delay p50 {d.get('p50', float('nan')):7.1f}  p99 "
-            f"{d.get('p99', float('nan')):8.1f}  max {d.get('max', float('nan')):9.1f} us;  "
-            f"lost or late {bad} of {due} ({share:.3f} %; late {peer['late']}), rejected "
-            f"{peer['rejected']}"
-        )
-    for name, s in both["sites"].items():
-        ticks, wall = max(s["ticks"], 1), s["simulated_time_s"] or args.seconds
-        spin = s.get("spin_s", 0.0)
-        cpu, rest = 100 * s["cpu_s"] / wall, 100 * (s["cpu_s"] - spin) / wall
-        goals["cpu"], goals["cpu_no_spin"] = max(goals["cpu"], cpu), max(goals["cpu_no_spin"], rest)
-        print(
-            f"  {name} site: CPU {1e6 * s['cpu_s'] / ticks:6.1f} us per tick ({cpu:.1f} % of a "
-            f"core), of which the loop's spin {1e6 * spin / ticks:.1f} us ({100 * spin / wall:.1f} "
-            f"%; without it {rest:.1f} %); missed deadlines {s['timing']['missed_deadlines']}"
-        )
-    print(
-        f"  one process (both sites, in-process link): CPU "
-        f"{1e6 * local['cpu_s'] / max(local['ticks'], 1):6.1f} us per tick "
-        f"({100 * local['cpu_s'] / args.seconds:.1f} % of a core)"
-    )
-    pair = both["pair"]
-    print(
-        f"  T_p {pair['t_p_total']:.4g} / {local['t_p_total']:.4g} rad^2 s, T_tau "
-        f"{pair['t_tau_total']:.4g} / {local['t_tau_total']:.4g} N^2 m^2 s "
-        "(two processes / one)"
-    )
-    met = {True: "met", False: "MISSED"}
-    print(
-        f"  goals: one-way p50 <= 200 us {met[goals['p50'] <= 200]} ({goals['p50']:.0f}); lost "
-        f"or late <= 0.1 % {met[goals['bad'] <= 0.1]} ({goals['bad']:.3f} %); each site <= 30 % "
-        f"of a core {met[goals['cpu'] <= 30]} ({goals['cpu']:.1f} %; "
-        f"{goals['cpu_no_spin']:.1f} % without the spin)"
-    )
+    report(args, runs, failed, local)
     if args.json:
-        args.json.write_text(json.dumps({"two_processes": both, "one_process": local}, indent=1))
-    return 0
+        args.json.write_text(json.dumps({"runs": runs, "failed": failed,
+                                         "one_process_cpu_us": local}, indent=1))  # fmt: skip
+    return 0 if not any(failed.values()) else 3
+
+
+def report(args: argparse.Namespace, runs: dict, failed: dict, local: float) -> None:
+    names = {"udp": "raw UDP (Python)", "zenoh": "bare zenoh-python", "sites": "two sites",
+             "codec": "two sites, codec", "sparse": f"bare Zenoh, 1/{args.sparse}"}  # fmt: skip
+    print(f"\n{Path(args.config).name}, 1 kHz, {args.rounds} alternated rounds of "
+          f"{args.seconds:g} s, sites at D = {args.delay_ms} ms (medians over rounds; "
+          "per direction: to the HSI / to the TO)")  # fmt: skip
+    print(f"  {'':18s} {'one-way p50 (us)':>17s} {'p99 (us)':>15s} {'lost or late':>16s} "
+          f"{'CPU/tick (us)':>15s} {'tick compute':>13s} {'put p50/max':>12s}")  # fmt: skip
+    for row, rs in runs.items():
+        if not rs:
+            print(f"  {names[row]:18s} failed: {'; '.join(failed[row])}")
+            continue
+        p50 = " / ".join(f"{median(rs, s, 'p50'):.0f}" for s in SITES)
+        p99 = " / ".join(f"{median(rs, s, 'p99'):.0f}" for s in SITES)
+        bad = sum(r[s]["bad"] for r in rs for s in SITES)
+        due = sum(r[s]["due"] for r in rs for s in SITES)
+        cpu = " / ".join(f"{median(rs, s, 'cpu_us'):.0f}" for s in SITES)
+        line = (f"  {names[row]:18s} {p50:>17s} {p99:>15s} "
+                f"{f'{bad} ({100 * bad / max(due, 1):.2f} %)':>16s} {cpu:>15s}")  # fmt: skip
+        if row in ("sites", "codec"):
+            comp = " / ".join(f"{median(rs, s, 'compute_p50'):.0f}" for s in SITES)
+            worst = max(r[s]["put_max"] for r in rs for s in SITES)
+            put = f"{median(rs, 'hsi', 'put_p50'):.0f}/{worst:.0f}"
+            line += f" {comp:>13s} {put:>12s}"
+            if row == "codec":
+                line += f"  (sent {100 * median(rs, 'hsi', 'sent'):.1f} % of ticks)"
+        if failed[row]:
+            line += f"  [{len(failed[row])} failed: {failed[row][0]}]"
+        print(line)
+    print(f"  one process (both sites, in-process link): CPU {local:.0f} us per tick")
+    zen, sites, codec = runs["zenoh"], runs["sites"], runs.get("codec", [])
+    met = {True: "met", False: "MISSED"}
+    if zen and sites:
+        r_p50 = max(median(sites, s, "p50") / median(zen, s, "p50") for s in SITES)
+        r_cpu = max(median(sites, s, "cpu_us") / median(zen, s, "cpu_us") for s in SITES)
+        bad = max(100 * r[s]["bad"] / max(r[s]["due"], 1) for r in sites for s in SITES)
+        print(f"  sites / bare Zenoh: one-way p50 x{r_p50:.2f} (goal <= {GOALS['p50']}: "
+              f"{met[r_p50 <= GOALS['p50']]}), CPU per site x{r_cpu:.2f} (goal <= "
+              f"{GOALS['cpu']}: {met[r_cpu <= GOALS['cpu']]}); lost or late, worst run and "
+              f"direction {bad:.3f} % (goal <= {GOALS['bad_percent']} %: "
+              f"{met[bad <= GOALS['bad_percent']]})")  # fmt: skip
+    if sites and codec:
+        d = max(median(codec, s, "p50") / median(sites, s, "p50") for s in SITES)
+        c = max(100 * (median(codec, s, "cpu_us") / median(sites, s, "cpu_us") - 1) for s in SITES)
+        print(f"  codec / without: one-way p50 of the packets sent x{d:.2f} (goal: no worse), "
+              f"CPU per site {c:+.0f} % (goal <= {GOALS['codec_cpu']:.0f} %: "
+              f"{met[c <= GOALS['codec_cpu']]})")  # fmt: skip
 
 
 if __name__ == "__main__":

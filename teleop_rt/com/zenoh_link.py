@@ -1,8 +1,8 @@
 """The link between two sites in separate processes (or machines): packets over Zenoh.
 
 One ``ZenohLink`` per site. Its packets go out once complete (``end_tick``: encoded into a
-preallocated buffer, ``teleop_rt.com.wire``, and handed to the transport's sender thread); the
-peer's arrive on Zenoh's thread into the playout buffer (``teleop_rt.com.playout``: the packet
+preallocated buffer, ``teleop_rt.com.wire``, and published by the tick: ``ZenohTransport.send``);
+the peer's arrive on Zenoh's thread into the playout buffer (``teleop_rt.com.playout``: the packet
 the peer sent at tick k - D is used at tick k if it has arrived, else a passive zero packet).
 
 Before any motor is enabled the two sites shake hands (``handshake``): each publishes what it
@@ -282,7 +282,7 @@ class ZenohLink(Link):
             hold = HeldPackets(wire_size(n), slots)
         listening = (ends.listen, f"link.zenoh.{self.name}.listen")  # named if in use
         self.transport = ZenohTransport(
-            config, f"{self.base}/{self.name}/waves", hold=hold, listen=listening
+            config, f"{self.base}/{self.name}/waves", wire_size(n), hold=hold, listen=listening
         )
         # this site's tick period in real time: a clock clock_ppm fast counts its ticks sooner
         self.period_ns = cfg.dt * 1e9 / (1.0 + ends.clock_ppm * 1e-6)
@@ -521,7 +521,7 @@ class ZenohLink(Link):
     def end_tick(self, side: int) -> None:
         packet = self._packet
         assert packet is not None  # (attach() gave the packet before the first tick)
-        if packet.unsent:  # the codec sends nothing: the sender thread is not woken
+        if packet.unsent:  # the codec sends nothing: no put, nothing for Zenoh to do
             self.not_sent += 1
             return
         now = time.monotonic_ns()
@@ -565,11 +565,11 @@ class ZenohLink(Link):
         out = {
             "sent": self.sent,
             "one_way_delay_us": delay_us,
-            "send_replaced": self.transport.replaced,
             "send_errors": self.transport.send_errors,
-            # how long after the tick handed it over (or after its instant, when held) each
-            # packet went out: this site's part of the one-way delay
+            # how long after its stamp (or its instant, when held) each packet's put began,
+            # and how long the put took (on the tick, without a hold)
             "send_after_due_us": self.transport.late_out_us(),
+            "put_us": self.transport.put_us(),
             "from_peer": received,
         }
         if self.cfg.channel.codec != "none":  # ticks its codec sent nothing

@@ -9,12 +9,22 @@ worth something only while it is fresh, so it is sent at once (``express``: no b
 every later sample (head-of-line blocking), and a wave that arrives late is worth less than one
 that is lost (the receiver's playout rule replaces it with a passive zero).
 
-Nothing here runs on the tick: ``send`` copies the bytes into a one-slot mailbox and wakes a
-sender thread, which publishes while the loop sleeps to its next deadline (a ``put`` took 26 us
-at p50 and over a millisecond at p99 on this VM); a packet that the sender has not taken by
-the next tick is replaced and counted. The wake-up is a bare lock released by the tick and
-acquired by the sender (a ``threading.Event`` cycle cost about 16 us more CPU here). Received
-bytes go to ``listen``'s callback on Zenoh's thread.
+The tick publishes its packet itself (``send``): zenoh-python's ``put`` copies the bytes into
+Zenoh's real-time queue and wakes Zenoh's transmit thread, which writes the socket; it never
+waits (``CongestionControl.DROP`` with ``WAIT_BEFORE_DROP_US`` 0: a full queue drops the packet
+at once, where Zenoh's default waits up to 1 ms for room) and does no network I/O. Measured on
+the tick (docs/network.md): 13-18 us at p50, p99.9 40-100 us, max 0.1-0.8 ms on this loaded VM
+(a preemption of the loop's CPU, as any tick can have). A sender thread woken by the tick, as
+before, cost more in the tick than the put: it runs at a priority above the loop's (else it
+waits for the tick and Zenoh's threads), so it preempted the tick at the hand-over and again
+when a compiled kernel released the GIL, and did its put inside the tick anyway (the tick's
+compiled ``site_after_models`` took 21 us at p50 in real time against 0.8 in fast mode).
+Received bytes go to ``listen``'s callback on Zenoh's thread.
+
+Zenoh's own threads (runtime, transmit, receive: ``raise_zenoh_threads``) run at a real-time
+priority below the loop's: at normal priority on a loaded host they waited behind other
+processes (one-way p99 3.3 ms, 25-30 % of the packets late at D = 1 tick, peer-timeout stops;
+at SCHED_FIFO 70: p99 0.3 ms, 0.1 %).
 
 Zenoh's queue of real-time batches holds ``TX_QUEUE_BATCHES`` instead of its default 2: with
 ``express`` every packet is a batch, and when Zenoh's own transmit thread (normal priority, on
@@ -22,10 +32,10 @@ the CPU of the site's real-time threads) was held off for two ticks, the next pa
 and were dropped (0.7 % of them in a 30 s run on this loaded VM, 0.03 % with 16).
 
 With a ``hold`` (``teleop_rt.com.hold``: the impairment stage in front of Zenoh) the tick
-``send_at``s each copy of its packet with the instant it is due instead; the sender thread
-sleeps until the earliest due instant (or the next packet) and publishes what is due, in due
-order. Either way the sender records how long after it was due (handed over, or its instant)
-each packet went out (10 us bins): the sending site's part of the one-way delay.
+``send_at``s each copy of its packet with the instant it is due instead, and a sender thread
+(woken by a bare lock) sleeps until the earliest due instant and publishes what is due, in due
+order. Every put records how long after it was due (its stamp, or its instant) it began (10 us
+bins) and how long it took (1 us bins).
 """
 
 from __future__ import annotations
@@ -46,8 +56,13 @@ from teleop_rt.errors import TeleopError
 
 TX_QUEUE_BATCHES = 16  # Zenoh's real-time transmit queue, batches (one packet each: express)
 
+# Zenoh waits this long for room in a full queue before it drops a DROP packet (its default
+# 1000 us would hold the tick that publishes): 0, a full queue drops the packet at once
+WAIT_BEFORE_DROP_US = 0
+
 BIN_NS = 10_000  # the histogram of how late packets went out: 10 us bins, the last "or later"
 BINS = 1000
+PUT_BINS = 10_000  # the histogram of how long a put took: 1 us bins, the last "or longer"
 
 
 class TransportError(TeleopError):
@@ -99,6 +114,8 @@ def zenoh_config(
     c.insert_json5("listen/endpoints", json.dumps(listen))
     c.insert_json5("connect/endpoints", json.dumps(connect))
     c.insert_json5("transport/link/tx/queue/size/real_time", str(TX_QUEUE_BATCHES))
+    c.insert_json5("transport/link/tx/queue/congestion_control/drop/wait_before_drop",
+                   str(WAIT_BEFORE_DROP_US))  # fmt: skip
     if tls:
         link = {
             "root_ca_certificate": str(tls["root_ca"]),
@@ -114,50 +131,58 @@ def zenoh_config(
     return c
 
 
+def publisher_qos() -> dict[str, Any]:
+    """How a site publishes its packets (``declare_publisher``'s keywords): at once, no
+    batching (``express``), at ``Priority.REAL_TIME``, dropped rather than queued when the link
+    is congested (``CongestionControl.DROP``)."""
+    import zenoh
+
+    return {"congestion_control": zenoh.CongestionControl.DROP,
+            "priority": zenoh.Priority.REAL_TIME, "express": True}  # fmt: skip
+
+
 class ZenohTransport:
-    """One site's Zenoh session: ``send`` bytes on ``key_out`` (off the tick), ``listen`` to a
-    peer's key; ``session`` serves the handshake too."""
+    """One site's Zenoh session: ``send`` bytes on ``key_out`` (a ``put`` that never waits),
+    ``listen`` to a peer's key; ``session`` serves the handshake too."""
 
     def __init__(
         self,
         config: Any,
         key_out: str,
-        max_bytes: int = 4096,
+        packet_bytes: int = 0,
         hold: HeldPackets | None = None,
         listen: tuple[list[str], str] = ([], "link.zenoh listen"),
     ) -> None:
-        """``hold``: where ``send_at`` keeps packets until they are due (None: no hold);
-        ``listen``: the config's listen endpoints and their key, for an endpoint in use."""
+        """``packet_bytes``: a packet's size (``send`` copies it into a buffer of that size);
+        ``hold``: where ``send_at`` keeps packets until they are due, published by a sender
+        thread (None: no hold, no thread); ``listen``: the config's listen endpoints and their
+        key, for an endpoint in use."""
         import zenoh
 
         try:
             self.session = zenoh.open(config)
         except Exception as err:  # zenoh raises ZError for bad endpoints, ports in use, TLS
             raise TransportError(open_failure(err, *listen)) from None
-        self.publisher = self.session.declare_publisher(
-            key_out,
-            congestion_control=zenoh.CongestionControl.DROP,
-            priority=zenoh.Priority.REAL_TIME,
-            express=True,
-        )
+        self.publisher = self.session.declare_publisher(key_out, **publisher_qos())
         self.subscribers: list[Any] = []
-        # the mailbox: one slot, written by the tick, taken by the sender thread
-        self._slot = bytearray(max_bytes)
-        self._size = 0
-        self._fresh = False
-        self._lock = threading.Lock()
-        self._wake = threading.Lock()  # held: nothing new; released by the tick to wake
-        self._wake.acquire()
-        self._running = True
-        self.sent = self.replaced = self.send_errors = 0
+        self.sent = self.send_errors = 0
         self.hold = hold
         self.late_out = np.zeros(BINS, dtype=np.int64)  # put instant - due instant, by bin
         self.late_out_max_ns = 0
-        self._at = 0  # when the mailbox's packet was handed over (CLOCK_MONOTONIC ns)
-        self._until = 0  # the due instant the sender sleeps until (NEVER: until woken)
-        self._priority: int | None = None  # SCHED_FIFO priority the sender should take
-        self._thread = threading.Thread(target=self._sender, name="teleop-rt-send", daemon=True)
-        self._thread.start()
+        self.put_ns = np.zeros(PUT_BINS, dtype=np.int64)  # how long each put took, by 1 us
+        self.put_max_ns = 0
+        self._out = bytearray(packet_bytes)  # what send gives Zenoh: the tick's packet, copied
+        self._running = True
+        self._thread: threading.Thread | None = None
+        if hold is not None:  # held packets go out at their instants, from a thread
+            self._lock = threading.Lock()
+            self._wake = threading.Lock()  # held: nothing new; released by the tick to wake
+            self._wake.acquire()
+            self._until = 0  # the due instant the sender sleeps until (NEVER: until woken)
+            self._priority: int | None = None  # SCHED_FIFO priority the sender should take
+            self._thread = threading.Thread(target=self._sender, name="teleop-rt-send",
+                                            daemon=True)  # fmt: skip
+            self._thread.start()
 
     def listen(self, key: str, on_bytes: Callable[[bytes], None]) -> None:
         """Call ``on_bytes`` with every payload published on ``key`` (on Zenoh's thread)."""
@@ -168,21 +193,18 @@ class ZenohTransport:
         self.subscribers.append(self.session.declare_subscriber(key, received))
 
     def send(self, data: bytes | bytearray | memoryview, at_ns: int) -> None:
-        """Hand this tick's packet to the sender at ``at_ns`` (CLOCK_MONOTONIC; never blocks
-        on the network)."""
-        n = len(data)
-        with self._lock:
-            if self._fresh:
-                self.replaced += 1  # the sender did not take the last one in time
-            self._slot[:n] = data
-            self._size = n
-            self._at = at_ns
-            self._fresh = True
-        self._signal()
+        """Publish this tick's packet now, from the caller's thread (the tick). The ``put``
+        never waits: Zenoh copies the bytes into its real-time queue and wakes its transmit
+        thread, which writes the socket; a full queue drops the packet at once
+        (``CongestionControl.DROP``, ``WAIT_BEFORE_DROP_US``). ``at_ns``: when the packet was
+        stamped (CLOCK_MONOTONIC)."""
+        out = self._out
+        out[:] = data  # (zenoh-python takes bytes or a bytearray; same size: no allocation)
+        self._put(out, at_ns)
 
     def send_at(self, data: bytes | bytearray | memoryview, due_ns: int) -> None:
-        """Hold a copy of ``data`` until ``due_ns`` (CLOCK_MONOTONIC), then publish it (never
-        blocks; a full hold drops the packet and counts it ``overflow``)."""
+        """Hold a copy of ``data`` until ``due_ns`` (CLOCK_MONOTONIC), then publish it from the
+        sender thread (never blocks; a full hold drops the packet and counts it ``overflow``)."""
         with self._lock:
             self.hold.put(due_ns, data)  # type: ignore[union-attr]
             wake = due_ns < self._until  # the sender sleeps past it (else: no wake-up needed)
@@ -196,19 +218,38 @@ class ZenohTransport:
             pass  # released already: the sender has not yet woken for the last one
 
     def raise_priority(self, priority: int) -> None:
-        """Run the sender at SCHED_FIFO ``priority`` (above a real-time loop's, so that a
-        packet goes out while the loop sleeps, not after other threads of the CPU)."""
-        self._priority = priority
+        """Run the sender thread (if there is one) at SCHED_FIFO ``priority``, above a
+        real-time loop's, so that a held packet goes out at its instant, not after other
+        threads of the CPU."""
+        if self._thread is not None:
+            self._priority = priority
+
+    def raise_zenoh_threads(self, priority: int) -> list[str]:
+        """Run Zenoh's own threads (its runtime, transmit and receive threads, which also run
+        the receive callback) at SCHED_FIFO ``priority``: below a real-time loop's, so that they
+        never hold a tick, and above every normal process of the CPU, so that a loaded host
+        does not hold a packet. Python's threads (named ``python``) are left alone. Returns
+        the threads raised (their names); none where the OS refuses."""
+        raised = []
+        for tid in os.listdir("/proc/self/task"):
+            try:
+                name = Path(f"/proc/self/task/{tid}/comm").read_text().strip()
+                if name.startswith("python"):
+                    continue
+                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+                raised.append(name)
+            except OSError:
+                continue  # (a thread that ended, or not granted)
+        return sorted(raised)
 
     def _sender(self) -> None:
+        hold = self.hold
+        assert hold is not None  # (the thread runs only with a hold)
         while self._running:
-            timeout = None
-            if self.hold is not None:
-                with self._lock:
-                    _, due = self.hold.next_due()
-                    self._until = due
-                if due != NEVER:
-                    timeout = (due - time.monotonic_ns()) / 1e9
+            with self._lock:
+                _, due = hold.next_due()
+                self._until = due
+            timeout = None if due == NEVER else (due - time.monotonic_ns()) / 1e9
             if timeout is None or timeout > 0:
                 self._wake.acquire(timeout=-1 if timeout is None else timeout)
             self._until = 0  # awake: it looks at the hold again before it sleeps
@@ -218,18 +259,11 @@ class ZenohTransport:
                 except OSError:
                     pass  # not granted: the loop's notes say what was
                 self._priority = None
-            if self.hold is not None:
-                self._publish_due()
-            with self._lock:
-                if not self._fresh:
-                    continue
-                payload = bytes(self._slot[: self._size])
-                due = self._at
-                self._fresh = False
-            self._put(payload, due)
+            self._publish_due()
 
-    def _put(self, payload: bytes, due_ns: int) -> None:
-        late = time.monotonic_ns() - due_ns
+    def _put(self, payload: bytes | bytearray | memoryview, due_ns: int) -> None:
+        start = time.monotonic_ns()
+        late = start - due_ns
         self.late_out[min(max(late, 0) // BIN_NS, BINS - 1)] += 1
         self.late_out_max_ns = max(self.late_out_max_ns, late)
         try:
@@ -237,6 +271,9 @@ class ZenohTransport:
             self.sent += 1
         except Exception:  # a closed session while stopping; counted, never raised
             self.send_errors += 1
+        took = time.monotonic_ns() - start
+        self.put_ns[min(took // 1000, PUT_BINS - 1)] += 1
+        self.put_max_ns = max(self.put_max_ns, took)
 
     def _publish_due(self) -> None:
         """Publish every held packet whose instant has come, earliest first."""
@@ -250,16 +287,15 @@ class ZenohTransport:
                 payload = hold.pop(slot)  # type: ignore[union-attr]
             self._put(payload, due)
 
+    def put_us(self) -> dict | None:
+        """How long a ``put`` took, us: p50, p99, p99.9 (upper edges of 1 us bins), the exact
+        max; None before the first."""
+        return _percentiles(self.put_ns, 1000, self.put_max_ns, (0.5, 0.99, 0.999))
+
     def late_out_us(self) -> dict | None:
-        """How long after it was due a packet went out, us: p50, p99 (upper edges of 10 us
+        """How long after it was due a packet's put began, us: p50, p99 (upper edges of 10 us
         bins), the exact max; None before the first."""
-        total = int(self.late_out.sum())
-        if not total:
-            return None
-        cumulative = np.cumsum(self.late_out)
-        p50, p99 = (int(np.searchsorted(cumulative, q * total)) for q in (0.5, 0.99))
-        return {"p50": (p50 + 1) * BIN_NS / 1e3, "p99": (p99 + 1) * BIN_NS / 1e3,
-                "max": self.late_out_max_ns / 1e3}  # fmt: skip
+        return _percentiles(self.late_out, BIN_NS, self.late_out_max_ns, (0.5, 0.99))
 
     def hold_stats(self) -> dict:
         """What the hold did: packets held, published after their hold, still held at the end,
@@ -272,15 +308,27 @@ class ZenohTransport:
                 "overflow": hold.overflow}  # fmt: skip
 
     def close(self) -> None:
-        """Stop the sender and close the session (idempotent)."""
+        """Stop the sender (if any) and close the session (idempotent)."""
         if not self._running:
             return
         self._running = False
-        self._signal()
-        self._thread.join(1.0)
+        if self._thread is not None:
+            self._signal()
+            self._thread.join(1.0)
         for thing in (*self.subscribers, self.publisher):
             try:
                 thing.undeclare()
             except Exception:
                 pass
         self.session.close()
+
+
+def _percentiles(hist: np.ndarray, bin_ns: int, max_ns: int, qs: tuple) -> dict | None:
+    """Percentiles (upper bin edges, us) of a histogram of ``bin_ns`` bins, and the max."""
+    total = int(hist.sum())
+    if not total:
+        return None
+    cumulative = np.cumsum(hist)
+    names = {0.5: "p50", 0.99: "p99", 0.999: "p99.9"}
+    out = {names[q]: (int(np.searchsorted(cumulative, q * total)) + 1) * bin_ns / 1e3 for q in qs}
+    return {**out, "max": max_ns / 1e3}
