@@ -122,7 +122,10 @@ def test_a_pair_stays_passive_under_every_impairment(
     own script, bounded wave channel: both ports' balances and the channel's energy >= -1e-9 J,
     motion bounded, no stop; the network did reach the ports."""
     spec = CLASSES.get(impairment) or {"trace": str(write_traces(tmp_path)[impairment])}
-    session = run(TASK_SPACE / f"{name}.yaml", spec, [], seconds=6.0, sweep=False)
+    # bounded named: the default (reflected) brakes the TO through a loss, and the Panda's finger
+    # then overruns its speed limit under reordering (a safety stop: docs/task_space.md, open)
+    session = run(TASK_SPACE / f"{name}.yaml", spec, ["channel.wave_reconstruction=bounded"],
+                  seconds=6.0, sweep=False)  # fmt: skip
     assert_passive_and_bounded(session)
     link = session.summary.link["to"]
     assert link["lost"] + link["skipped"] > 0
