@@ -28,7 +28,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from teleop_rt.analysis.transparency import TransparencyAccumulator, accumulate
 from teleop_rt.com.channel import ChannelMonitor, monitor_step
 from teleop_rt.com.link import InProcessLink, Link
 from teleop_rt.com.port import WAVE
@@ -47,6 +46,7 @@ from teleop_rt.loop import TickClock
 from teleop_rt.mapping import JOINT
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
+from teleop_rt.transparency_tick import TransparencyAccumulator, accumulate
 
 if TYPE_CHECKING:
     from teleop_rt.lockstep_fused import FusedPlants
