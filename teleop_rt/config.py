@@ -25,6 +25,7 @@ from pydantic import (
 
 from teleop_rt.com.impairment_spec import ImpairmentSpec
 from teleop_rt.declarations import (
+    CODEC_RECONSTRUCTION,
     DEFAULT_RECONSTRUCTION,
     MAX_DELAY_MS,
     ChannelMode,
@@ -136,6 +137,11 @@ class DeadbandSpec(Strict):
     # velocity-adaptive deadband (Kammerl et al., Presence 2010): the Weber fraction grows
     # with the port's velocity, weber * (1 + gain |omega|); 0 keeps it constant
     velocity_gain_s_per_rad: NonNegFloat = 0.0
+    # how the peer reconstructs a site's signal between its packets: linear extrapolates the
+    # last two (Hinterseer et al., IEEE Trans. Signal Process. 56(2), 2008), hold keeps the
+    # last one; None: the channel mode's measured best (teleop_rt.com.codec.PREDICTIONS_BY_MODE)
+    prediction_hsi: Literal["linear", "hold"] | None = None
+    prediction_to: Literal["linear", "hold"] | None = None
 
     @model_validator(mode="after")
     def _intervals(self) -> DeadbandSpec:
@@ -161,9 +167,11 @@ class ChannelSpec(Strict):
     # What a wave channel does with a packet that did not arrive: bounded (the wave integral
     # within an honest energy bound: passive, and it catches up lost samples), corrected
     # (bounded, and the integral an outage lost paid back within the same budget: no position
-    # drift), zero (a zero wave: passive), and, unprotected, for comparison: hold (the last
-    # wave held) or integral (the wave integral without the bound). With no loss all five
-    # compute the same.
+    # drift), reflected (corrected, and a port may emit beyond its budget what it reflects,
+    # taken off the energy it declares to the peer: a push is held through a loss), zero (a
+    # zero wave: passive), and, unprotected, for comparison: hold (the last wave held) or
+    # integral (the wave integral without the bound). With no loss all six compute the same.
+    # With the deadband codec the default is bounded (the codec holds waves within its bound).
     wave_reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
@@ -174,6 +182,15 @@ class ChannelSpec(Strict):
     # is up), the receiver holding the last one passively in between (docs/codec.md)
     codec: Literal["none", "deadband"] = "none"
     deadband: DeadbandSpec = DeadbandSpec()
+
+    @model_validator(mode="before")
+    @classmethod
+    def _codec_default_bounded(cls, data: Any) -> Any:
+        """The deadband codec's wave reconstruction, unless given: bounded (the one it keeps
+        passive; teleop_rt.com.codec)."""
+        if isinstance(data, dict) and data.get("codec", "none") != "none":
+            data = {"wave_reconstruction": CODEC_RECONSTRUCTION, **data}
+        return data
     # what the channel couples (teleop_rt.mapping): joint j to joint j, or the tools' x-y
     # velocity and force in the world plane (each site through its own Jacobian; 2 joints
     # a side; wave_impedance then in N s/m)
@@ -234,6 +251,48 @@ class WorkspaceLimits(Strict):
     to: WorkspaceBox | None = None
 
 
+class VirtualWall(Strict):
+    """A virtual wall in the TO's plane: the line through point_m (x, y) with unit normal
+    pointing to the allowed side; beyond it a unilateral spring-damper pushes the TO's tool
+    back, rendered as part of its environment (teleop_rt.task_limits)."""
+
+    point_m: list[FiniteFloat]
+    normal: list[FiniteFloat]
+    stiffness_n_per_m: PositiveFloat
+    damping_n_s_per_m: NonNegFloat = 0.0
+
+    @field_validator("point_m", "normal")
+    @classmethod
+    def _xy(cls, v: list[float], info: Any) -> list[float]:
+        if len(v) != 2:
+            raise ValueError(f"{info.field_name} needs 2 numbers (x, y: the plane), got {len(v)}")
+        return list(v)
+
+    @field_validator("normal")
+    @classmethod
+    def _nonzero(cls, v: list[float]) -> list[float]:
+        if math.hypot(*v) < 1e-9:
+            raise ValueError("normal must not be the zero vector")
+        return v
+
+
+class ToolLimits(Strict):
+    """The TO's limits in task space (channel.space: plane; teleop_rt.task_limits): all off by
+    default, so joint-space runs compute what they did."""
+
+    # the tool's speed in the plane: above it the TO's coupling gain is capped (a lossless
+    # transformer: motion and fed-back force scaled alike) until it is below again
+    speed_limit_m_s: PositiveFloat | None = None
+    # the TO's measured force at the tool (J#^T tau_e) above this: a safety stop
+    force_limit_n: PositiveFloat | None = None
+    walls: list[VirtualWall] = Field(default_factory=list)
+
+    @property
+    def active(self) -> bool:
+        return (self.speed_limit_m_s is not None or self.force_limit_n is not None
+                or bool(self.walls))  # fmt: skip
+
+
 class SafetySpec(Strict):
     """The safety layer (teleop_rt/safety.py): limits come from the URDFs."""
 
@@ -253,6 +312,8 @@ class SafetySpec(Strict):
     tracking_error_ticks: Annotated[int, Field(ge=0, le=MAX_TICKS)] = 20
     # the tool frame outside its box is a stop (one forward-kinematics call per boxed robot)
     workspace: WorkspaceLimits = WorkspaceLimits()
+    # the TO's tool speed, force and virtual walls in task space (none by default)
+    tool: ToolLimits = ToolLimits()
     # plausibility of the measurements (sensor faults), checked whatever ``enabled`` says:
     # |tau_ext| above this (N m per joint; default 3 x the URDF effort limit) and |v| above
     # this (rad/s per joint; default 2 x the URDF velocity limit) stop within the tick
@@ -272,6 +333,10 @@ class RecordingSpec(Strict):
     on_loss: Literal["stop", "continue"] = "stop"
     # how far the writer may fall behind the loop before rows are lost (the ring's size)
     ring_s: Annotated[float, Field(gt=0, le=600, allow_inf_nan=False)] = 64.0
+    # the 3D scene's messages (/tf, /environment, /hand_target) per second of session time: its
+    # transforms are the writer's largest cost after the four 1 kHz topics (about 1 us a tick
+    # at 50 Hz); at most one per tick; 0: no 3D topics
+    scene_hz: Annotated[float, Field(ge=0, le=1000, allow_inf_nan=False)] = 50.0
 
 
 class Interval(Strict):
@@ -590,11 +655,20 @@ class SessionConfig(Strict):
                 "channel.codec: the deadband codec needs channel.delay_ms of at least one tick "
                 "(with no delay the ports couple directly, every tick)"
             )
-        if ch.mode == "wave" and ch.wave_reconstruction != "bounded":
+        if ch.mode == "wave" and ch.wave_reconstruction != CODEC_RECONSTRUCTION:
             raise ValueError(
                 "channel.codec: the deadband codec holds a wave channel's waves within the "
-                f"energy bound; channel.wave_reconstruction must be bounded, not "
+                f"energy bound; channel.wave_reconstruction must be {CODEC_RECONSTRUCTION}, not "
                 f"{ch.wave_reconstruction}"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _tool_limits_in_task_space(self) -> SessionConfig:
+        if self.safety.tool.active and self.channel.space == "joint":
+            raise ValueError(
+                "safety.tool: the tool's limits act in task space; they need "
+                "channel.space: plane"
             )
         return self
 

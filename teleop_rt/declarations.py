@@ -13,12 +13,16 @@ MODES: dict[ChannelMode, int] = {"direct": DIRECT, "wave": WAVE, "tdpa": TDPA}
 
 # what a wave channel puts in place of a packet that did not arrive (channel.wave_reconstruction;
 # the methods in teleop_rt.com.port's docstring)
-Reconstruction = Literal["bounded", "corrected", "zero", "hold", "integral"]
-ZERO, HOLD, INTEGRAL, BOUNDED, CORRECTED = 0, 1, 2, 3, 4  # the kernels' codes
+Reconstruction = Literal["reflected", "bounded", "corrected", "zero", "hold", "integral"]
+ZERO, HOLD, INTEGRAL, BOUNDED, CORRECTED, REFLECTED = 0, 1, 2, 3, 4, 5  # the kernels' codes
 RECONSTRUCTIONS: dict[Reconstruction, int] = {
     "zero": ZERO, "hold": HOLD, "integral": INTEGRAL, "bounded": BOUNDED, "corrected": CORRECTED,
+    "reflected": REFLECTED,
 }  # fmt: skip
-DEFAULT_RECONSTRUCTION: Reconstruction = "bounded"
+# the default: the wall is still felt under burst loss (docs/transparency_under_loss.md)
+DEFAULT_RECONSTRUCTION: Reconstruction = "reflected"
+# the deadband codec holds waves within the honest bound (teleop_rt.com.codec): the one it takes
+CODEC_RECONSTRUCTION: Reconstruction = "bounded"
 
 MAX_DELAY_MS = 10_000.0  # 10 s one way: beyond any teleoperation link, and bounded memory
 

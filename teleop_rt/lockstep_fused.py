@@ -55,8 +55,11 @@ class FusedPlants(ABC):
     blocks: list[Block]
 
     @abstractmethod
-    def bind(self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray) -> None:
-        """The packed buffers and the session's offsets (all blocks), once packed."""
+    def bind(
+        self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray, port_n: int | None = None
+    ) -> None:  # fmt: skip
+        """The packed buffers and the session's offsets (all blocks), once packed; ``port_n``:
+        the channel's size where it is not the joints' (a task-space channel)."""
 
     @abstractmethod
     def before(self) -> int:
@@ -84,19 +87,20 @@ def fuse_plants(hsi: Backend, to: Backend) -> FusedPlants | None:
 
 @jit
 def sense_and_prepare(
-    f: np.ndarray, i: np.ndarray, o: np.ndarray, at: np.ndarray, n: int, split: int
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, at: np.ndarray, n: int, split: int, nj: int
 ) -> int:
     """Both plants' ideal sensors into the sites' feedback and world blocks, then the
-    lock-step's first half; its finding."""
+    lock-step's first half; its finding. ``n``: the port's size; ``nj``: the plants' joints
+    (n but in task space)."""
     plant_h, plant_t = o[2 * SESSION_BLOCKS : 2 * split], o[2 * split :]
-    sense(f, i, plant_h, n, floats_of(f, o, FB_H), ints_of(i, o, FB_H), floats_of(f, o, WORLD_H))
-    sense(f, i, plant_t, n, floats_of(f, o, FB_T), ints_of(i, o, FB_T), floats_of(f, o, WORLD_T))
+    sense(f, i, plant_h, nj, floats_of(f, o, FB_H), ints_of(i, o, FB_H), floats_of(f, o, WORLD_H))
+    sense(f, i, plant_t, nj, floats_of(f, o, FB_T), ints_of(i, o, FB_T), floats_of(f, o, WORLD_T))
     return lockstep_before(f, i, o, at, n)
 
 
 @jit
 def finish_and_command(
-    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, split: int,
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, split: int, nj: int,
     rnea_h: np.ndarray, rnea_t: np.ndarray,
 ) -> int:  # fmt: skip
     """The lock-step's second half; the safety finding (0: none), and only without one both
@@ -104,8 +108,8 @@ def finish_and_command(
     code = lockstep_after(f, i, o, n, rnea_h, rnea_t)
     if code:
         return code
-    command(f, o[2 * SESSION_BLOCKS : 2 * split], n, vec(floats_of(f, o, CT_H), TAU, n))
-    command(f, o[2 * split :], n, vec(floats_of(f, o, CT_T), TAU, n))
+    command(f, o[2 * SESSION_BLOCKS : 2 * split], nj, vec(floats_of(f, o, CT_H), TAU, nj))
+    command(f, o[2 * split :], nj, vec(floats_of(f, o, CT_T), TAU, nj))
     return 0
 
 
@@ -135,9 +139,11 @@ class FusedSimPair(FusedPlants):
     def __init__(self, plant_h: SimBackend, plant_t: SimBackend) -> None:
         self.plants = (plant_h, plant_t)
         self.blocks = [*plant_h.blocks, *plant_t.blocks]
-        self.n = plant_h.n
+        self.n = plant_h.n  # the plants' joints
 
-    def bind(self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray) -> None:
+    def bind(
+        self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray, port_n: int | None = None
+    ) -> None:  # fmt: skip
         plant_h, plant_t = self.plants
         first = SESSION_BLOCKS
         self.split = split = first + len(plant_h.blocks)
@@ -147,15 +153,16 @@ class FusedSimPair(FusedPlants):
         plant_t.rebind(f, i, offsets[2 * split : 2 * end])
         self._args = (f, i, offsets, self.n, split)
         at = link_at(offsets)
+        m = self.n if port_n is None else port_n  # the port's size (in task space: 2)
         # the per-tick calls bound once: a partial of a compiled function costs next to
         # nothing beyond the call itself (a method that unpacks _args costs a Python frame)
-        self.before = partial(sense_and_prepare, f, i, offsets, at, self.n, split)  # type: ignore[method-assign]
-        self.after = partial(finish_and_command, *self._args)  # type: ignore[method-assign]
+        self.before = partial(sense_and_prepare, f, i, offsets, at, m, split, self.n)  # type: ignore[method-assign]
+        self.after = partial(finish_and_command, f, i, offsets, m, split, self.n)  # type: ignore[method-assign]
         # load (or, on a fresh install, compile) the four kernels now, on scratch copies
         n, zeros, jac, x = self.n, np.zeros(self.n), np.zeros((6, self.n)), np.zeros(3)
         sf, si = f.copy(), i.copy()
-        sense_and_prepare(sf, si, offsets, at, n, split)
-        finish_and_command(sf, si, offsets, n, split, zeros, zeros)
+        sense_and_prepare(sf, si, offsets, at, m, split, n)
+        finish_and_command(sf, si, offsets, m, split, n, zeros, zeros)
         integrate(sf, si, offsets, n, split, zeros, zeros)
         next_ticks(sf, si, offsets, n, split, jac, x, jac, x)
 

@@ -75,6 +75,7 @@ TASK = 2  # the plane's dimension: the port's vectors hold x, y
 # damped least squares (Wampler 1986; Nakamura & Hanafusa 1986): J# = J^T (J J^T + l^2 I)^-1,
 # l in m (the SCARA's links are ~0.2 m: it acts within ~1 mm of a singular pose)
 DLS_DAMPING_M = 1e-3
+WALL_FLOATS = 6  # a virtual wall in the tail: x, y, unit normal x, y, stiffness, damping
 
 
 class Mapping(Block):
@@ -105,6 +106,19 @@ class Mapping(Block):
     kin_at = Int("PLANE: where J (2 x joints), J# (joints x 2) and the tool's x, y start",
                  param=True)
     joints = Int("the robot's joints (the block's vectors: the port's size)", param=True)
+    # the TO's task-space limits (safety.tool, teleop_rt.task_limits; PLANE only)
+    limits = Int("1: the TO's tool limits are checked", param=True)
+    walls = Int("virtual walls in the tail, after the kinematics", param=True)
+    speed_limit = Scalar("m/s: the tool's speed limit (inf: none)", param=True)
+    force_limit = Scalar("N: the tool's force limit, a stop (inf: none)", param=True)
+    speed_cap = Scalar("the coupling gain's ceiling the speed limit sets for the next tick")
+    min_speed_cap = Scalar("the lowest ceiling so far (1: the limit never acted)")
+    peak_tool_speed = Scalar("m/s: the highest |J v| so far")
+    peak_tool_force = Scalar("N: the highest measured |J#^T tau_e| so far")
+    max_penetration = Scalar("m: the deepest the tool went beyond a virtual wall")
+    max_wall_force = Scalar("N: the largest virtual wall force")
+    speed_limited = Int("ticks the speed limit capped the gain")
+    wall_ticks = Int("ticks a virtual wall pushed")
     # the script: starts then ends of the clutch, then of the absences; then (PLANE) the
     # kinematics, refreshed by ``map_kinematics`` after every tick
     TAIL_IS_STATE = False
@@ -113,14 +127,27 @@ class Mapping(Block):
         self, n: int, side: int, dt: float, motion_scale: float = 1.0, force_scale: float = 1.0,
         clutch: list[tuple[int, int]] | None = None, absent: list[tuple[int, int]] | None = None,
         ramp_s: float = 0.0, step_limit: float = math.inf, timeout_ticks: int = -1,
-        space: int = JOINT, joints: int | None = None,
+        space: int = JOINT, joints: int | None = None, speed_limit: float = math.inf,
+        force_limit: float = math.inf, walls: list[tuple[float, ...]] | None = None,
     ) -> None:  # fmt: skip
         """``n``: the port's size (the joints, or TASK in the plane); ``joints``: the robot's
-        (default n)."""
-        clutch, absent = clutch or [], absent or []
+        (default n). ``speed_limit``, ``force_limit``, ``walls`` (x, y, nx, ny, k, d each):
+        the TO's tool limits in the plane (``teleop_rt.task_limits``)."""
+        clutch, absent, walls = clutch or [], absent or [], walls or []
         script = 2 * (len(clutch) + len(absent))
         nj = n if joints is None else joints
-        super().__init__(n, tail=script + (4 * nj + TASK if space == PLANE else 0))
+        kin = 4 * nj + TASK + WALL_FLOATS * len(walls) if space == PLANE else 0
+        super().__init__(n, tail=script + kin)
+        self.speed_limit, self.force_limit, self.walls = speed_limit, force_limit, len(walls)
+        self.limits = int(space == PLANE and (
+            math.isfinite(speed_limit) or math.isfinite(force_limit) or bool(walls)))  # fmt: skip
+        self.speed_cap = self.min_speed_cap = 1.0
+        wall_at = self.tail_start + script + 4 * nj + TASK
+        for k, wall in enumerate(walls):
+            x, y, nx, ny, stiffness, damping = wall
+            norm = math.hypot(nx, ny)  # (a unit normal: the penetration in m)
+            at = wall_at + WALL_FLOATS * k
+            self.f[at : at + WALL_FLOATS] = [x, y, nx / norm, ny / norm, stiffness, damping]
         self.space, self.joints = space, nj
         self.kin_at = self.tail_start + script
         self.side, self.dt = side, dt
@@ -155,6 +182,15 @@ M_CLUTCH_AT, M_ABSENT_AT, M_COUPLED, M_ENGAGEMENTS = (
     Mapping.clutch_at.k, Mapping.absent_at.k, Mapping.coupled.k, Mapping.engagements.k
 )  # fmt: skip
 M_SPACE, M_KIN_AT, M_JOINTS = Mapping.space.k, Mapping.kin_at.k, Mapping.joints.k
+M_LIMITS, M_WALLS, M_SPEED_LIMIT, M_FORCE_LIMIT, M_SPEED_CAP, M_MIN_SPEED_CAP = (
+    Mapping.limits.k, Mapping.walls.k, Mapping.speed_limit.k, Mapping.force_limit.k,
+    Mapping.speed_cap.k, Mapping.min_speed_cap.k,
+)  # fmt: skip
+M_PEAK_SPEED, M_PEAK_FORCE, M_MAX_PENETRATION, M_MAX_WALL_FORCE = (
+    Mapping.peak_tool_speed.k, Mapping.peak_tool_force.k, Mapping.max_penetration.k,
+    Mapping.max_wall_force.k,
+)  # fmt: skip
+M_SPEED_LIMITED, M_WALL_TICKS = Mapping.speed_limited.k, Mapping.wall_ticks.k
 N_MAPPING_VECTORS, N_MAPPING_SCALARS = len(Mapping.VECTORS), len(Mapping.SCALARS)
 
 
@@ -364,9 +400,16 @@ def mapping_for(cfg: SessionConfig, joints: int, side: int) -> Mapping:
 
     timeout = spec.presence_timeout_s
     space = SPACES[cfg.channel.space]
+    tool = cfg.safety.tool
+    limited = side == TO and cfg.safety.enabled  # (the guard's other limits follow it too)
+    inf = math.inf
+    speed = tool.speed_limit_m_s if limited and tool.speed_limit_m_s is not None else inf
+    force = tool.force_limit_n if limited and tool.force_limit_n is not None else inf
+    walls = [(*w.point_m, *w.normal, w.stiffness_n_per_m, w.damping_n_s_per_m)
+             for w in (tool.walls if limited else [])]  # fmt: skip
     return Mapping(
         TASK if space == PLANE else joints, side, cfg.dt, spec.motion_scale, spec.force_scale,
         ticks(cfg.operator.clutch), ticks(cfg.operator.absent), spec.engage_ramp_s,
         spec.engage_step_nm, -1 if timeout is None else round(timeout * rate),
-        space, joints,
+        space, joints, speed, force, walls,
     )  # fmt: skip

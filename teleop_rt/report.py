@@ -82,6 +82,9 @@ def print_summary(summary: Summary, console: Console | None = None) -> None:
         table.add_row("note", note)
     if summary.saturated_ticks:
         table.add_row("torque saturated", f"{summary.saturated_ticks} ticks (URDF effort limits)")
+    tool = tool_limits_text(summary.tool_limits)
+    if tool:
+        table.add_row("TO tool limits", tool)
     if summary.stopped_early:
         table.add_row("stopped early", f"[red]{summary.stopped_early}")
     for site, figures in (summary.link or {}).items():
@@ -93,6 +96,22 @@ def print_summary(summary: Summary, console: Console | None = None) -> None:
         for site, figures in codec_sites(summary.channel):
             table.add_row(f"codec at the {site}", codec_text(figures))
     console.print(table)
+
+
+def tool_limits_text(figures: dict | None) -> str:
+    """What the TO's task-space limits did ('' when none acted)."""
+    if not figures:
+        return ""
+    said = []
+    if figures["speed_limited_ticks"]:
+        said.append(f"speed limit {figures['speed_limit_m_s']:g} m/s capped the coupling for "
+                    f"{figures['speed_limited_ticks']} ticks (gain down to "
+                    f"{figures['min_speed_gain']:.3g})")  # fmt: skip
+    if figures["wall_ticks"]:
+        said.append(f"a virtual wall pushed for {figures['wall_ticks']} ticks (deepest "
+                    f"{1000 * figures['max_penetration_m']:.3g} mm, "
+                    f"{figures['max_wall_force_n']:.3g} N)")  # fmt: skip
+    return "; ".join(said)
 
 
 PREEMPTION_FACTOR = 10.0  # a max this far above p99 is the host, not the tick's own work

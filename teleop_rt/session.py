@@ -46,6 +46,7 @@ from teleop_rt.loop import TickClock
 from teleop_rt.mapping import JOINT
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
+from teleop_rt.task_limits import tool_limits_figures
 from teleop_rt.transparency_tick import TransparencyAccumulator, accumulate
 
 if TYPE_CHECKING:
@@ -118,6 +119,7 @@ class Summary:
     saturated_ticks: int = 0  # ticks in which a commanded torque hit its effort limit
     link: dict | None = None  # what an impaired link did (sent, lost, late, ...; per site)
     channel: dict | None = None  # the channel kind and its protection's activity per port
+    tool_limits: dict | None = None  # what the TO's task-space limits did (safety.tool)
 
     @property
     def t_p_total(self) -> float:
@@ -181,7 +183,7 @@ class Session:
         self.tick = 0
         compiled_link = isinstance(self.link, InProcessLink)
         # the fused plants take one joint count (a pair of other robots runs read / write)
-        same = self.hsi.n == self.to.n == n
+        same = self.hsi.n == self.to.n
         pair = None
         if fuse and compiled_link and same:  # (imported here: a CAN pair needs no plant kernels)
             from teleop_rt.lockstep_fused import fuse_plants
@@ -217,7 +219,7 @@ class Session:
         lockstep_after(f.copy(), i.copy(), o, n, np.zeros(hsi.n), np.zeros(to.n))
         self._pair_plants = pair
         if pair is not None:
-            pair.bind(p.f, p.i, p.offsets)
+            pair.bind(p.f, p.i, p.offsets, self.n)
             self.fused = True
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
@@ -396,4 +398,5 @@ class Session:
             saturated_ticks=self.saturated_ticks,
             link=self.link_stats(),
             channel=channel_figures(self.cfg, {"hsi": self.hsi.port, "to": self.to.port}),
+            tool_limits=tool_limits_figures(self.to.mapping),
         )

@@ -38,11 +38,13 @@ from teleop_rt.site_tick import (
     site_before_models,
     site_sense,
 )
+from teleop_rt.task_limits import TOOL_FORCE
 
 if TYPE_CHECKING:
     from teleop_rt.world import Load
 
 SIDES = {"hsi": HSI, "to": TO}
+LWA = pin.LOCAL_WORLD_ALIGNED  # the task-space map's Jacobian: world axes, at the tool
 REST_SPEED_RAD_S = 1e-3  # a robot slower than this on every joint is at rest
 STOP_GAIN_OF_DEADBEAT = 0.5  # the TO's stop gain at most half the deadbeat gain M_v / dt
 STOP_DAMPING_DEFAULT = SafetySpec.model_fields["stop_damping_nm_s_per_rad"].default
@@ -136,13 +138,12 @@ class Site:
     def map_kinematics(self, q: np.ndarray | None = None) -> None:
         """A task-space map's Jacobian, its inverse and the tool's place at the measured q (or
         ``q``), for the next tick (after this tick's torques: one Pinocchio call)."""
-        if self.mapping.space != PLANE:
+        kin = self._kin
+        if kin is None:
             return
-        m = self.model
-        at = self.feedback.q if q is None else q
-        jac = pin.computeFrameJacobian(m.model, m.data, at, m.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)
-        mapping = self.mapping
-        map_kinematics(mapping.f, mapping.i, jac, m._ee_translation)
+        model, data, measured, frame, f, i, x = kin
+        at = measured if q is None else q
+        map_kinematics(f, i, pin.computeFrameJacobian(model, data, at, frame, LWA), x)
 
     def bind(self, packed: Packed, first: int = 0) -> None:
         """Work on the site's blocks where they are now: blocks ``first`` on of ``packed``."""
@@ -151,6 +152,11 @@ class Site:
         self._buffers = (packed.f, packed.i, packed.offsets[2 * first : 2 * end], self.m)
         self._pin = (self.model.model, self.model.data, self.feedback.q, self.feedback.v,
                      self.computed_torque.a_des)  # fmt: skip
+        m, mapping = self.model, self.mapping  # (the plane's map: its Pinocchio call's
+        self._kin = None if mapping.space != PLANE else (  # arguments, looked up once)
+            m.model, m.data, self.feedback.q, m.ee_frame_id, mapping.f, mapping.i,
+            m._ee_translation,
+        )  # fmt: skip
 
     def warm_up(self) -> None:
         """Load (or, on a fresh install, compile) the site's kernels now, on scratch copies."""
@@ -291,6 +297,11 @@ class Site:
     def stop_for(self, code: int) -> SafetyStop:
         """The SafetyStop that words a finding of this site's compiled checks."""
         self.found_fault = True
+        if code == TOOL_FORCE:
+            m = self.mapping
+            return SafetyStop(f"tick {self.tick}: {self.name} tool force "
+                              f"{m.peak_tool_force:.4g} N above {m.force_limit:g} N "
+                              "(safety.tool.force_limit_n)")  # fmt: skip
         if code == PRESENCE_LOST:
             timeout = self.mapping.timeout_ticks * self.dt
             return SafetyStop(f"tick {self.tick}: {self.name}: the operator has been away for "
@@ -374,9 +385,11 @@ def port_for(cfg: SessionConfig, n: int, side: int) -> Port:
                      ch.wave_reconstruction, ch.tdpa_drift_time_s)  # fmt: skip
     if ch.codec != "none":
         db, own = ch.deadband, "hsi" if side == HSI else "to"
+        of_hsi, of_to = codec.predictions(ch.mode, db.prediction_hsi, db.prediction_to)
+        mine, peers = (of_hsi, of_to) if side == HSI else (of_to, of_hsi)
         codec.configure(port, getattr(db, f"weber_{own}"), getattr(db, f"floor_{own}"),
                         db.min_interval_ticks, db.max_interval_ticks,
-                        db.velocity_gain_s_per_rad)  # fmt: skip
+                        db.velocity_gain_s_per_rad, mine, peers)  # fmt: skip
     return port
 
 

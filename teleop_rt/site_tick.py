@@ -39,6 +39,7 @@ from teleop_rt.mapping import (
     M_ALPHA,
     M_GAIN,
     M_JOINTS,
+    M_LIMITS,
     M_SPACE,
     N_MAPPING_VECTORS,
     PLANE,
@@ -56,6 +57,7 @@ from teleop_rt.mapping import (
     to_plane_output,
 )
 from teleop_rt.safety import guard_site, measured_fault
+from teleop_rt.task_limits import to_speed_ceiling, to_speed_limit, to_tool_sense
 
 SITE_ORDER = ("feedback", "signals", "port", "tx", "rx", "controller", "computed_torque",
               "guard", "world", "mapping")  # fmt: skip
@@ -115,11 +117,18 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
         for j in range(nj):
             tau[j] = -tau_ext[j]
         if mapped:  # tau_t = r beta tau_e
+            limited = mi[M_LIMITS] != 0  # (the tool's limits in the plane: task_limits)
             if mi[M_SPACE] == PLANE:
                 to_plane_input(mf, mi, n, tau)
+                if limited:
+                    code = to_tool_sense(mf, mi, n, v)
+                    if code:
+                        return code
             else:
                 to_map_input(mf, n, tau)
             mapping_engage(mf, mi, n, i[si + S_TICK], vec(mf, TAU_MAPPED, n))
+            if limited:
+                to_speed_ceiling(mf, n)
             to_map_gain(mf, n)
             port_i[TERMINATED] = mf[N_MAPPING_VECTORS * n + M_GAIN] == 0.0
             port_input(port, port_i, n, vec(mf, X, n), tx)
@@ -159,7 +168,10 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
     else:  # M2 a_t = C2(omega_t - v_t)
         omega_t, v = vec(port, FLOW, n), vec(floats_of(f, o, FB), FB_V, nj)
         if mapped and ints_of(i, o, MAP)[M_SPACE] == PLANE:  # r alpha J# omega_t
-            to_plane_output(floats_of(f, o, MAP), ints_of(i, o, MAP), n, omega_t, v, error)
+            mf, mi = floats_of(f, o, MAP), ints_of(i, o, MAP)
+            to_plane_output(mf, mi, n, omega_t, v, error)
+            if mi[M_LIMITS]:
+                to_speed_limit(mf, mi, n, omega_t, v)
         elif mapped:  # the velocity reference r alpha omega_t
             mf = floats_of(f, o, MAP)
             g = mf[ms + M_GAIN] * mf[ms + M_ALPHA]

@@ -62,6 +62,7 @@ MARKS_BY_TEST = {
     # each starts fresh interpreters that load every kernel: over a minute on a loaded host
     "test_cli.py::test_python_dash_m_teleop_rt": ("slow",),
     "test_cli.py::test_bode_piped_is_not_cut_at_80_columns": ("slow",),
+    "test_heterogeneous_pairs.py::test_a_pair_stays_passive_under_every_impairment": ("slow",),
     "test_cli.py::test_console_script_check": ("slow",),
     "test_closed_output.py::test_a_safety_stop_stays_exit_3": ("slow",),
     "test_bad_input.py::test_a_fifo_is_refused_without_blocking": ("slow",),

@@ -21,6 +21,7 @@ from teleop_rt.com.channel import make_port
 from teleop_rt.com.codec import codec_receive, codec_send
 from teleop_rt.com.port import HSI, TO, Packet, port_input, port_step
 from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink, _first_difference
+from teleop_rt.declarations import CODEC_RECONSTRUCTION
 from teleop_rt.errors import ConfigError
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
@@ -35,11 +36,14 @@ class CodecHarness:
     k - d_k if the peer sent one then, it was not lost and it is newer than the last used."""
 
     def __init__(self, mode: str, n: int = 1, filter_hz: float | None = None,
-                 max_ticks: int = MAX_TICKS) -> None:  # fmt: skip
+                 max_ticks: int = MAX_TICKS, predictions: tuple[str, str] = ("linear", "hold"),
+                 ) -> None:  # fmt: skip
         self.n = n
-        self.ports = [make_port(side, mode, [1.5] * n, 1, 1e-3, filter_hz) for side in (HSI, TO)]
-        for port in self.ports:
-            codec.configure(port, WEBER, FLOOR, 1, max_ticks)
+        self.ports = [make_port(side, mode, [1.5] * n, 1, 1e-3, filter_hz, CODEC_RECONSTRUCTION)
+                      for side in (HSI, TO)]  # fmt: skip
+        for side, port in enumerate(self.ports):  # predictions: of the HSI's, of the TO's packets
+            codec.configure(port, WEBER, FLOOR, 1, max_ticks, 0.0, predictions[side],
+                            predictions[1 - side])  # fmt: skip
         self.tx = [Packet(n), Packet(n)]
         self.rx = [Packet(n), Packet(n)]
         self.sent: list[list[tuple[np.ndarray, np.ndarray]]] = [[], []]
@@ -71,13 +75,18 @@ class CodecHarness:
         return min(h.balance, t.balance, h.total_energy + t.total_energy)
 
 
-@settings(max_examples=120, deadline=None)
+PREDICTION = st.sampled_from(["linear", "hold"])
+
+
+@settings(max_examples=150, deadline=None)
 @given(schedule=schedules(150), mode=st.sampled_from(["wave", "tdpa"]),
-       filter_hz=st.sampled_from([None, 30.0]), max_ticks=st.sampled_from([1, 5, 50]))  # fmt: skip
+       filter_hz=st.sampled_from([None, 30.0]), max_ticks=st.sampled_from([1, 5, 50]),
+       predictions=st.tuples(PREDICTION, PREDICTION))  # fmt: skip
 def test_ports_with_the_codec_are_passive_for_any_delays_losses_and_inputs(
-    schedule, mode, filter_hz, max_ticks
+    schedule, mode, filter_hz, max_ticks, predictions
 ) -> None:
-    assert drive(CodecHarness(mode, 1, filter_hz, max_ticks), schedule) >= PASSIVE_J
+    harness = CodecHarness(mode, 1, filter_hz, max_ticks, predictions)
+    assert drive(harness, schedule) >= PASSIVE_J
 
 
 def smooth(ticks: int, seed: int = 1) -> np.ndarray:
@@ -90,13 +99,22 @@ def smooth(ticks: int, seed: int = 1) -> np.ndarray:
     return np.asarray(out)
 
 
-def test_the_peer_holds_what_was_sent_within_the_band_and_the_codec_sends_little() -> None:
-    """No loss, a constant one-tick delay: at every tick the wave the peer uses differs from
-    the sender's own of that tick by at most the band around it (Weber fraction and floor:
-    the deadband's promise), while the codec sends a fraction of the ticks. A codec that
-    sends nothing between its maximum intervals breaks the promise."""
+@pytest.mark.parametrize(
+    "predictions, most", [(("hold", "hold"), 0.6), (("linear", "linear"), 0.6),
+                          (("linear", "hold"), 0.9)],
+)  # fmt: skip
+def test_the_peer_holds_what_was_sent_within_the_band_and_the_codec_sends_little(
+    predictions: tuple[str, str], most: float
+) -> None:
+    """No loss, a constant one-tick delay: at every tick the wave the peer uses (held or
+    extrapolated) differs from the sender's own of that tick by at most the band around it
+    (Weber fraction and floor: the deadband's promise), while the codec sends a fraction of
+    the ticks (measured: 1508, 1458, 2568 of 3000: in this bare two-port the TO's wave echoes
+    back into the HSI's within a tick, and the HSI's extrapolation alone tracks it worse;
+    sessions send 10 %). A codec that sends nothing between its maximum intervals breaks the
+    promise."""
     ticks = 3000
-    harness = CodecHarness("wave")
+    harness = CodecHarness("wave", predictions=predictions)
     x_h, x_t = smooth(ticks), 0.5 * smooth(ticks, 2)
     worst, true_before = 0.0, 0.0
     for k in range(ticks):
@@ -108,14 +126,68 @@ def test_the_peer_holds_what_was_sent_within_the_band_and_the_codec_sends_little
         true_before = float(harness.ports[HSI].wave_out[0])
     assert worst <= 1e-12
     sent = int(harness.ports[HSI].codec_sent)
-    assert sent < 0.6 * ticks  # (a bare two-port, 1-tick echoes: sessions send far less)
+    assert sent < most * ticks
     assert harness.ports[TO].acted == 0  # the sender kept its peer within the room it declared
+
+
+def ramp_run(prediction: str, ticks: int = 1000) -> tuple[CodecHarness, float]:
+    """TDPA, the HSI's velocity a ramp 0.2 + 0.004 k rad/s, the TO's torque zero (so neither
+    passivity controller has anything to do), one tick of delay, a 200-tick maximum interval:
+    the largest error of the TO's velocity against the HSI's of the tick it stands for, over
+    the last 300 ticks."""
+    harness = CodecHarness("tdpa", max_ticks=200, predictions=(prediction, "hold"))
+    x = 0.2 + 0.004 * np.arange(ticks)
+    worst = 0.0
+    for k in range(ticks):
+        harness.step(k, (np.full(1, x[k]), np.zeros(1)), (1, 1), (False, False))
+        if k >= ticks - 300:
+            worst = max(worst, abs(float(harness.ports[TO].flow[0]) - x[k - 1]))
+    return harness, worst
+
+
+def test_a_linear_prediction_reconstructs_a_ramp_exactly_from_few_packets() -> None:
+    """First-order prediction (Hinterseer et al. 2008): from the second packet on the peer
+    extrapolates the ramp exactly (the slope of two packets of a ramp is the ramp's), so the
+    sender sends only when its maximum interval is up; a hold lags the ramp by up to the band
+    and sends whenever the ramp leaves it (Weber: geometrically, ~ 10 % steps)."""
+    linear, err_linear = ramp_run("linear")
+    hold, err_hold = ramp_run("hold")
+    sent_linear, sent_hold = int(linear.ports[HSI].codec_sent), int(hold.ports[HSI].codec_sent)
+    assert err_linear < 1e-9  # (the first interval's debt, paid back at 1 / 20 ms, is gone)
+    assert sent_linear <= 2 + 1000 // 200 + 1
+    assert err_hold > 0.01 and sent_hold > 3 * sent_linear
+
+
+def test_tdpa_reconstructs_the_peers_integral_its_position() -> None:
+    """TDPA's packets carry the sender's integral (the HSI's: its position): the receiver
+    pays back what its reconstruction between packets missed of it, so the TO's position
+    converges on the HSI's (no drift: TDPA has no position feedback of its own). Without
+    that the codec's hold errors stay in the position for good."""
+
+    def run(sum_time_s: float) -> float:
+        old = codec.SUM_TIME_S
+        codec.SUM_TIME_S = sum_time_s
+        try:
+            harness = CodecHarness("tdpa", predictions=("hold", "hold"))
+        finally:
+            codec.SUM_TIME_S = old
+        x = np.concatenate([smooth(2000), np.full(500, 0.4)])  # then a steady motion
+        for k in range(len(x)):
+            harness.step(k, (np.full(1, x[k]), np.zeros(1)), (1, 1), (False, False))
+        h, t = harness.ports
+        # the TO's position against the HSI's of the tick before (the delay)
+        return abs(float(t.out_sum[0]) - (float(h.x_sum[0]) - x[-1] * 1e-3))
+
+    with_sum, without = run(codec.SUM_TIME_S), run(np.inf)
+    assert without > 1e-3  # rad: the hold's errors, integrated
+    assert with_sum < 1e-9
 
 
 def hold_through_a_lost_drop(max_ticks: int = MAX_TICKS) -> CodecHarness:
     """The HSI pushes hard (3), then softly (0.3): the codec sends the drop at once, and that
-    packet is lost; the TO goes on holding the strong wave while the HSI puts in the weak one."""
-    harness = CodecHarness("wave", max_ticks=max_ticks)
+    packet is lost; the TO goes on holding the strong wave while the HSI puts in the weak one
+    (the hold: what the passivity rule is for; the property test covers the prediction)."""
+    harness = CodecHarness("wave", max_ticks=max_ticks, predictions=("hold", "hold"))
     drop = 200
     for k in range(400):
         x = 3.0 if k < drop else 0.3

@@ -43,8 +43,10 @@ CLASSES = {
     "reordering": {"delay_ms": 20, "reorder_percent": 25, "reorder_gap": 3},
     "duplication": {"delay_ms": 20, "jitter_ms": 3, "duplicate_percent": 20},
 }
-PROTECTED = {"bounded wave": ["channel.mode=wave"], "tdpa": ["channel.mode=tdpa"],
-             "corrected wave": ["channel.mode=wave", "channel.wave_reconstruction=corrected"]}
+PROTECTED = {"bounded wave": ["channel.mode=wave", "channel.wave_reconstruction=bounded"],
+             "tdpa": ["channel.mode=tdpa"],
+             "corrected wave": ["channel.mode=wave", "channel.wave_reconstruction=corrected"],
+             "reflected wave": ["channel.mode=wave", "channel.wave_reconstruction=reflected"]}
 
 
 def write_traces(folder: Path) -> dict[str, Path]:
@@ -129,7 +131,8 @@ def test_the_unprotected_channel_makes_energy_when_packets_are_lost() -> None:
     on the same network does not."""
     hold = run(CONFIGS / "free_space.yaml", CLASSES["loss"], ["channel.wave_reconstruction=hold"])
     assert min_balance(hold) < -1e-5
-    bounded = run(CONFIGS / "free_space.yaml", CLASSES["loss"], [])
+    bounded = run(CONFIGS / "free_space.yaml", CLASSES["loss"],
+                  ["channel.wave_reconstruction=bounded"])
     assert min_balance(bounded) >= PASSIVE_J
     assert bounded.hsi.port.acted + bounded.to.port.acted > 0  # the bound is what did it
 

@@ -15,7 +15,7 @@ from teleop_rt import config
 from teleop_rt.model import RobotModel
 from teleop_rt.recording.reader import read_log
 from teleop_rt.recording.recorder import Recorder
-from teleop_rt.recording.scene import BASES_M, SCENE_HZ, SLAB_DEPTH_M, _x_onto
+from teleop_rt.recording.scene import BASES_M, SLAB_DEPTH_M, _MovingJoints, _x_onto
 from teleop_rt.session import Session
 
 CONFIG = "configs/paper_experiment.yaml"
@@ -76,8 +76,8 @@ def test_tf_places_both_tools_where_the_logged_q_puts_them(paper_log):
     assert t0 == start and {t["child_frame_id"] for t in static["transforms"]} == {
         "hsi/base_link", "hsi/tool", "to/base_link", "to/tool"
     }  # fmt: skip
-    every = round(cfg.rate_hz / SCENE_HZ)
-    assert len(tf) == len(range(0, data.ticks, every))  # decimated to SCENE_HZ
+    every = round(cfg.rate_hz / cfg.recording.scene_hz)
+    assert len(tf) == len(range(0, data.ticks, every))  # decimated to recording.scene_hz
     for log_time, msg in tf[::10]:
         k = (log_time - start) // period
         assert k % every == 0
@@ -117,7 +117,7 @@ def test_environment_slabs_sit_behind_their_surfaces_and_show_contact(paper_log)
     period = round(cfg.dt * 1e9)
     sent = [(log_time - data.start_ns) // period for log_time, _ in env]
     # sent at the start, at every scene frame whose contacts changed, and once a second
-    every = round(cfg.rate_hz / SCENE_HZ)
+    every = round(cfg.rate_hz / cfg.recording.scene_hz)
     contacts = data.topics["/to"]["in_contact"][::every]
     changed = [0] + [
         k * every for k in range(1, len(contacts)) if (contacts[k] != contacts[k - 1]).any()
@@ -174,7 +174,8 @@ def test_a_pushed_mass_moves_in_the_scene(tmp_path):
     assert shifts[k0] == 0.0
     # once pushed, the frictionless mass never stops: sent at every scene frame from then on
     pushed = [k for k, _ in moved if shifts[k] > 0.0]
-    assert len(pushed) > 50 and set(np.diff(pushed)) == {round(cfg.rate_hz / SCENE_HZ)}
+    every = round(cfg.rate_hz / cfg.recording.scene_hz)
+    assert len(pushed) > 50 and set(np.diff(pushed)) == {every}
     for k, x in moved:
         # normal -x: a shift s moves the surface, and the block, by +s along x
         assert x - x0 == pytest.approx(shifts[k], abs=1e-12)
@@ -185,3 +186,52 @@ def test_a_pushed_mass_moves_in_the_scene(tmp_path):
 def test_x_onto_turns_the_x_axis_onto_the_normal(n):
     x, y, z, w = _x_onto(np.array(n, float))
     np.testing.assert_allclose(pin.Quaternion(w, x, y, z).matrix() @ [1, 0, 0], n, atol=1e-12)
+
+
+@pytest.mark.parametrize("hz", [20.0, 0.0])
+def test_the_scene_has_the_configs_rate(tmp_path, hz):
+    """recording.scene_hz sets the 3D topics' rate (0: none); the four topics stay whole."""
+    cfg, path = run_logged(tmp_path, [f"recording.scene_hz={hz}"], ticks=1000)
+    data = read_log(path)
+    assert data.ticks == 1000 and not data.gaps
+    if hz == 0:
+        assert data.other_topics == {}
+        return
+    period = round(cfg.dt * 1e9)
+    (t0, _), *tf = decoded(path, "/tf")
+    ticks = [(log_time - data.start_ns) // period for log_time, _ in tf]
+    assert ticks == list(range(0, 1000, 50))  # 20 Hz at 1 kHz: every 50th tick
+    assert data.other_topics["/hand_target"][1] == len(ticks)
+
+
+MOVING_URDF = """<robot name="r">
+  <link name="base"/><link name="a"/><link name="b"/><link name="c"/>
+  <joint name="turn" type="revolute"><parent link="base"/><child link="a"/>
+    <origin xyz="0.1 -0.2 0.3" rpy="0.4 -0.7 1.1"/><axis xyz="1 2 -2"/>
+    <limit lower="-3" upper="3" velocity="1" effort="1"/></joint>
+  <joint name="slide" type="prismatic"><parent link="a"/><child link="b"/>
+    <origin xyz="0.5 0 0" rpy="-0.3 0.2 0.9"/><axis xyz="0 0.6 0.8"/>
+    <limit lower="-1" upper="1" velocity="1" effort="1"/></joint>
+  <joint name="z" type="revolute"><parent link="b"/><child link="c"/>
+    <limit lower="-3" upper="3" velocity="1" effort="1"/></joint>
+</robot>"""
+
+
+def test_moving_joints_are_pinocchios_relative_placements():
+    """The scene's batched transforms (origin, then a turn about or a slide along a tilted
+    axis, the default axis x) equal Pinocchio's oMf[parent]^-1 oMf[child] at random q."""
+    model = pin.buildModelFromXML(MOVING_URDF)
+    data = model.createData()
+    body = {f.name: i for i, f in enumerate(model.frames) if f.type == pin.FrameType.BODY}
+    joints = _MovingJoints(model, MOVING_URDF, "x", body)
+    q = np.random.default_rng(3).uniform(-2.5, 2.5, (6, model.nq))
+    names, t, r = joints.at(q)
+    assert names == [("x/base", "x/a"), ("x/a", "x/b"), ("x/b", "x/c")]
+    for f in range(len(q)):
+        pin.framesForwardKinematics(model, data, q[f])
+        for j, (parent, child) in enumerate(names):
+            rel = data.oMf[body[parent[2:]]].actInv(data.oMf[body[child[2:]]])
+            x, y, z, w = r[f][j]
+            np.testing.assert_allclose(t[f][j], rel.translation, atol=1e-12)
+            rotation = pin.Quaternion(w, x, y, z).matrix()
+            np.testing.assert_allclose(rotation, rel.rotation, atol=1e-12)

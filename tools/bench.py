@@ -9,17 +9,22 @@ and read the medians, not the maxima):
 1. what the OS grants a real-time loop (SCHED_FIFO, CPU affinity, mlockall, frozen GC);
 2. the Pinocchio floor: the per-tick Pinocchio calls alone (2 RNEA, 2 ABA, 2 frame Jacobians);
 3. the full simulated tick (both models, controllers, channel, both plants) without and with
-   recording, and the controller-side tick (what runs against hardware: read, models,
-   controllers, channel, safety, write; the feedback replayed from a simulated run);
+   recording, the log writer process's CPU per tick (and its fixed start and close cost) and
+   the log's bytes per tick, and the controller-side tick (what runs against hardware: read,
+   models, controllers, channel, safety, write; the feedback replayed from a simulated run);
 4. real-time mode, S seconds at 1 kHz with recording on: deadline lateness percentiles and
-   the ticks that started more than a whole period late; then the host's own wake-up latency
-   under the same grant for S seconds, measured by cyclictest (rt-tests) if it is installed;
+   the ticks that started more than a whole period late, the writer's CPU and bytes per tick;
+   then the host's own wake-up latency under the same grant for S seconds, measured by
+   cyclictest (rt-tests) if it is installed;
 5. what each channel kind costs: the full tick (recording off) at a 20 ms delay with the plain
-   wave channel (zero reconstruction), the protected wave (bounded) and TDPA, alternated in
-   one run, and the difference to the plain wave channel (issue 17's target: <= 2 us);
+   wave channel (zero reconstruction), the protected wave (bounded), TDPA, and the last two
+   with the deadband codec (issue 24), alternated in one run, and the difference to the plain
+   wave channel (issue 17's target: <= 2 us);
 6. what the workspace mapping costs (teleop_rt.mapping): identity, joint scaling with a clutch
    script, the plane's per-site Jacobian map, alternated in one run;
-7. how the tick grows with the number of joints (planar chains generated from one template).
+7. how the tick grows with the number of joints (planar chains generated from one template),
+   joint to joint and coupled in the plane: what the task-space map adds per site (issue 26's
+   target: <= 2 us for 6 joints).
 Times are min / median / p99 over R repeats of N ticks (the repeat with the lowest median).
 """
 
@@ -212,13 +217,16 @@ def pinocchio_floor(cfg) -> dict:
 
 def full_tick(cfg, ticks: int, repeat: int, tmp: Path) -> dict:
     """Without and with recording, alternating (the recorded tick includes the hot-path
-    ``record`` call; its writer process runs beside it, on the other core if there is one)."""
-    plain, logged, writer_us = [], [], []
+    ``record`` call; its writer process runs beside it, on the other core if there is one).
+    The writer's CPU per tick counts its whole life (start and close too), and a writer started
+    and closed without a tick, once per repeat, gives that fixed part alone."""
+    plain, logged, writer_us, log_bytes, fixed_ms = [], [], [], [], []
     for r in range(repeat):
         plain.append(time_ticks(Session(cfg).step, ticks))
         session = Session(cfg)
         cpu_before = children_cpu_s()
-        recorder = Recorder(session, tmp / f"bench-{r}.mcap")
+        path = tmp / f"bench-{r}.mcap"
+        recorder = Recorder(session, path)
         step, record = session.step, recorder.record
 
         def tick(step=step, record=record) -> None:
@@ -229,8 +237,16 @@ def full_tick(cfg, ticks: int, repeat: int, tmp: Path) -> dict:
             logged.append(time_ticks(tick, ticks))
         finally:
             recorder.close(None)
-        writer_us.append(1e6 * (children_cpu_s() - cpu_before) / max(recorder.published, 1))
-    return {"plain": best_of(plain), "recorded": best_of(logged), "writer_cpu_us": writer_us}
+        published = max(recorder.published, 1)
+        writer_us.append(1e6 * (children_cpu_s() - cpu_before) / published)
+        log_bytes.append(path.stat().st_size / published)
+        cpu_before = children_cpu_s()
+        Recorder(Session(cfg), tmp / f"bench-empty-{r}.mcap").close(None)
+        fixed_ms.append(1e3 * (children_cpu_s() - cpu_before))
+    beyond = [us - 1e3 * ms / ticks for us, ms in zip(writer_us, fixed_ms, strict=True)]
+    return {"plain": best_of(plain), "recorded": best_of(logged), "writer_cpu_us": writer_us,
+            "writer_fixed_ms": fixed_ms, "writer_per_tick_us": beyond,
+            "log_bytes_per_tick": log_bytes}  # fmt: skip
 
 
 CHANNEL_KINDS = {  # label -> overrides; the first is the baseline
@@ -238,7 +254,11 @@ CHANNEL_KINDS = {  # label -> overrides; the first is the baseline
     "protected wave (bounded)": ["channel.mode=wave", "channel.wave_reconstruction=bounded"],
     "drift-corrected wave (corrected)": ["channel.mode=wave",
                                          "channel.wave_reconstruction=corrected"],
+    "energy-reflecting wave (reflected)": ["channel.mode=wave",
+                                           "channel.wave_reconstruction=reflected"],
     "TDPA": ["channel.mode=tdpa"],
+    "protected wave + deadband codec": ["channel.mode=wave", "channel.codec=deadband"],
+    "TDPA + deadband codec": ["channel.mode=tdpa", "channel.codec=deadband"],
 }
 
 
@@ -281,9 +301,14 @@ def children_cpu_s() -> float:
 
 def realtime(cfg, seconds: float, tmp: Path) -> dict:
     session = Session(cfg)
-    recorder = Recorder(session, tmp / "bench-rt.mcap")
+    cpu_before = children_cpu_s()
+    path = tmp / "bench-rt.mcap"
+    recorder = Recorder(session, path)
     summary = session.run(ticks=int(seconds * cfg.rate_hz), realtime=True, recorder=recorder)
-    return {"timing": summary.timing, "notes": summary.notes, "stopped": summary.stopped_early}
+    published = max(recorder.published, 1)
+    return {"timing": summary.timing, "notes": summary.notes, "stopped": summary.stopped_early,
+            "writer_cpu_us": 1e6 * (children_cpu_s() - cpu_before) / published,
+            "log_bytes_per_tick": path.stat().st_size / published}  # fmt: skip
 
 
 def host_baseline(seconds: float, rate_hz: float, priority: int = 80) -> dict | None:
@@ -407,15 +432,21 @@ def chain_config(n: int, tmp: Path) -> Path:
     return path
 
 
+PLANE = ["channel.space=plane", "channel.wave_impedance=50"]  # the task-space map (b in N s/m)
+
+
 def scaling(joints: list[int], ticks: int, repeat: int, tmp: Path) -> list[dict]:
-    """Full tick per joint count; the repeats go round the joint counts, so a change of the
-    machine's speed during the run hits every count alike."""
-    configs = {n: config.load(chain_config(n, tmp)) for n in joints}
-    runs: dict[int, list[np.ndarray]] = {n: [] for n in joints}
+    """Full tick per joint count, joint to joint and (``plane``) coupled in task space (each
+    site's Jacobian map, ``teleop_rt.mapping``); the repeats go round the joint counts and the
+    two maps, so a change of the machine's speed during the run hits every one alike."""
+    configs = {(n, space): config.load(chain_config(n, tmp), PLANE if space else [])
+               for n in joints for space in (False, True)}  # fmt: skip
+    runs: dict[tuple[int, bool], list[np.ndarray]] = {key: [] for key in configs}
     for _ in range(repeat):
-        for n in joints:
-            runs[n].append(time_ticks(Session(configs[n]).step, ticks))
-    return [{"joints": n, **best_of(runs[n])} for n in joints]
+        for key, cfg in configs.items():
+            runs[key].append(time_ticks(Session(cfg).step, ticks))
+    return [{"joints": n, **best_of(runs[n, False]), "plane": best_of(runs[n, True])}
+            for n in joints]  # fmt: skip
 
 
 def main() -> int:
@@ -500,8 +531,13 @@ def run(args, cfg, joints: list[int]) -> int:
         print(f"  recording adds {rec:.1f} us per tick (median); fast mode runs "
               f"{1e3 / full['recorded']['median']:.0f}x real time with recording on")  # fmt: skip
         writer = ", ".join(f"{x:.1f}" for x in full["writer_cpu_us"])
-        print(f"  the log writer process used {writer} us of CPU per tick (per run; it runs "
-              "beside the tick, on the other core if there is one)")  # fmt: skip
+        fixed = ", ".join(f"{x:.0f}" for x in full["writer_fixed_ms"])
+        beyond = ", ".join(f"{x:.1f}" for x in full["writer_per_tick_us"])
+        size = ", ".join(f"{x:.0f}" for x in full["log_bytes_per_tick"])
+        print(f"  the log writer process (beside the tick, on the other core if there is one) "
+              f"used {writer} us of CPU per tick over runs of {args.ticks} ticks; a writer "
+              f"started and closed without a tick {fixed} ms; beyond that {beyond} us per "
+              f"tick (goal, issue 27: <= 5); the log {size} bytes per tick")  # fmt: skip
         out.update(pinocchio_floor_us=floor, full_tick_us=full, controller_side_us=ctrl,
                    site_alone_us=sites)  # fmt: skip
 
@@ -515,6 +551,8 @@ def run(args, cfg, joints: list[int]) -> int:
                       f"p99.9 {s['p99.9']:7.1f}  max {s['max']:8.1f} us")  # fmt: skip
             print(f"  ticks started over a period late: {t['late_over_period']} of {t['ticks']};"
                   f" missed deadlines: {t['missed_deadlines']}")  # fmt: skip
+            print(f"  the log writer process used {rt['writer_cpu_us']:.1f} us of CPU per tick; "
+                  f"log {rt['log_bytes_per_tick']:.0f} bytes per tick")  # fmt: skip
             for note in rt["notes"]:
                 print(f"  note: {note}")
             out["realtime"] = rt
@@ -553,10 +591,13 @@ def run(args, cfg, joints: list[int]) -> int:
             print("\nscaling with the number of joints (planar chains, full tick, recording off)")
             rows = scaling(joints, max(args.ticks // 2, 100), args.repeat, tmp)
             base = rows[0]["median"]
-            print(f"  {'joints':>6}  {'min':>6}  {'median':>6}  {'p99':>6} us   median / first row")
+            print(f"  {'joints':>6}  {'min':>6}  {'median':>6}  {'p99':>6} us   median / first row"
+                  "   plane: median, and what the task-space map adds per site")  # fmt: skip
             for r in rows:
+                plane = r["plane"]["median"]
                 print(f"  {r['joints']:>6}  {r['min']:6.1f}  {r['median']:6.1f}  {r['p99']:6.1f}"
-                      f"      {r['median'] / base:5.2f}")  # fmt: skip
+                      f"      {r['median'] / base:5.2f}          {plane:6.1f}  "
+                      f"{(plane - r['median']) / 2:+5.2f} us")  # fmt: skip
             out["scaling"] = rows
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))

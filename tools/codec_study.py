@@ -12,7 +12,10 @@ Three parts, one-process fast-mode sessions (deterministic):
    two-port's and the ports' energy;
 2. the curve: reduction and transparency against the deadband, 1 to 30 %, paper experiment at
    20 ms (DIR/figures/codec_curve.png);
-3. passivity: the codec on over one case of every impairment class of tools/network_study.py.
+3. passivity: the codec on over one case of every impairment class of tools/network_study.py;
+4. where the error comes from: the paper experiment and the stiff wall at 20 ms with parts of
+   the codec switched off or replaced one at a time (the reserve, the reconstruction between
+   packets, TDPA's integral reconstruction; the codec's constants set for the run).
 
 Writes DIR/codec_study.md (and the figure); without ``--out`` a new temporary folder.
 """
@@ -20,6 +23,7 @@ Writes DIR/codec_study.md (and the figure); without ``--out`` a new temporary fo
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import sys
 import tempfile
@@ -37,6 +41,7 @@ from network_study import SWEEPS, make_case  # noqa: E402
 
 from teleop_rt import config  # noqa: E402
 from teleop_rt.analysis import experiment  # noqa: E402
+from teleop_rt.com import codec  # noqa: E402
 from teleop_rt.output import report_folder_problem  # noqa: E402
 from teleop_rt.session import Session  # noqa: E402
 
@@ -47,6 +52,19 @@ DELAYS_MS = (1, 20, 50)
 WEBER = 0.10
 CURVE = (0.01, 0.02, 0.05, 0.10, 0.20, 0.30)
 PASSIVE_J = -1e-9
+# the split of the error (part 4): label -> (overrides, codec constants for the run, modes)
+HOLD = ["channel.deadband.prediction_hsi=hold", "channel.deadband.prediction_to=hold"]
+LINEAR = ["channel.deadband.prediction_hsi=linear", "channel.deadband.prediction_to=linear"]
+NO_SUM = {"SUM_TIME_S": math.inf}
+EVERY_TICK = ["channel.deadband.max_interval_ticks=1"]
+SPLIT = {
+    "every tick (max interval 1): the reserve alone": (EVERY_TICK, {}, ("wave",)),
+    "no reserve (intervals set by the energy room)": ([], {"RESERVE": 0.0}, ("wave",)),
+    "hold both ways (the codec before this study)": (HOLD, NO_SUM, ("wave", "tdpa")),
+    "hold both ways, integral reconstruction": (HOLD, {}, ("tdpa",)),
+    "linear both ways": (LINEAR, {}, ("wave", "tdpa")),
+    "default (wave: linear from the HSI; TDPA: from the TO)": ([], {}, ("wave", "tdpa")),
+}
 CLASS_VALUES = {"delay": 50, "jitter_newest": 10, "jitter_correlated": 10, "jitter_fixed": 10,
                 "loss": 20, "burst": 20}  # fmt: skip
 
@@ -64,7 +82,7 @@ def run(name: str, sets: list[str], duration_s: float | None = None) -> dict:
     cfg = config.load(CONFIGS[name], [*sets, *extra])
     s = Session(cfg)
     ticks, n = cfg.n_ticks, s.n
-    v_h, tau_h = np.zeros((ticks, n)), np.zeros((ticks, n))
+    v_h, tau_h, m_t_q = np.zeros((ticks, n)), np.zeros((ticks, n)), np.zeros((ticks, n))
     x_h, x_t, force = np.zeros((ticks, 2)), np.zeros((ticks, 2)), np.zeros((ticks, 2))
     fb_h, fb_t, world = s.hsi.feedback, s.to.feedback, s.hsi.backend.world
     m_h, m_t = s.hsi.model, s.to.model
@@ -73,6 +91,7 @@ def run(name: str, sets: list[str], duration_s: float | None = None) -> dict:
         k = session.tick - 1
         v_h[k], tau_h[k], force[k] = fb_h.v, session.tau_h, world.force[:2]
         x_h[k], x_t[k] = m_h.ee_position(fb_h.q)[:2], m_t.ee_position(fb_t.q)[:2]
+        m_t_q[k] = fb_t.q
 
     summary = s.run(observer=observe)
     k = summary.ticks
@@ -96,6 +115,8 @@ def run(name: str, sets: list[str], duration_s: float | None = None) -> dict:
     ch = summary.channel or {}
     c = ch.get("codec")
     return {
+        "q_t": m_t_q[:k],
+        "tau_h": tau_h[:k].copy(),
         "complete": k == cfg.n_ticks and not summary.safety_stop,
         "t_p": summary.t_p_total,
         "t_tau": summary.t_tau_total,
@@ -109,6 +130,29 @@ def run(name: str, sets: list[str], duration_s: float | None = None) -> dict:
         "rate_to": c["to"]["rate_hz"] if c else 1.0 / cfg.dt,
         "codec": c,
     }
+
+
+@contextlib.contextmanager
+def constants(**values: float):
+    """The codec's constants set for the runs inside (read when a port is configured)."""
+    old = {name: getattr(codec, name) for name in values}
+    for name, value in values.items():
+        setattr(codec, name, value)
+    try:
+        yield
+    finally:
+        for name, value in old.items():
+            setattr(codec, name, value)
+
+
+def felt(on: dict, off: dict) -> tuple[float, float]:
+    """What the codec changed, tick by tick, against the same run without it: the RMS
+    difference of the TO's joint angles (mrad) and of the operator's torque, relative to the
+    RMS operator torque (a force JND is 7-10 %, the deadband's own Weber fraction)."""
+    k = min(len(on["q_t"]), len(off["q_t"]))
+    dq = 1e3 * float(np.sqrt(np.mean((on["q_t"][:k] - off["q_t"][:k]) ** 2)))
+    dtau = float(np.sqrt(np.mean((on["tau_h"][:k] - off["tau_h"][:k]) ** 2)))
+    return dq, dtau / float(np.sqrt(np.mean(off["tau_h"][:k] ** 2)))
 
 
 def ratio(a: float, b: float) -> float:
@@ -173,6 +217,27 @@ def passivity(quick: bool) -> list[dict]:
     return rows
 
 
+def split(quick: bool) -> list[dict]:
+    rows = []
+    names = ("stiff_wall",) if quick else ("paper_experiment", "stiff_wall")
+    for name in names:
+        for ch, sets in CHANNELS.items():
+            base = [*sets, "channel.delay_ms=20"]
+            dur = 2.0 if quick else None
+            off = run(name, [*base, *codec_sets(None)], dur)
+            for label, (extra, consts, modes) in SPLIT.items():
+                if ch not in modes:
+                    continue
+                with constants(**consts):
+                    on = run(name, [*base, *codec_sets(WEBER), *extra], dur)
+                rows.append({"config": name, "channel": ch, "variant": label, "on": on,
+                             "off": off})  # fmt: skip
+                print(f"split {name} {ch} {label}: reduction {on['red_hsi']:.3f}/"
+                      f"{on['red_to']:.3f}, T_p {_pct(ratio(on['t_p'], off['t_p']) - 1)}",
+                      flush=True)  # fmt: skip
+    return rows
+
+
 def plot_curve(data: dict, path: Path) -> None:
     fig = Figure(figsize=(10, 4))
     FigureCanvasAgg(fig)
@@ -196,7 +261,9 @@ def plot_curve(data: dict, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
-def report(acc: list[dict], cur: dict, pas: list[dict], out: Path, quick: bool) -> Path:
+def report(
+    acc: list[dict], cur: dict, pas: list[dict], spl: list[dict], out: Path, quick: bool
+) -> Path:
     lines = ["# The deadband codec, measured", "",
              "Generated by `tools/codec_study.py`" + (" --quick" if quick else "") +
              " (one-process fast mode, deterministic). Design: docs/codec.md.", "",
@@ -207,19 +274,25 @@ def report(acc: list[dict], cur: dict, pas: list[dict], out: Path, quick: bool) 
              "displayed mass fitted in free space (joint mean). D = 1 ms stands for 0: the "
              "codec needs a delay of at least one tick (at D = 0 the ports couple directly).",
              "",
+             "Felt: what the codec changed tick by tick against the same run without it, the "
+             "RMS difference of the TO's joint angles and of the operator's torque (relative "
+             "to its RMS): the perceptual measure, next to the ratios of the integrals (T_p "
+             "of a tiny figure at D = 1 ms is a ratio of tiny numbers).", "",
              "| config | D (ms) | channel | reduction | T_p | T_tau | stiffness | mass | "
+             "felt: TO angle (mrad) | felt: torque | "
              "min two-port energy (J) | min port balance (J) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for row in acc:
         on, off = row["on"], row["off"]
+        dq, dtau = felt(on, off)
         lines.append(
             f"| {row['config']} | {row['delay']} | {row['channel']} | "
             f"{100 * on['red_hsi']:.1f} / {100 * on['red_to']:.1f} % | "
             f"{_pct(ratio(on['t_p'], off['t_p']) - 1)} | "
             f"{_pct(ratio(on['t_tau'], off['t_tau']) - 1)} | "
             f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)} | "
-            f"{_pct(ratio(on['mass'], off['mass']) - 1)} | {on['min_energy']:.2g} | "
-            f"{on['min_balance']:.2g} |"
+            f"{_pct(ratio(on['mass'], off['mass']) - 1)} | {dq:.2f} | {100 * dtau:.1f} % | "
+            f"{on['min_energy']:.2g} | {on['min_balance']:.2g} |"
         )  # fmt: skip
     lines += ["", "## Reduction and transparency against the deadband", "",
               "Paper experiment, D = 20 ms. ![curve](figures/codec_curve.png)", "",
@@ -244,6 +317,19 @@ def report(acc: list[dict], cur: dict, pas: list[dict], out: Path, quick: bool) 
                      f"{'yes' if r['complete'] else 'STOPPED'} | {r['min_energy']:.2g} | "
                      f"{r['min_balance']:.2g} | {100 * r['red_hsi']:.1f} / "
                      f"{100 * r['red_to']:.1f} % |")  # fmt: skip
+    lines += ["", "## Where the error comes from (20 ms, 10 %)", "",
+              "Each row switches one part of the codec off or replaces it; changes against the "
+              "same channel without codec.", "",
+              "| config | channel | codec | reduction | T_p | T_tau | stiffness | mass |",
+              "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    for row in spl:
+        on, off = row["on"], row["off"]
+        lines.append(f"| {row['config']} | {row['channel']} | {row['variant']} | "
+                     f"{100 * on['red_hsi']:.1f} / {100 * on['red_to']:.1f} % | "
+                     f"{_pct(ratio(on['t_p'], off['t_p']) - 1)} | "
+                     f"{_pct(ratio(on['t_tau'], off['t_tau']) - 1)} | "
+                     f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)} | "
+                     f"{_pct(ratio(on['mass'], off['mass']) - 1)} |")  # fmt: skip
     path = out / "codec_study.md"
     path.write_text("\n".join(lines) + "\n")
     return path
@@ -261,8 +347,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     (out / "figures").mkdir(parents=True, exist_ok=True)
     acc, cur, pas = acceptance(args.quick), curve(args.quick), passivity(args.quick)
+    spl = split(args.quick)
     plot_curve(cur, out / "figures" / "codec_curve.png")
-    print(f"report: {report(acc, cur, pas, out, args.quick)}")
+    print(f"report: {report(acc, cur, pas, spl, out, args.quick)}")
     return 0
 
 

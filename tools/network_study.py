@@ -73,13 +73,15 @@ CHANNELS = (
             ("channel.mode=wave", "channel.wave_reconstruction=zero"), True),
     Channel("bounded", "protected wave (bounded)",
             ("channel.mode=wave", "channel.wave_reconstruction=bounded"), True),
+    Channel("reflected", "energy-reflecting wave (reflected, the default)",
+            ("channel.mode=wave", "channel.wave_reconstruction=reflected"), True),
     Channel("tdpa", "TDPA", ("channel.mode=tdpa",), True),
     Channel("hold", "unprotected wave (hold)",
             ("channel.mode=wave", "channel.wave_reconstruction=hold"), False),
     Channel("direct", "direct force feedback (not passive)", ("channel.mode=direct",), False),
 )  # fmt: skip
 CHANNEL = {c.key: c for c in CHANNELS}
-WAVE_CHANNELS = ("zero", "bounded", "hold")
+WAVE_CHANNELS = ("zero", "bounded", "reflected", "hold")
 
 
 @dataclass(frozen=True)
@@ -377,6 +379,7 @@ def _num(x: float, digits: int) -> str:
 # figures
 # =============================================================================================
 STYLE = {"zero": ("C0", "o", "-"), "bounded": ("C2", "s", "-"), "tdpa": ("C1", "^", "-"),
+         "reflected": ("C4", "P", "-"),
          "hold": ("C3", "v", "--"), "direct": ("C7", "D", ":")}  # fmt: skip
 PANELS = (  # (key, label, scale)
     ("t_p", "T_p (rad^2 s)", "log"),

@@ -5,8 +5,8 @@
 
 Per task (the paper experiment, free-space sweeps, foam taps, the stiff wall) and network (the
 clean link at the playout delay D, and traces of our own: outages, sawtooth delays, a delay
-step down, burst loss) and channel (zero wave, bounded, corrected, TDPA): a fast-mode session
-(simulated robots, the network emulated in process, seed 1) and its figures: the safety stop,
+step down, burst loss) and channel (zero wave, bounded, corrected, reflected, TDPA): a run
+in fast mode (simulated robots, the network emulated, seed 1) and its figures: the stop,
 T_p and T_tau (eq 18), the two-port's energy and the ports' balances, the tool drift at the end
 (HSI tool against the TO's, mm) and, on the stiff wall, the hand's force over the last half of
 the hold. Each impaired run is judged against the clean link at the same D with the same
@@ -38,6 +38,7 @@ CHANNELS = {
     "zero": ("channel.mode=wave", "channel.wave_reconstruction=zero"),
     "bounded": ("channel.mode=wave", "channel.wave_reconstruction=bounded"),
     "corrected": ("channel.mode=wave", "channel.wave_reconstruction=corrected"),
+    "reflected": ("channel.mode=wave", "channel.wave_reconstruction=reflected"),
     "tdpa": ("channel.mode=tdpa",),
 }
 FORCE_SHARE = 0.7  # the wall force under burst loss against the clean link's

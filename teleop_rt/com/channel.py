@@ -167,8 +167,8 @@ def make_port(
     drift_time_s: float | None = None,
 ) -> Port:  # fmt: skip
     """Site ``side``'s port of a channel of ``mode`` ('wave', 'tdpa' or 'direct'; a wave
-    channel's ``reconstruction`` of missing waves: 'bounded', 'corrected', 'zero', 'hold' or
-    'integral'; TDPA's drift compensation time constant, None: off)."""
+    channel's ``reconstruction`` of missing waves: 'bounded', 'corrected', 'reflected', 'zero',
+    'hold' or 'integral'; TDPA's drift compensation time constant, None: off)."""
     return Port(side, wave_impedance, delay_ticks, dt, MODES[mode], filter_hz,
                 RECONSTRUCTIONS[reconstruction], drift_time_s)  # fmt: skip
 

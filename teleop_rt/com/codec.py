@@ -90,6 +90,15 @@ RESERVE = 0.8
 ROOM_TICKS = 5.0  # ... while the room after it would not hold it this many ticks
 ENERGY_STEP_J = 1e-4  # TDPA: a port whose E_in grew by this since its last packet sends
 CODECS = {"none": NONE, "deadband": DEADBAND}
+# TDPA: the reconstruction pays the peer's integral back (its position, or its torque's
+# impulse) with this time constant (measured: 50 ms leaves +5 % T_p at 20 ms, 20 ms +1.4 %)
+SUM_TIME_S = 0.02
+PREDICTIONS = {"hold": 0.0, "linear": 1.0}
+# how the peer reconstructs the HSI's and the TO's packets, by channel mode: measured best
+# (docs/codec_study.md): the wave channel extrapolates the HSI's wave (both ways linear
+# halves the displayed mass in free space), TDPA the TO's torque (the HSI's velocity is
+# integrated into position, which the integral reconstruction keeps)
+PREDICTIONS_BY_MODE = {"wave": ("linear", "hold"), "tdpa": ("hold", "linear")}
 
 C_REF, C_RX, C_SIM_USED, C_SIM_DECLARED = (
     Port.codec_ref.k, Port.codec_rx.k, Port.codec_sim_used.k, Port.codec_sim_declared.k
@@ -97,6 +106,11 @@ C_REF, C_RX, C_SIM_USED, C_SIM_DECLARED = (
 C_WEBER, C_FLOOR, C_GAIN = Port.codec_weber.k, Port.codec_floor.k, Port.codec_velocity_gain.k
 C_RESERVE, C_ROOM_TICKS = Port.codec_reserve.k, Port.codec_room_ticks.k
 C_E_SENT, C_ENERGY_STEP = Port.codec_e_sent.k, Port.codec_energy_step.k
+C_SLOPE, C_RX_SLOPE, C_PREDICT, C_RX_SEQ = (
+    Port.codec_slope.k, Port.codec_rx_slope.k, Port.codec_predict.k, Port.codec_rx_seq.k
+)  # fmt: skip
+C_RX_PREDICT = Port.codec_rx_predict.k
+C_RX_SUM, C_DEBT, C_SUM_RATE = Port.codec_rx_sum.k, Port.codec_debt.k, Port.codec_sum_rate.k
 C_CODEC, C_MIN, C_MAX, C_SINCE, C_AGE = (
     Port.codec.k, Port.codec_min.k, Port.codec_max.k, Port.codec_since.k, Port.codec_age.k
 )  # fmt: skip
@@ -108,9 +122,14 @@ C_SILENT, C_HELD, C_EXPIRED = Port.codec_silent.k, Port.codec_held.k, Port.codec
 
 def configure(
     port: Port, weber: float, floor: float, min_ticks: int, max_ticks: int,
-    velocity_gain: float = 0.0,
+    velocity_gain: float = 0.0, prediction: str = "linear", peer_prediction: str | None = None,
 ) -> None:  # fmt: skip
-    """Switch the deadband codec on at ``port`` (its own signal's Weber fraction and floor)."""
+    """Switch the deadband codec on at ``port`` (its own signal's Weber fraction and floor;
+    ``prediction``: how the peer reconstructs this port's packets between them, 'linear' or
+    'hold'; ``peer_prediction``: how this port reconstructs the peer's, default the same)."""
+    peer_prediction = prediction if peer_prediction is None else peer_prediction
+    if prediction not in PREDICTIONS or peer_prediction not in PREDICTIONS:
+        raise ValueError(f"the codec's prediction is one of {sorted(PREDICTIONS)}")
     if not 0.0 < weber < 1.0 or floor < 0.0 or velocity_gain < 0.0:
         raise ValueError("the deadband needs 0 < weber < 1, floor >= 0, velocity_gain >= 0")
     if not 1 <= min_ticks <= max_ticks:
@@ -122,6 +141,10 @@ def configure(
     port.codec_min, port.codec_max = min_ticks, max_ticks
     port.codec_reserve, port.codec_room_ticks = RESERVE, ROOM_TICKS
     port.codec_energy_step = ENERGY_STEP_J
+    port.codec_predict = PREDICTIONS[prediction]
+    port.codec_rx_predict = PREDICTIONS[peer_prediction]
+    port.codec_sum_rate = 1.0 / SUM_TIME_S
+    port.codec_rx_seq = -1
 
 
 def figures(port: Port) -> dict:
@@ -142,6 +165,12 @@ def figures(port: Port) -> dict:
     }
 
 
+def predictions(mode: str, of_hsi: str | None, of_to: str | None) -> tuple[str, str]:
+    """How the peer reconstructs the HSI's and the TO's packets: as given, else the mode's."""
+    hsi, to = PREDICTIONS_BY_MODE[mode]
+    return of_hsi or hsi, of_to or to
+
+
 @jit
 def codec_receive(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.ndarray) -> None:
     """Before the port: a tick with no packet within the maximum interval since the peer's
@@ -151,9 +180,27 @@ def codec_receive(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np
         return
     wave = i[MODE] == WAVE
     sig = P_WAVE if wave else P_X
+    s = N_PORT_VECTORS * n
+    dt = f[s + DT]
+    rate = f[s + C_SUM_RATE]
     if rx_i[P_VALID] != 0:
+        gap = rx_i[P_SEQ] - i[C_RX_SEQ]
         for j in range(n):
-            f[C_RX * n + j] = rx[sig * n + j]
+            r = rx[sig * n + j]
+            slope = 0.0
+            if i[C_RX_SEQ] >= 0 and gap > 0:
+                slope = f[s + C_RX_PREDICT] * (r - f[C_RX * n + j]) / gap
+            f[C_RX_SLOPE * n + j] = slope
+            f[C_RX * n + j] = r
+            if not wave and rate > 0.0:
+                # what the reconstruction so far missed of the peer's integral, this packet's
+                # sample included; a part of it paid back now, the rest over the next ticks
+                debt = rx[P_X_SUM * n + j] - f[C_RX_SUM * n + j] - r * dt
+                pay = rate * debt * dt
+                rx[sig * n + j] = r + pay / dt
+                f[C_RX_SUM * n + j] = rx[P_X_SUM * n + j] - debt + pay
+                f[C_DEBT * n + j] = debt - pay
+        i[C_RX_SEQ] = rx_i[P_SEQ]
         i[C_AGE] = 0
         return
     age = i[C_AGE] + 1
@@ -164,12 +211,17 @@ def codec_receive(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np
         i[C_EXPIRED] += 1  # the peer would have sent by now: a loss
         return
     i[C_HELD] += 1
-    dt = f[N_PORT_VECTORS * n + DT]
     for j in range(n):
-        held = f[C_RX * n + j]
+        held = _predicted(f[C_RX * n + j], f[C_RX_SLOPE * n + j], age)
+        if not wave and rate > 0.0:
+            debt = f[C_DEBT * n + j]
+            pay = rate * debt * dt
+            held += pay / dt
+            f[C_DEBT * n + j] = debt - pay
+            f[C_RX_SUM * n + j] += held * dt
         rx[sig * n + j] = held
         rx[P_E_IN * n + j] = f[PEER_E_IN * n + j]
-        rx[P_X_SUM * n + j] = f[PEER_X_SUM * n + j]
+        rx[P_X_SUM * n + j] = f[PEER_X_SUM * n + j] + held * dt  # as reconstructed
         # what the peer declared, not a joule more: the bound holds the wave within it
         rx[P_WAVE_ENERGY * n + j] = f[PEER_ENERGY * n + j]
         rx[P_SUM * n + j] = f[USED_SUM * n + j] + held * dt  # the integral as used
@@ -196,7 +248,8 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
     since = i[C_SINCE] + 1
     crossed = short = False
     for j in range(n):
-        ref, x = f[C_REF * n + j], tx[sig * n + j]
+        ref = _predicted(f[C_REF * n + j], f[C_SLOPE * n + j], since)
+        x = tx[sig * n + j]
         k = weber * (1.0 + gain * abs(f[FLOW * n + j]))
         if abs(x - ref) > k * abs(ref) + floor:
             crossed = True
@@ -217,7 +270,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
             i[C_BY_INTERVAL] += 1
         i[C_SENT] += 1
         tx_i[P_UNSENT] = 0
-        since = 0
+        since_sent, since = since, 0
         for j in range(n):
             x = tx[sig * n + j]
             w = x
@@ -231,14 +284,19 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
                 tx[sig * n + j] = w
                 f[C_SIM_DECLARED * n + j] = declared
                 _peer_uses(f, n, j, w, half_dt)
+            slope = 0.0
+            if not first:
+                slope = f[s + C_PREDICT] * (w - f[C_REF * n + j]) / since_sent
+            f[C_SLOPE * n + j] = slope
             f[C_REF * n + j] = w
             f[C_E_SENT * n + j] = tx[P_E_IN * n + j]
     else:
         tx_i[P_UNSENT] = 1
         i[C_SILENT] += 1
-        if wave:  # the peer holds the last wave sent, cut to the room it has
+        if wave:  # the peer holds (or extrapolates) the last wave sent, cut to its room
             for j in range(n):
-                _peer_uses(f, n, j, f[C_REF * n + j], half_dt)
+                w = _predicted(f[C_REF * n + j], f[C_SLOPE * n + j], since)
+                _peer_uses(f, n, j, w, half_dt)
     i[C_SINCE] = since
 
 
@@ -248,3 +306,9 @@ def _peer_uses(f: np.ndarray, n: int, j: int, w: float, half_dt: float) -> None:
     the wave energy it has used, as this sender predicts it."""
     used = f[C_SIM_USED * n + j]
     f[C_SIM_USED * n + j] = used + min(w * w * half_dt, max(f[C_SIM_DECLARED * n + j] - used, 0.0))
+
+
+@jit
+def _predicted(value: float, slope: float, age: int) -> float:
+    """The last packet's value extrapolated ``age`` ticks along its slope (0: held)."""
+    return value + slope * age

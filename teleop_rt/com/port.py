@@ -51,6 +51,21 @@ stays passive when the network varies its delay, loses, duplicates or reorders p
                Slotine, IJRR 2004; position tracking with wave variables, Chopra, Spong,
                Hirche & Buss, ACC 2003). With no loss the debt is exactly 0: ``bounded`` bit
                for bit.
+  ``reflected`` ``corrected`` with energy reflection: the two-port needs only the sum over
+               both directions, sum(u_l^2 - u_r^2) + sum(v_r^2 - v_l^2) >= 0, not each
+               direction's. In a static push a port takes almost no net power (the wave it uses
+               goes back in the wave it sends), so through a loss the TO brakes (omega_t = 0,
+               all of the wave reflected) and the HSI holds the TO's last effort; a port may
+               take out of the channel, per tick, (y^2 - sent^2) dt / 2, what its budget and
+               the energy it sent allow, and the energy it used beyond its budget is taken off
+               the wave energy it DECLARES in its packets (monotone; the peer's budget is what
+               was declared), so the peer cannot spend the reflected energy again (the energy
+               observers of TDPA moved onto the waves: Ryu, Artigas & Preusche, Mechatronics
+               2010; the energy a port reflects, Panzirsch, Ryu & Ferre, "Reducing the
+               conservatism of the time domain passivity approach through consideration of
+               energy reflection in delayed coupled network systems", Mechatronics 58, 2019).
+               Proof: OUT_i <= G_i + S_i - D_i, G_i <= D_j (now), so OUT_h + OUT_t <= S_h + S_t.
+               With no loss D = S and the bound never acts: ``bounded`` bit for bit.
 - ``tdpa``: the time-domain passivity approach (Ryu, Artigas & Preusche, Mechatronics 2010):
   velocity forward, torque back (the paper's force-feedback coupling), the last value held
   through a gap of up to ``HOLD_TICKS``, zero after; at each port a passivity observer of the
@@ -78,6 +93,7 @@ from teleop_rt.declarations import (
     DIRECT,
     HOLD,
     RECONSTRUCTIONS,
+    REFLECTED,
     TDPA,
     WAVE,
     ZERO,
@@ -139,6 +155,8 @@ class Port(Block):
     debt = Vector("``corrected``: the peer's wave integral minus the one used, after a packet")
     out_energy = Vector("dt / 2 times the sum of the squared waves the filter gave the port, J")
     banked = Vector("the bound's budget left after the last packet, J")
+    declared = Vector("``reflected``: the wave energy declared to the peer, J: that sent less "
+                      "what this port emitted beyond its budget (monotone)")
     total_energy = Scalar("sum over joints, J")
     balance = Scalar("energy received minus emitted, as the method accounts it, J (joints: min)")
     min_balance = Scalar("its running minimum, J")
@@ -150,7 +168,7 @@ class Port(Block):
     mode = Int("DIRECT, WAVE or TDPA", param=True)
     delay_ticks = Int("nominal one-way delay; 0 couples directly", param=True)
     filtered = Int("1: received waves are low-passed", param=True)
-    reconstruction = Int("a wave channel's: ZERO, HOLD, INTEGRAL or BOUNDED", param=True)
+    reconstruction = Int("a wave channel's: ZERO, HOLD, INTEGRAL, BOUNDED, ... (above)", param=True)
     last_seq = Int("sequence number of the newest packet used (-1: none)")
     missing = Int("ticks since the last packet arrived")
     acted = Int("ticks in which the protection acted (bound or passivity controller)")
@@ -160,15 +178,24 @@ class Port(Block):
     codec_sim_used = Vector("the peer's used wave energy as this sender predicts it, J")
     codec_sim_declared = Vector("the wave energy this port last declared, J")
     codec_e_sent = Vector("TDPA: the E_in this port last sent, J")
+    codec_slope = Vector("the slope the peer extrapolates this port's last packet by, per tick")
+    codec_rx_slope = Vector("the slope of the peer's last two packets, per tick")
+    codec_rx_sum = Vector("TDPA: dt times the sum of the peer's values as reconstructed here")
+    codec_debt = Vector("TDPA: the peer's x integral minus the one reconstructed, not yet paid")
     codec_weber = Scalar("Weber fraction of the deadband", param=True)
     codec_floor = Scalar("its absolute floor, in the signal's units", param=True)
     codec_velocity_gain = Scalar("velocity-adaptive gain, s/rad (0: constant)", param=True)
     codec_reserve = Scalar("fraction of the band a wave is sent smaller by, when short", param=True)
     codec_room_ticks = Scalar("ticks of held wave the peer's room should cover", param=True)
     codec_energy_step = Scalar("TDPA: E_in grown by this since sent sends, J (0: off)", param=True)
+    codec_predict = Scalar("1: the peer extrapolates this port's packets (linear); 0: holds",
+                           param=True)  # fmt: skip
+    codec_rx_predict = Scalar("the same for this port's reconstruction of the peer's", param=True)
+    codec_sum_rate = Scalar("TDPA: the rate the reconstruction pays its debt at, 1/s", param=True)
     codec = Int("0: a packet every tick; 1: the deadband codec", param=True)
     codec_min = Int("the fewest ticks between two packets sent", param=True)
     codec_max = Int("the most ticks between two packets sent", param=True)
+    codec_rx_seq = Int("sequence number of the peer's last packet (-1: none)")
     codec_since = Int("ticks since this port last sent")
     codec_age = Int("ticks since the peer's last packet")
     codec_sent = Int("packets sent")
@@ -203,7 +230,8 @@ class Port(Block):
         if drift_time_s is not None and not drift_time_s > 0:
             raise ValueError("the drift compensation's time constant must be > 0 s")
         self.drift_rate = 1.0 / drift_time_s if drift_time_s and side == TO else 0.0
-        self.wave_drift_rate = 1.0 / WAVE_DRIFT_TIME_S if reconstruction == CORRECTED else 0.0
+        drifts = reconstruction in (CORRECTED, REFLECTED)
+        self.wave_drift_rate = 1.0 / WAVE_DRIFT_TIME_S if drifts else 0.0
         if mode == WAVE:
             self.b[:] = b
             self.sqrt_2b[:] = [math.sqrt(2.0 * x) for x in b]
@@ -248,7 +276,7 @@ PEER_SUM, PEER_ENERGY, USED_SUM, USED_ENERGY = (
 )  # fmt: skip
 PEER_E_IN, LIMITED, GOT_ENERGY = Port.peer_e_in.k, Port.limited.k, Port.got_energy.k
 DEBT, WAVE_DRIFT_RATE = Port.debt.k, Port.wave_drift_rate.k
-OUT_ENERGY, BANKED = Port.out_energy.k, Port.banked.k
+OUT_ENERGY, BANKED, DECLARED = Port.out_energy.k, Port.banked.k, Port.declared.k
 RECONSTRUCTION, LAST_SEQ, ACTED = Port.reconstruction.k, Port.last_seq.k, Port.acted.k
 MISSING, TERMINATED, CODEC = Port.missing.k, Port.terminated.k, Port.codec.k
 X_SUM, PEER_X_SUM, OUT_SUM, DRIFT_RATE = (
@@ -313,9 +341,12 @@ def account_balance(f: np.ndarray, i: np.ndarray, n: int) -> None:
     else:
         got, spent = PEER_E_IN, E_OUT
     bounded = i[MODE] == WAVE and (i[RECONSTRUCTION] == BOUNDED or i[RECONSTRUCTION] == CORRECTED)
+    reflected = i[MODE] == WAVE and i[RECONSTRUCTION] == REFLECTED
     low = math.inf
     for j in range(n):
-        if bounded:
+        if reflected:  # the room: budget and what was sent, less what was declared and used
+            low = min(low, reflect_room(f, n, j))
+        elif bounded:
             low = min(low, f[GOT_ENERGY * n + j] - charged(f, n, j))
         else:
             low = min(low, f[got * n + j] - f[spent * n + j])
@@ -334,6 +365,16 @@ def charged(f: np.ndarray, n: int, j: int) -> float:
 
 
 @jit
+def reflect_room(f: np.ndarray, n: int, j: int) -> float:
+    """``reflected``: what this port may still take out of the channel, J: the budget (the
+    peer's declared energy that reached it) plus the wave energy it sent, less what it
+    declared and what the filter gave it (>= 0; the two ports' rooms and declarations sum to
+    the two-port's energy's lower bound, see ``wave_step``)."""
+    return (f[GOT_ENERGY * n + j] + f[WAVE_ENERGY * n + j] - f[DECLARED * n + j]
+            - f[OUT_ENERGY * n + j])
+
+
+@jit
 def wave_step(
     f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.ndarray, tx: np.ndarray
 ) -> None:
@@ -349,14 +390,15 @@ def wave_step(
     hsi, how, valid = i[SIDE] == HSI, i[RECONSTRUCTION], rx_i[P_VALID] != 0
     terminated = i[TERMINATED] != 0
     coded = i[CODEC] != 0  # the deadband codec (teleop_rt.com.codec) is on
-    corrected = how == CORRECTED
+    reflected = how == REFLECTED
+    corrected = how == CORRECTED or reflected
     bounded = how == BOUNDED or corrected
     rate = f[s + WAVE_DRIFT_RATE]
     missed = rx_i[P_SEQ] - i[LAST_SEQ] - 1  # packets missed since the last one used
     catch_up = valid and 0 < missed <= CATCH_UP
     # a held wave expires: after HOLD_TICKS ticks of silence the bound emits zeros and gives
     # up what it had left (energy that only a stale wave would spend)
-    expired = bounded and not valid and i[MISSING] >= HOLD_TICKS
+    expired = bounded and not reflected and not valid and i[MISSING] >= HOLD_TICKS
     acted = synced = False
     for j in range(n):
         used_sum = f[USED_SUM * n + j]
@@ -372,14 +414,26 @@ def wave_step(
             # (with the deadband codec a held tick repeats the declared energy and the next
             # packet brings the energy of the samples sent while silent: credit what the peer
             # declared, never the held sample's own)
+            got = f[GOT_ENERGY * n + j]
             if bounded and (missed > 0 or coded):
                 f[GOT_ENERGY * n + j] += rx[P_WAVE_ENERGY * n + j] - f[PEER_ENERGY * n + j]
             else:
                 f[GOT_ENERGY * n + j] += e_r
+            if reflected:  # what the peer declared (monotone: a reordered packet's is less)
+                f[GOT_ENERGY * n + j] = max(got, rx[P_WAVE_ENERGY * n + j])
             f[PEER_SUM * n + j] = rx[P_SUM * n + j]
             f[PEER_ENERGY * n + j] = rx[P_WAVE_ENERGY * n + j]
         debt = f[DEBT * n + j]
-        if corrected and valid:
+        if reflected and not valid and i[LAST_SEQ] >= 0:  # (before the first: zeros)
+            # the TO brakes: the wave that gives omega_t = 0, u_r = tau_t / sqrt(2b), all of it
+            # reflected (zero power, whatever the contact); the HSI holds the TO's effort of
+            # its last packet, tau_c = tau_t: v_l = (b omega_c - tau_t) / sqrt(2b) (a static
+            # push is felt as it was; its wave integral is that of the braked TO's: the
+            # drift correction then moves the TO by what the HSI moved, no more)
+            w = (b[j] * flow[j] - held[j]) / s2b[j] if hsi else effort[j] / s2b[j]
+            if filtered:
+                w = w_in[j] + (w - w_in[j]) / alpha  # (what the filter then gives the port)
+        elif corrected and valid:
             # the samples this packet brings (in a catch-up: those missed, less what a hold
             # emitted for them, and this one), plus a part of the debt: the integral the bound
             # cut or an outage lost, paid back within the budget (Niemeyer & Slotine 2004)
@@ -394,12 +448,19 @@ def wave_step(
             w = (f[PEER_SUM * n + j] - used_sum) / dt
         e = w * w * half_dt
         got = f[GOT_ENERGY * n + j]
+        w_save = w
         # emit no more wave energy than reached this port in time (compared as the sums
         # themselves: with the same waves in the same order they are equal, bit for bit);
         # with the filter, what counts is what the filter gives the port: a held wave may
         # spend the energy the filter's lag left unspent (about 1.5 / alpha samples' worth of
         # a steady wave), which the catch-up's skipped samples then pay back
-        if bounded and f[USED_ENERGY * n + j] + e > got:
+        if reflected:
+            w = reflect_bound(f, n, j, w, w_in[j], alpha, filtered, half_dt,
+                              s2b[j] * flow[j] if hsi else s2ob[j] * effort[j], terminated)
+            if w != w_save:
+                acted = True
+            e = w * w * half_dt
+        elif bounded and f[USED_ENERGY * n + j] + e > got:
             acted = True  # (engaged: what the filter gives the port is checked, cut if need be)
             room = max(got - f[OUT_ENERGY * n + j], 0.0)
             y = w_in[j] + alpha * (w - w_in[j]) if filtered else w
@@ -411,7 +472,7 @@ def wave_step(
                 e = w * w * half_dt
         f[USED_ENERGY * n + j] += e
         y = w_in[j] + alpha * (w - w_in[j]) if filtered else w  # what the filter gives the port
-        if bounded and (expired or (valid and missed > 0)):
+        if bounded and not reflected and (expired or (valid and missed > 0)):
             # what a catch-up did not spend of the skipped samples' energy is not kept beyond
             # the budget left after the last packet and this sample's; an expired hold keeps
             # only the energy the filter holds ((1 - alpha) / alpha y^2 dt / 2: what received
@@ -435,11 +496,13 @@ def wave_step(
             f[USED_SUM * n + j] = f[PEER_SUM * n + j] if valid else used_sum + w * dt
         if not bounded:
             held[j] = w
+        elif reflected and hsi and valid:
+            held[j] = rx[P_X * n + j]  # the TO's effort
         elif valid:
             held[j] = r  # the sample as it arrived (not a catch-up's sum, nor the bound's cut)
         w_in[j] = y
         f[OUT_ENERGY * n + j] += y * y * half_dt
-        if bounded and valid:
+        if bounded and valid and not reflected:
             f[BANKED * n + j] = f[GOT_ENERGY * n + j] - charged(f, n, j)
         if terminated:  # a matched damper: omega = w_in / sqrt(2b), tau = -+ b omega, no wave
             flow[j] = w_in[j] / s2b[j]
@@ -456,9 +519,46 @@ def wave_step(
         f[WAVE_SUM * n + j] += sent * dt
         f[WAVE_ENERGY * n + j] += sent * sent * half_dt
         tx[P_SUM * n + j] = f[WAVE_SUM * n + j]
-        tx[P_WAVE_ENERGY * n + j] = f[WAVE_ENERGY * n + j]
+        if reflected:
+            # declared: what was sent, less what this port used beyond its budget (its debt
+            # moves to the peer's budget; monotone, so a late or reordered packet's is never
+            # more than today's)
+            debt_e = min(0.0, f[GOT_ENERGY * n + j] - f[OUT_ENERGY * n + j])
+            f[DECLARED * n + j] = max(f[DECLARED * n + j], f[WAVE_ENERGY * n + j] + debt_e)
+            tx[P_WAVE_ENERGY * n + j] = f[DECLARED * n + j]
+        else:
+            tx[P_WAVE_ENERGY * n + j] = f[WAVE_ENERGY * n + j]
     if acted:
         i[ACTED] += 1
+
+
+@jit
+def reflect_bound(
+    f: np.ndarray, n: int, j: int, w: float, w_in: float, alpha: float, filtered: bool,
+    half_dt: float, c: float, terminated: bool,
+) -> float:  # fmt: skip
+    """``reflected``'s bound: the wave w, cut so that the energy this tick takes out of the
+    channel at this port is within its room. With y what the filter gives the port and c the
+    port input's part of the outgoing wave (sqrt(2b) omega_c at the HSI, sent c - y;
+    sqrt(2/b) tau_t at the TO, sent y - c), that energy is (y^2 - (y - c)^2) dt / 2 =
+    (2 y c - c^2) dt / 2: linear in y, so the cut is y c = (room / (dt/2) + c^2) / 2 (a
+    terminated port sends nothing: |y| is cut to the room). Energy this port reflects back to
+    the peer pays for what it emits beyond the peer's budget, and ``declared`` removes it from
+    what the peer may spend: the two-port stays passive."""
+    room = max(reflect_room(f, n, j), 0.0)
+    y = w_in + alpha * (w - w_in) if filtered else w
+    if terminated:
+        if y * y * half_dt <= room:
+            return w
+        y_c = math.copysign(math.sqrt(room / half_dt), y)
+        f[LIMITED * n + j] += y * y * half_dt - room
+    else:
+        top = room / half_dt + c * c
+        if 2.0 * y * c <= top:
+            return w
+        y_c = top / (2.0 * c)
+        f[LIMITED * n + j] += (2.0 * y * c - top) * half_dt
+    return w_in + (y_c - w_in) / alpha if filtered else y_c
 
 
 @jit

@@ -1,7 +1,8 @@
 """The session in 3D for Foxglove: both robots side by side, the environment, the hand target.
 
 Built from log rows in the writer process (``teleop_rt.recording.writer``), decimated to
-``SCENE_HZ``: nothing here runs on the tick path. Topics (beside the four of the schema):
+``recording.scene_hz`` (50 by default; 0: no 3D topics): nothing here runs on the tick path.
+Topics (beside the four of the schema):
 
 * ``/robot_description`` std_msgs/msg/String (CDR): one URDF holding both robots, their links
   and joints prefixed ``hsi/`` and ``to/``, each robot's root fixed to ``world`` at its offset
@@ -51,7 +52,6 @@ if TYPE_CHECKING:
     from teleop_rt.recording.schema import LogLayout
     from teleop_rt.session import Session
 
-SCENE_HZ = 50.0  # 3D messages per second of session time
 SIDES = ("hsi", "to")
 BASES_M = {"hsi": (0.0, 0.4, 0.0), "to": (0.0, -0.4, 0.0)}  # each robot's base in ``world``
 WORLD = "world"
@@ -92,14 +92,18 @@ class SceneSpec:
     tool_start: dict[str, tuple[float, float, float]]  # each tool at q0, its robot's frame
     environment: tuple[EnvElement, ...]
     hand: bool  # an operator hand (its reference is in /hsi)
-    every: int  # ticks between two scene messages
+    every: int  # ticks between two scene messages (recording.scene_hz)
+    resend: int  # ticks between two sendings of an unchanged environment (about a second)
     sides: tuple[str, ...] = SIDES  # the robots drawn: both (a session's log) or a site's own
 
 
 def scene_spec(session: Session, sides: tuple[str, ...] = SIDES) -> SceneSpec | None:
     """The scene of a session (or of the robots ``sides`` of it: a site's log, whose source
-    has the site under its name); None when a robot's URDF cannot be found (no 3D topics)."""
+    has the site under its name); None when a robot's URDF cannot be found or the config's
+    ``recording.scene_hz`` is 0 (no 3D topics)."""
     cfg = session.cfg
+    if cfg.recording.scene_hz == 0:
+        return None
     urdf: dict[str, str] = {}
     ee: dict[str, str] = {}
     start: dict[str, tuple[float, float, float]] = {}
@@ -115,6 +119,7 @@ def scene_spec(session: Session, sides: tuple[str, ...] = SIDES) -> SceneSpec | 
         start[side] = (x, y, z)
     # the config's operator and environment exist where a simulated world has them (a plant or
     # the drives' emulator); real hardware logs neither
+    every = max(1, round(cfg.rate_hz / cfg.recording.scene_hz))
     env = tuple(EnvElement(e.kind, _xyz(e.point_m), _unit(_xyz(e.normal))) for e in cfg.environment)
     return SceneSpec(
         urdf=urdf,
@@ -122,7 +127,8 @@ def scene_spec(session: Session, sides: tuple[str, ...] = SIDES) -> SceneSpec | 
         tool_start=start,
         environment=env if "to" in sides and _simulated(session.to) else (),
         hand=cfg.operator.kind == "hand" and "hsi" in sides and _simulated(session.hsi),
-        every=max(1, round(cfg.rate_hz / SCENE_HZ)),
+        every=every,
+        resend=every * max(1, round(cfg.rate_hz / every)),
         sides=tuple(sides),
     )
 
@@ -305,11 +311,17 @@ def string_message(text: str) -> bytes:
 
 # --- the scene from rows (writer process) -------------------------------------------------------
 class Scene:
-    """Pinocchio models of both robots (the writer's own) and the scene's foxglove messages."""
+    """Pinocchio models of both robots (the writer's own) and the scene's foxglove messages.
+
+    The moving joints' transforms are computed for a whole batch of frames at once with numpy,
+    from the URDF itself (parent link to child link: the joint's origin, then its motion, a
+    rotation about its axis or a translation along it): a Pinocchio call and its SE3 and
+    quaternion objects per joint and frame cost 7 us each, most of the scene's CPU."""
 
     def __init__(self, spec: SceneSpec) -> None:
         self.spec = spec
         self.robots = {}
+        self.moving = {}
         for side in spec.sides:
             model = pin.buildModelFromXML(spec.urdf[side])
             root, joints = robot_tree(spec.urdf[side])
@@ -321,8 +333,12 @@ class Scene:
             ]
             ee = model.getFrameId(spec.ee_frame[side])
             self.robots[side] = (model, model.createData(), pairs, ee, f"{side}/{root}")
+            self.moving[side] = _MovingJoints(model, spec.urdf[side], side, body)
         self.frames = {side: self.robots[side][4] for side in spec.sides}
         self._environment = [_Slab(el, spec.tool_start["to"]) for el in spec.environment]
+        self._hand_size = _vector((0.025, 0.025, 0.025))
+        self._hand_color = _color(HAND_COLOR)
+        self._no_turn = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
 
     def static_transforms(self, stamp_ns: int):
         """foxglove.FrameTransforms of what never moves: the mounts on ``world`` and the
@@ -337,16 +353,23 @@ class Scene:
             out += [self._relative(data, p, stamp_ns) for p in pairs if p[4]]
         return FrameTransforms(transforms=out)
 
-    def transforms(self, q: dict[str, np.ndarray], stamp_ns: int):
-        """foxglove.FrameTransforms of the moving joints of the robots at joint angles q
-        (side -> angles)."""
-
+    def transforms(self, q: dict[str, np.ndarray], stamps: list[int]) -> list:
+        """foxglove.FrameTransforms of the moving joints, one per frame: q maps a side to its
+        joint angles, one row per frame, stamps the frames' times (ns)."""
+        per_side = [self.moving[side].at(q[side]) for side in self.spec.sides]
         out = []
-        for side in self.spec.sides:
-            model, data, pairs, _, _ = self.robots[side]
-            pin.framesForwardKinematics(model, data, q[side])
-            out += [self._relative(data, p, stamp_ns) for p in pairs if not p[4]]
-        return FrameTransforms(transforms=out)
+        for f, stamp in enumerate(stamps):
+            ts = _timestamp(stamp)
+            out.append(FrameTransforms(transforms=[
+                FrameTransform(
+                    timestamp=ts, parent_frame_id=parent, child_frame_id=child,
+                    translation=Vector3(x=t[0], y=t[1], z=t[2]),
+                    rotation=Quaternion(x=r[0], y=r[1], z=r[2], w=r[3]),
+                )
+                for names, t_all, r_all in per_side
+                for (parent, child), t, r in zip(names, t_all[f], r_all[f], strict=True)
+            ]))  # fmt: skip
+        return out
 
     def _relative(self, data, pair, stamp_ns: int):
         parent, child, i, j, _ = pair
@@ -355,9 +378,10 @@ class Scene:
             parent, child, rel.translation, pin.Quaternion(rel.rotation).coeffs(), stamp_ns
         )
 
-    def tool(self, side: str) -> np.ndarray:
-        """The tool's position at the last ``transforms`` (its robot's frame)."""
-        _, data, _, ee, _ = self.robots[side]
+    def tool(self, side: str, q: np.ndarray) -> np.ndarray:
+        """The tool's position at joint angles q (its robot's frame)."""
+        model, data, _, ee, _ = self.robots[side]
+        pin.framesForwardKinematics(model, data, q)
         return data.oMf[ee].translation.copy()
 
     def environment(self, shifts: np.ndarray, contacts: np.ndarray, stamp_ns: int):
@@ -377,27 +401,82 @@ class Scene:
         ]
         return SceneUpdate(entities=entities)
 
-    def hand(self, target: np.ndarray, stamp_ns: int):
-        """foxglove.SceneUpdate of the hand's reference and its spring to the HSI's tool (after
-        ``transforms``, which placed the tool)."""
+    def hand(self, target: np.ndarray, tool: np.ndarray, stamp_ns: int):
+        """foxglove.SceneUpdate of the hand's reference and its spring to the HSI's tool."""
 
-        tool = self.tool("hsi")
+        x, y, z = (float(c) for c in target)
         ball = SpherePrimitive(
-            pose=_pose(target, (0.0, 0.0, 0.0, 1.0)),
-            size=_vector((0.025, 0.025, 0.025)),
-            color=_color(HAND_COLOR),
+            pose=Pose(position=Vector3(x=x, y=y, z=z), orientation=self._no_turn),
+            size=self._hand_size,
+            color=self._hand_color,
         )
         spring = LinePrimitive(
             type=LinePrimitiveLineType.LineStrip,
             thickness=0.004,
-            points=[Point3(x=p[0], y=p[1], z=p[2]) for p in (tool, target)],
-            color=_color(HAND_COLOR),
-        )
+            points=[Point3(x=float(tool[0]), y=float(tool[1]), z=float(tool[2])),
+                    Point3(x=x, y=y, z=z)],
+            color=self._hand_color,
+        )  # fmt: skip
         entity = SceneEntity(
             timestamp=_timestamp(stamp_ns), frame_id=self.frames["hsi"], id="hand_target",
             frame_locked=True, spheres=[ball], lines=[spring],
         )  # fmt: skip
         return SceneUpdate(entities=[entity])
+
+
+class _MovingJoints:
+    """A robot's moving URDF joints (revolute or prismatic: a model has nq == nv) as arrays;
+    ``at`` gives their parent-to-child transforms for many frames at once.
+
+    A joint's transform is its origin (translation t0, rotation quaternion r0) then its motion:
+    a turn by theta about the unit axis a, whose quaternion is (a sin(theta/2), cos(theta/2)),
+    so the product is r0 * (a, 0) sin(theta/2) + r0 cos(theta/2); or a slide by theta along a,
+    which moves the child by theta R0 a in the parent's frame."""
+
+    def __init__(self, model, urdf: str, side: str, body: dict[str, int]) -> None:
+        self.names: list[tuple[str, str]] = []
+        t0, r0, r0_axis, slide, half, cols = [], [], [], [], [], []
+        for joint in ET.fromstring(urdf).findall("joint"):
+            kind = joint.get("type")
+            parent = _attr(_child(joint, "parent"), "link")
+            child = _attr(_child(joint, "child"), "link")
+            if kind == "fixed" or parent not in body or child not in body:
+                continue
+            if kind not in ("revolute", "continuous", "prismatic"):
+                raise ValueError(f"URDF: joint {joint.get('name')!r} of type {kind!r}")
+            origin = joint.find("origin")
+            xyz = origin.get("xyz", "0 0 0") if origin is not None else "0 0 0"
+            rpy = origin.get("rpy", "0 0 0") if origin is not None else "0 0 0"
+            axis_el = joint.find("axis")
+            axis = np.array((axis_el.get("xyz", "1 0 0") if axis_el is not None else "1 0 0")
+                            .split(), float)  # fmt: skip
+            axis /= np.linalg.norm(axis)
+            rotation = pin.rpy.rpyToMatrix(*(float(a) for a in rpy.split()))
+            quat = pin.Quaternion(rotation)
+            turns = kind != "prismatic"
+            self.names.append((f"{side}/{parent}", f"{side}/{child}"))
+            t0.append([float(a) for a in xyz.split()])
+            r0.append(quat.coeffs().copy())  # x y z w
+            r0_axis.append((quat * pin.Quaternion(0.0, *axis)).coeffs().copy() if turns else 0)
+            slide.append(0.0 if turns else rotation @ axis)
+            half.append(0.5 if turns else 0.0)
+            cols.append(model.joints[model.getJointId(_attr(joint, "name"))].idx_q)
+        m = len(cols)
+        self.t0 = np.array(t0, float).reshape(m, 3)
+        self.r0 = np.array(r0, float).reshape(m, 4)
+        self.r0_axis = np.array([r * np.ones(4) for r in r0_axis]).reshape(m, 4)
+        self.slide = np.array([s * np.ones(3) for s in slide]).reshape(m, 3)
+        self.half = np.array(half, float)
+        self.cols = np.array(cols, dtype=np.int64)
+
+    def at(self, q: np.ndarray) -> tuple[list[tuple[str, str]], list, list]:
+        """(parent, child) names, and translations and quaternions (x y z w) as nested lists
+        (frame, joint, component), for joint angles q (a row per frame)."""
+        theta = q[:, self.cols]
+        half = theta * self.half  # 0 for a slide: no turn
+        r = np.sin(half)[..., None] * self.r0_axis + np.cos(half)[..., None] * self.r0
+        t = self.t0 + theta[..., None] * self.slide  # slide 0 for a turn
+        return self.names, t.tolist(), r.tolist()
 
 
 class _Slab:
@@ -451,12 +530,6 @@ def _color(c):
     return Color(r=c[0], g=c[1], b=c[2], a=c[3])
 
 
-def _pose(p, quat):
-
-    x, y, z, w = quat
-    return Pose(position=_vector(p), orientation=Quaternion(x=x, y=y, z=z, w=w))
-
-
 def _x_onto(n: np.ndarray) -> tuple[float, float, float, float]:
     """The quaternion (x, y, z, w) of the shortest rotation taking the x axis onto unit n."""
     axis = np.cross((1.0, 0.0, 0.0), n)
@@ -503,7 +576,7 @@ class SceneChannels:
         self.hand = SceneUpdateChannel(HAND_TARGET, context=context) if spec.hand else None
         self._env_shown: bytes | None = None  # the environment's state when last sent
         self._env_due = 0  # the tick by which it is sent again regardless
-        self._env_period = max(1, round(SCENE_HZ)) * self.every
+        self._env_period = spec.resend
 
     def describe(self, stamp_ns: int) -> None:
         """What is sent once (at the start, and again for a live client that subscribes): the
@@ -515,18 +588,25 @@ class SceneChannels:
     def emit(self, rows: np.ndarray, start_ns: int, period_ns: int) -> None:
         """The scene at every ``every``-th tick of the batch."""
         ticks = rows[:, 0].astype(np.int64)
-        cols, scene = self.cols, self.scene
-        for i in np.flatnonzero(ticks % self.every == 0).tolist():
-            row, k = rows[i], int(ticks[i])
-            stamp = start_ns + k * period_ns
-            q = {side: row[cols[f"{side}.q"]] for side in self.scene.spec.sides}
-            self.tf.log(scene.transforms(q, stamp), log_time=stamp)
+        frames = np.flatnonzero(ticks % self.every == 0)
+        if not len(frames):
+            return
+        cols, scene, sel = self.cols, self.scene, rows[frames]
+        stamps = (start_ns + ticks[frames] * period_ns).tolist()
+        q = {side: sel[:, cols[f"{side}.q"]] for side in scene.spec.sides}
+        log_tf = self.tf.log
+        for message, stamp in zip(scene.transforms(q, stamps), stamps, strict=True):
+            log_tf(message, log_time=stamp)
+        for f, stamp in enumerate(stamps):
+            row = sel[f]
             if self.env is not None:
+                k = int(row[0])
                 shifts, contacts = row[cols["shift"]], row[cols["to.in_contact"]]
                 state = shifts.tobytes() + contacts.tobytes()
                 if state != self._env_shown or k >= self._env_due:
                     self.env.log(scene.environment(shifts, contacts, stamp), log_time=stamp)
                     self._env_shown, self._env_due = state, k + self._env_period
             if self.hand is not None:
+                tool = scene.tool("hsi", q["hsi"][f])
                 target = row[cols["hsi.operator_reference_m"]]
-                self.hand.log(scene.hand(target, stamp), log_time=stamp)
+                self.hand.log(scene.hand(target, tool, stamp), log_time=stamp)
