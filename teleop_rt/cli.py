@@ -444,16 +444,6 @@ def _recorder(
     return Recorder(session, path, wait_for_room=wait_for_room, metadata=metadata, live=live)
 
 
-def _site_recorder(site, log: Path | None, name: str, metadata: dict):
-    """The recorder of a site's replay: its own site log, by default
-    logs/<name>-replay-<UTC time>.<site>.mcap."""
-    from teleop_rt.recording.recorder import Recorder, default_log_path
-    from teleop_rt.recording.site_log import SiteLogSource, site_log_path
-
-    path = log or site_log_path(default_log_path(site.cfg.name + "-replay"), name)
-    return Recorder(SiteLogSource(site), path, wait_for_room=True, metadata=metadata)
-
-
 def _print_summary(summary, as_json: bool, recorder, can_status: dict | None = None) -> None:
     from teleop_rt.report import print_summary
 
@@ -557,9 +547,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         check_output(args.plot, "--plot", force=args.force, image=True, inputs=(args.log,))
     data, gap_note = before_first_gap(read_log(args.log))
     if data.site:  # a site's own log: against its partner's logged packets
-        from teleop_rt.recording.site_replay import replay_site_main
-
-        return replay_site_main(args, data, gap_note, _site_recorder)
+        return _replay_site(args, data, gap_note)
     if gap_note:
         print(f"teleop-rt: warning: {gap_note}", file=sys.stderr)
     original = log_metrics(data)
@@ -627,6 +615,36 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             print(f"plot: {args.plot}")
     _say_if_incomplete(recorder)
     return exit_code(summary, recorder)
+
+
+def _replay_site(args: argparse.Namespace, data, gap_note: str | None) -> int:
+    """``teleop-rt replay SITE.mcap``: both logs' figures side by side; the exit code (0; 3 a
+    safety stop; 4 the replay's log is incomplete; 130 a signal ended it)."""
+    from teleop_rt.recording.site_replay import replay_site
+    from teleop_rt.report import print_site_comparison
+
+    if args.plot:
+        raise ConfigError("--plot draws both robots; a site's log holds one: plot a session's log")
+    if gap_note:
+        print(f"teleop-rt: warning: {gap_note}", file=sys.stderr)
+    done = replay_site(data, args.overrides, args.log_out, not args.no_log, str(args.log))
+    out = done.figures
+    if args.json:
+        json.dump(out, sys.stdout, indent=2)
+        print()
+    else:
+        if data.truncated:
+            print(f"note: {args.log} was cut short ({data.cut_reason}); replayed what it holds")
+        print_site_comparison(out)
+        if out["log"]:
+            print(f"replay log: {out['log']}")
+    if done.summary["safety_stop"]:
+        return 3
+    if not done.log_status["complete"]:
+        print(f"teleop-rt: log {done.log_path} is incomplete: {done.log_status['failure']}",
+              file=sys.stderr)  # fmt: skip
+        return 4
+    return 130 if done.summary["stopped_early"] else 0
 
 
 def _cmd_bode(args: argparse.Namespace) -> int:

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop_rt.analysis.transparency import accumulate
 from teleop_rt.com.channel import monitor_step
 from teleop_rt.com.link import link_deliver, link_offsets, link_push
 from teleop_rt.flat import Block, Int, floats_of, ints_of, jit
@@ -34,6 +33,7 @@ from teleop_rt.site_tick import (
     site_sense,
     site_torque,
 )
+from teleop_rt.transparency_tick import accumulate
 
 HSI_SITE, TO_SITE = 0, SITE_BLOCKS  # each site's first block
 LINK, MONITOR, METRICS, PAIR = range(2 * SITE_BLOCKS, 2 * SITE_BLOCKS + 4)

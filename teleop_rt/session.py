@@ -15,7 +15,8 @@ One tick k (see docs/architecture.md), in this order:
 Steps 2-6 but the RNEA calls are compiled (``teleop_rt.lockstep`` around each site's kernels,
 ``teleop_rt.site_tick``) and run on the blocks' state, packed into two flat buffers when the
 session is built (``teleop_rt.flat``). Backends that can (two simulated plants) run inside those
-kernels instead of through ``read`` / ``write`` (``Backend.fuse``): bit for bit the same.
+kernels instead of through ``read`` / ``write`` (``teleop_rt.lockstep_fused``): bit for bit the
+same.
 """
 
 from __future__ import annotations
@@ -27,7 +28,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
-from teleop_rt.analysis.transparency import TransparencyAccumulator, accumulate
 from teleop_rt.com.channel import ChannelMonitor, monitor_step
 from teleop_rt.com.link import InProcessLink, Link
 from teleop_rt.com.port import WAVE
@@ -35,7 +35,6 @@ from teleop_rt.config import SessionConfig
 from teleop_rt.declarations import OVERRUN_DEFAULT
 from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
-from teleop_rt.hal.base import FusedPlants
 from teleop_rt.lockstep import (
     SESSION_BLOCKS,
     PairState,
@@ -48,8 +47,10 @@ from teleop_rt.mapping import JOINT
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
 from teleop_rt.task_limits import tool_limits_figures
+from teleop_rt.transparency_tick import TransparencyAccumulator, accumulate
 
 if TYPE_CHECKING:
+    from teleop_rt.lockstep_fused import FusedPlants
     from teleop_rt.recording.recorder import Recorder
     from teleop_rt.world import Load
 
@@ -183,7 +184,11 @@ class Session:
         compiled_link = isinstance(self.link, InProcessLink)
         # the fused plants take one joint count (a pair of other robots runs read / write)
         same = self.hsi.n == self.to.n
-        pair = self.hsi.backend.fuse(self.to.backend) if fuse and compiled_link and same else None
+        pair = None
+        if fuse and compiled_link and same:  # (imported here: a CAN pair needs no plant kernels)
+            from teleop_rt.lockstep_fused import fuse_plants
+
+            pair = fuse_plants(self.hsi.backend, self.to.backend)
         self._pack(pair)
         self.compiled_link = compiled_link
         self._boxed = [s for s in self.sites if s.guard.workspace is not None and s.guard.enabled]
@@ -249,7 +254,7 @@ class Session:
     def step(self) -> None:
         """One control tick of both sites: read, link, ports, controllers, computed torque,
         safety, write. With ``fused`` the reads and writes are the backends' own compiled
-        pieces inside the lock-step kernels (``Backend.fuse``)."""
+        pieces inside the lock-step kernels (``teleop_rt.lockstep_fused``)."""
         hsi, to = self.hsi, self.to
         if not self.compiled_link:
             self._step_over(self.link)

@@ -32,7 +32,6 @@ from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
 
 if TYPE_CHECKING:
     from teleop_rt.recording.live import LiveAddress
-    from teleop_rt.recording.recorder import Recorder
 
 SENDER_PRIORITY = 81  # the link's sender thread (with an impairment): above the loop's 80
 ZENOH_PRIORITY = 70  # Zenoh's threads: below the loop's SCHED_FIFO 80, above normal processes
@@ -130,7 +129,9 @@ def run_site(
     site.warm_up()
     ZenohLink.check(cfg, name)
     # the log's writer is forked before Zenoh starts its threads
-    recorder = _site_recorder(site, log, live, metadata) if log is not None else None
+    from teleop_rt.recording.site_log import site_recorder
+
+    recorder = site_recorder(site, log, metadata=metadata, live=live) if log is not None else None
     try:
         link = ZenohLink(cfg, site.side, site.n, lambda: site.tick)
     except BaseException:
@@ -230,15 +231,6 @@ def run_site(
     if recorder is not None:
         summary[0].recording = recorder.status()
     return summary[0]
-
-
-def _site_recorder(
-    site: Site, path: Path, live: LiveAddress | None, metadata: dict[str, str] | None
-) -> Recorder:
-    from teleop_rt.recording.recorder import Recorder
-    from teleop_rt.recording.site_log import SiteLogSource
-
-    return Recorder(SiteLogSource(site), path, metadata=metadata, live=live)
 
 
 def pair_transparency(hsi: Path, to: Path, dt: float) -> tuple[list[float], list[float], int]:

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 from mcap.writer import CompressionType, Writer
 
-from teleop_rt.analysis.transparency import TransparencyAccumulator
 from teleop_rt.loop import TimingStats
 from teleop_rt.recording.schema import CDR_HEADER, SCHEMA_VERSION, LogLayout, Topic
+from teleop_rt.transparency_tick import TransparencyAccumulator
 
 URDF = b'<robot name="synthetic"><link name="base"/></robot>\n'
 START_NS = 1_767_225_600_123_456_789  # 2026-01-01T00:00:00.123456789Z: log times are wall-clock

@@ -10,11 +10,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from log_fixtures import field_slice, synthetic_rows, write_synthetic_log
 
-from teleop_rt.analysis.transparency import TransparencyAccumulator
 from teleop_rt.loop import TimingStats
 from teleop_rt.recording.metrics import format_metrics, log_metrics, metrics_main
 from teleop_rt.recording.reader import LogData, LogError, read_log
 from teleop_rt.recording.schema import LogLayout
+from teleop_rt.transparency_tick import TransparencyAccumulator
 
 
 def accumulate(log, ticks: slice, start: int = 0) -> TransparencyAccumulator:

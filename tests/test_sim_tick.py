@@ -1,4 +1,4 @@
-"""The fused simulated tick (teleop_rt.hal.sim_fused, offered by ``SimBackend.fuse``): on two
+"""The fused simulated tick (teleop_rt.lockstep_fused, chosen by ``fuse_plants``): on two
 simulated plants in their common case a session packs the plants with its own blocks and runs
 the lock-step's and the plants' compiled pieces in four calls instead of through
 ``Backend.read`` / ``write``. It must compute exactly what plants on their own buffers compute,

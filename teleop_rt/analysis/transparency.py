@@ -1,81 +1,27 @@
-"""Transparency measures of eq 18, per joint:
-
-    T_p   = integral (alpha_h - alpha_e)^2 dt      alpha = joint angle moved since the start
-    T_tau = integral (tau_h - tau_e)^2 dt          tau_h: operator on HSI, tau_e: TO on environment
-
-Integrals are rectangle sums over ticks (dt each), the same for the live session and for logs.
+"""Transparency measures of eq 18 over whole series (a log's, two sites' tick records): the
+live accumulator (``teleop_rt.transparency_tick``) fed row after row by one compiled call, so a
+log gives the live figures because it is summed by the live arithmetic itself.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from teleop_rt.flat import Block, Int, Scalar, Vector, as_floats, jit, vec
+from teleop_rt.flat import jit
+from teleop_rt.transparency_tick import TransparencyAccumulator, accumulate
 
 
-class TransparencyAccumulator(Block):
-    """Accumulates T_p and T_tau tick by tick (compiled ``accumulate``; nothing allocated)."""
-
-    t_p = Vector("T_p per joint, rad^2 s")
-    t_tau = Vector("T_tau per joint, N^2 m^2 s")
-    offset = Vector("q_h - q_t at the first tick, rad")
-    dt = Scalar(param=True)
-    has_offset = Int()
-
-    def __init__(self, n: int, dt: float, offset: list[float] | None = None) -> None:
-        super().__init__(n)
-        self.dt = dt
-        # alpha = angle moved since the first tick: unless given, the offset q_h - q_t is taken
-        # there (a log holds that tick too, so metrics from the log use the very same offset)
-        if offset is not None:
-            self.offset[:] = offset
-            self.has_offset = 1
-
-    def add(self, q_h, q_t, tau_h, tau_e) -> None:
-        accumulate(
-            self.f, self.i, self.n,
-            as_floats(q_h), as_floats(q_t), as_floats(tau_h), as_floats(tau_e),
-        )  # fmt: skip
-
-    def add_series(
-        self, q_h: np.ndarray, q_t: np.ndarray, tau_h: np.ndarray, tau_e: np.ndarray
-    ) -> None:
-        """Add whole (ticks, joints) series, tick by tick (``add`` per row, compiled)."""
-        rows = (np.ascontiguousarray(x, dtype=np.float64) for x in (q_h, q_t, tau_h, tau_e))
-        accumulate_series(self.f, self.i, self.n, *rows)
-
-
-T_P, T_TAU, OFFSET = (
-    TransparencyAccumulator.t_p.k,
-    TransparencyAccumulator.t_tau.k,
-    TransparencyAccumulator.offset.k,
-)
-HAS_OFFSET, DT = TransparencyAccumulator.has_offset.k, TransparencyAccumulator.dt.k
-N_VECTORS = len(TransparencyAccumulator.VECTORS)
-
-
-@jit
-def accumulate(
-    f: np.ndarray,
-    i: np.ndarray,
-    n: int,
+def add_series(
+    acc: TransparencyAccumulator,
     q_h: np.ndarray,
     q_t: np.ndarray,
     tau_h: np.ndarray,
     tau_e: np.ndarray,
 ) -> None:
-    """Add one tick's rectangle to T_p and T_tau (eq 18)."""
-    t_p, t_tau, offset = vec(f, T_P, n), vec(f, T_TAU, n), vec(f, OFFSET, n)
-    dt = f[N_VECTORS * n + DT]
-    if not i[HAS_OFFSET]:
-        for j in range(n):
-            offset[j] = q_h[j] - q_t[j]
-        i[HAS_OFFSET] = 1
-    for j in range(n):
-        e = q_h[j] - q_t[j] - offset[j]
-        t_p[j] += e * e * dt
-        e = tau_h[j] - tau_e[j]
-        t_tau[j] += e * e * dt
+    """Add whole (ticks, joints) series to ``acc``, tick by tick (``accumulate`` per row,
+    compiled)."""
+    rows = (np.ascontiguousarray(x, dtype=np.float64) for x in (q_h, q_t, tau_h, tau_e))
+    accumulate_series(acc.f, acc.i, acc.n, *rows)
 
 
 @jit

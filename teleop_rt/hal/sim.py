@@ -10,9 +10,9 @@ The plant's state and its loads are flat blocks (``teleop_rt.flat``, ``teleop_rt
 into one pair of buffers; the arithmetic between Pinocchio's calls is compiled. The common case
 (semi-implicit Euler, one sub-step, no faults) is a ``write`` of three compiled calls around ABA
 and the tool Jacobian, and a ``read`` of one; sub-steps, RK4 and faults run the same compiled
-pieces from a Python loop. Two simulated plants in the common case offer to run inside a one-process
-session's compiled tick (``SimBackend.fuse``, ``teleop_rt.hal.sim_fused``): the session packs
-their blocks with its own (``SimBackend.rebind``).
+pieces from a Python loop. Two simulated plants in the common case (``compiled_common_case``)
+can run inside a one-process session's compiled tick: the session (``teleop_rt.lockstep_fused``)
+packs their blocks with its own and calls these kernels (``SimBackend.rebind``).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import pinocchio as pin
 from teleop_rt.config import FaultSpec, SessionConfig
 from teleop_rt.errors import ConfigError
 from teleop_rt.flat import Block, Int, Packed, Scalar, Vector, as_floats, jit
-from teleop_rt.hal.base import Backend, FusedPlants
+from teleop_rt.hal.base import Backend
 from teleop_rt.hal.signals import FB_AGE_TICKS, FB_Q, FB_TAU_EXT, FB_V, W_FORCE, Feedback
 from teleop_rt.model import RobotModel, friction_torque
 from teleop_rt.world import (
@@ -263,7 +263,7 @@ class SimBackend(Backend):
     def rebind(self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray) -> None:
         """Work on ``self.blocks`` where they are now: the buffers f, i that hold them and
         their ``offsets`` there (a view, in ``blocks``' order). A session that packs the
-        plant with its own blocks (``teleop_rt.hal.sim_fused``) calls this after packing."""
+        plant with its own blocks (``teleop_rt.lockstep_fused``) calls this after packing."""
         state, plant = self.state, self.plant
         self._buffers = (f, i, offsets, self.n)
         # Pinocchio's arguments, looked up once: the state's views and the tool's placement
@@ -274,22 +274,11 @@ class SimBackend(Backend):
     def compiled_common_case(self) -> bool:
         """One semi-implicit Euler step per write, ideal sensors, no faults, and ``read`` and
         ``write`` as defined here (not a subclass's): what the fused simulated tick
-        (``teleop_rt.hal.sim_fused``) does in their place."""
+        (``teleop_rt.lockstep_fused``) does in their place."""
         cls = type(self)
         own = cls.read is SimBackend.read and cls.write is SimBackend.write
         own = own and not {"read", "write"} & vars(self).keys()  # nor replaced on the instance
         return own and self._one_euler_step and self._ideal_sensors
-
-    def fuse(self, peer: Backend) -> FusedPlants | None:
-        """With the TO's plant (this one the HSI's), both in their common case: the pair run
-        inside the session's tick (``teleop_rt.hal.sim_fused``)."""
-        if not (isinstance(peer, SimBackend) and peer.n == self.n):
-            return None
-        if not (self.compiled_common_case and peer.compiled_common_case):
-            return None
-        from teleop_rt.hal.sim_fused import FusedSimPair
-
-        return FusedSimPair(self, peer)
 
     @property
     def tau_motor(self) -> np.ndarray:

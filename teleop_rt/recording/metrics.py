@@ -17,9 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from teleop_rt.analysis.transparency import TransparencyAccumulator
+from teleop_rt.analysis.transparency import add_series
 from teleop_rt.loop import TimingStats, format_percentiles
 from teleop_rt.recording.reader import LogData, LogError, check_window, read_log, require_ticks
+from teleop_rt.transparency_tick import TransparencyAccumulator
 
 TOPICS = ("/hsi", "/to", "/channel", "/timing")
 _COMPARED = ("ticks", "t_p", "t_tau", "channel_energy_j", "min_channel_energy_j")
@@ -68,7 +69,7 @@ def transparency_sums(
     accumulator; ``offset``: q_h - q_t at the session start (default: the first row's). The one
     function for a session's log, two sites' logs and their tick records."""
     acc = TransparencyAccumulator(q_h.shape[1], dt, None if offset is None else list(offset))
-    acc.add_series(q_h, q_t, tau_h, tau_e)
+    add_series(acc, q_h, q_t, tau_h, tau_e)
     return acc.t_p.tolist(), acc.t_tau.tolist()
 
 

@@ -28,6 +28,7 @@ from teleop_rt.flat import Packed
 from teleop_rt.recording.recorder import (
     DEFAULT_LOG_DIR,
     LogParts,
+    Recorder,
     _attachments,
     _metadata,
     default_log_path,
@@ -38,6 +39,7 @@ from teleop_rt.recording.schema import PACKET_EXTRAS, PORT_NAMES, LogLayout
 from teleop_rt.site import Site
 
 if TYPE_CHECKING:
+    from teleop_rt.recording.live import LiveAddress
     from teleop_rt.session import Session
 
 PORT_SOURCES = ("flow", "effort", "wave_out", "wave_in", "power", "energy", "total_energy",
@@ -97,6 +99,20 @@ class SiteLogSource:
     def _columns(self, block, attr: str, count: int) -> list[int]:
         first = self.packed.index_of(block, attr)
         return list(range(first, first + count))
+
+
+def site_recorder(
+    site: Site,
+    path: Path,
+    wait_for_room: bool = False,
+    metadata: dict[str, str] | None = None,
+    live: LiveAddress | None = None,
+) -> Recorder:
+    """The recorder of a site's own log at ``path``, for ``teleop-rt site`` (over the network:
+    never waits for room) and for ``teleop-rt replay SITE.mcap`` (fast mode, simulated:
+    ``wait_for_room``, no row lost); ``live``: serve it too (``--live``)."""
+    return Recorder(SiteLogSource(site), path, wait_for_room=wait_for_room, metadata=metadata,
+                    live=live)  # fmt: skip
 
 
 def site_log_path(base: str | Path, site: str) -> Path:

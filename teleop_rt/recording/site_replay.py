@@ -24,8 +24,8 @@ the log's.
 from __future__ import annotations
 
 import json
-import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -35,8 +35,10 @@ from teleop_rt.com.port import Packet
 from teleop_rt.com.zenoh_link import Arrival, shared_parts
 from teleop_rt.errors import ConfigError
 from teleop_rt.recording.reader import LogData, read_log, require_ticks
+from teleop_rt.recording.recorder import default_log_path
 from teleop_rt.recording.replay import replay_config, replay_operator
 from teleop_rt.recording.schema import PACKET_EXTRAS, PORT_NAMES
+from teleop_rt.recording.site_log import site_log_path, site_recorder
 from teleop_rt.runner import run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest
 
@@ -168,60 +170,59 @@ def compare(original: LogData, replay: LogData) -> dict:
     return {"max_abs_q_difference_rad": dq, "identical": bool(same)}
 
 
-def replay_site_main(args, data: LogData, gap_note: str | None, recorder_for) -> int:
-    """``teleop-rt replay SITE.mcap``: run it, print both logs' figures side by side; the exit
-    code (0; 3 a safety stop; 4 the replay's log is incomplete)."""
-    from teleop_rt.report import print_site_comparison
+@dataclass
+class SiteReplay:
+    """What a site's replay found: ``figures`` (both logs' figures and the comparison: what
+    ``--json`` prints, what ``teleop_rt.report.print_site_comparison`` shows), how the replay
+    ended (its summary) and its log (``log_path``: the temporary one under ``--no-log``)."""
 
-    if args.plot:
-        raise ConfigError("--plot draws both robots; a site's log holds one: plot a session's log")
-    if gap_note:
-        print(f"teleop-rt: warning: {gap_note}", file=sys.stderr)
-    site = build_site_replay(data, args.overrides)
+    figures: dict
+    summary: dict
+    log_path: Path
+
+    @property
+    def log_status(self) -> dict:
+        return self.figures["recording"]
+
+
+def replay_site(
+    data: LogData, overrides: list[str], log_out: str | None, keep_log: bool, replay_of: str
+) -> SiteReplay:
+    """``teleop-rt replay SITE.mcap``: run the site of ``data`` against its partner's logged
+    packets, record it (to ``log_out``, by default logs/<name>-replay-<UTC time>.<site>.mcap;
+    without ``keep_log`` to a temporary log, the figures being read from a log) and compare
+    both logs. Prints nothing: the command line does."""
+    site = build_site_replay(data, overrides)
     metadata = {
-        "replay_of": str(args.log),
-        "overrides": json.dumps(args.overrides),
+        "replay_of": replay_of,
+        "overrides": json.dumps(overrides),
         **({"config": data.meta["config"]} if "config" in data.meta else {}),
     }
     scratch = None
-    path: Path | None
-    if args.no_log:  # the figures are read from a log: a temporary one
+    if not keep_log:
         scratch = tempfile.TemporaryDirectory(prefix="teleop-rt-replay-")
         path = Path(scratch.name) / f"replay.{data.site}.mcap"
+    elif log_out:
+        path = Path(log_out)
     else:
-        path = Path(args.log_out) if args.log_out else None
+        path = site_log_path(default_log_path(site.cfg.name + "-replay"), data.site)
     try:
-        recorder = recorder_for(site, path, data.site, metadata)
+        recorder = site_recorder(site, path, wait_for_room=True, metadata=metadata)
         recorder.describe({"session_id": data.meta.get("session_id", "")})
         summary = run_site_replay(site, data, recorder)
         status = recorder.status()
         replayed = read_log(recorder.path)
-        out = {
+        figures = {
             "original": site_figures(data),
             "replay": site_figures(replayed),
             **compare(data, replayed),
             "site": data.site,
-            "overrides": args.overrides,
-            "log": None if args.no_log else str(recorder.path),
+            "overrides": overrides,
+            "log": str(recorder.path) if keep_log else None,
             "recording": status,
             "truncated_input": data.truncated,
         }
     finally:
         if scratch is not None:
             scratch.cleanup()
-    if args.json:
-        json.dump(out, sys.stdout, indent=2)
-        print()
-    else:
-        if data.truncated:
-            print(f"note: {args.log} was cut short ({data.cut_reason}); replayed what it holds")
-        print_site_comparison(out)
-        if out["log"]:
-            print(f"replay log: {out['log']}")
-    if summary["safety_stop"]:
-        return 3
-    if not status["complete"]:
-        print(f"teleop-rt: log {recorder.path} is incomplete: {status['failure']}",
-              file=sys.stderr)  # fmt: skip
-        return 4
-    return 130 if summary["stopped_early"] else 0
+    return SiteReplay(figures, summary, recorder.path)

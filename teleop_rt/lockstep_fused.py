@@ -1,5 +1,4 @@
-"""Two simulated plants run inside a one-process session's tick: the simulated backend's
-capability behind ``Backend.fuse`` (``teleop_rt.hal.base.FusedPlants``). The lock-step kernels
+"""Two simulated plants run inside a one-process session's tick: the lock-step kernels
 (``teleop_rt.lockstep``) and both plants' compiled pieces (``teleop_rt.hal.sim``) in four
 compiled calls around the Pinocchio calls (six when loads act at the tools), instead of ten
 compiled calls and four backend method calls:
@@ -14,21 +13,23 @@ compiled calls and four backend method calls:
 
 It is the same arithmetic in the same order as ``read`` / ``write`` of two ``SimBackend``s, so
 a session gives bit-identical results either way. The plants' blocks follow the session's own
-(``SESSION_BLOCKS`` on), the TO's from block ``split`` on.
+(``SESSION_BLOCKS`` on), the TO's from block ``split`` on. The fusion lives here, beside the
+lock-step code it calls, not in the HAL: the simulated backend exports its plant kernels and
+blocks (``SimBackend.rebind``, ``compiled_common_case``) and knows nothing of the session.
 """
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from functools import partial
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
 
 from teleop_rt.control import TAU
-from teleop_rt.flat import floats_of, ints_of, jit, vec
-from teleop_rt.hal.base import FusedPlants
-from teleop_rt.hal.sim import command, euler_step, next_tick, sense
+from teleop_rt.flat import Block, floats_of, ints_of, jit, vec
+from teleop_rt.hal.base import Backend
+from teleop_rt.hal.sim import SimBackend, command, euler_step, next_tick, sense
 from teleop_rt.lockstep import (
     HSI_SITE,
     SESSION_BLOCKS,
@@ -39,11 +40,49 @@ from teleop_rt.lockstep import (
 )
 from teleop_rt.site_tick import CT, FB, WORLD
 
-if TYPE_CHECKING:
-    from teleop_rt.hal.sim import SimBackend
-
 FB_H, FB_T, WORLD_H, WORLD_T = HSI_SITE + FB, TO_SITE + FB, HSI_SITE + WORLD, TO_SITE + WORLD
 CT_H, CT_T = HSI_SITE + CT, TO_SITE + CT
+
+
+class FusedPlants(ABC):
+    """Two backends' periods run inside a lock-step session's tick kernels: the same
+    arithmetic as both backends' ``read`` and ``write``, in fewer calls. The session packs
+    ``blocks`` after its own blocks (``SESSION_BLOCKS``) and calls ``bind``; then per tick
+    ``before`` in place of both reads and the lock-step's first kernel, ``after`` in place of
+    its second (and, without a finding, the writes' commands), and ``advance`` for the rest of
+    the writes."""
+
+    blocks: list[Block]
+
+    @abstractmethod
+    def bind(
+        self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray, port_n: int | None = None
+    ) -> None:  # fmt: skip
+        """The packed buffers and the session's offsets (all blocks), once packed; ``port_n``:
+        the channel's size where it is not the joints' (a task-space channel)."""
+
+    @abstractmethod
+    def before(self) -> int:
+        """Both reads and the lock-step's first half; the finding (0: none)."""
+
+    @abstractmethod
+    def after(self, rnea_h: np.ndarray, rnea_t: np.ndarray) -> int:
+        """The lock-step's second half and, without a finding, both motor commands."""
+
+    @abstractmethod
+    def advance(self) -> None:
+        """The rest of both writes: each plant's period."""
+
+
+def fuse_plants(hsi: Backend, to: Backend) -> FusedPlants | None:
+    """The HSI's and the TO's backends run inside the session's tick, where they can: two
+    simulated plants of one joint count, both in their common case (``SimBackend``'s
+    ``compiled_common_case``); None keeps the plain ``read`` / ``write`` path."""
+    if not (isinstance(hsi, SimBackend) and isinstance(to, SimBackend) and hsi.n == to.n):
+        return None
+    if not (hsi.compiled_common_case and to.compiled_common_case):
+        return None
+    return FusedSimPair(hsi, to)
 
 
 @jit
