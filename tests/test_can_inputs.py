@@ -61,7 +61,8 @@ def clutch_pressed(node: int = CLUTCH_NODE, bit: int = CLUTCH_BIT):
 def test_the_clutch_bit_decouples_and_re_engages_within_the_bound() -> None:
     """Bit 16 of drive 2's 0x60FD pressed for 1 s: from the next tick the HSI renders nothing
     and moves on with the hand (> 0.04 rad) while the TO holds (< 1/20 of the HSI's motion);
-    released, the coupling comes back with no step in tau_h above the bound; TPDO3 carries
+    released, the coupling comes back with no step in tau_h above the bound and the channel
+    made no energy; TPDO3 carries
     0x60FD on the input's drive only."""
     session = session_for(CLUTCH)
     rows, summary = run(session, clutch_pressed())
@@ -76,6 +77,7 @@ def test_the_clutch_bit_decouples_and_re_engages_within_the_bound() -> None:
     step = np.abs(np.diff(rows[:, :2], axis=0)).max(axis=1)
     after = step[6500 : 6500 + WINDOW]
     assert 0 < after.max() <= TAU_STEP_BOUND_NM, after.max()
+    assert summary.min_channel_energy_j >= -1e-9  # the channel made no energy (measured: 0.0)
     drives = session.hsi.backend.emulator.by_node
     assert tpdo3_maps_0x60fd(drives[CLUTCH_NODE]) and not tpdo3_maps_0x60fd(drives[1])
 
