@@ -54,6 +54,10 @@ the indexing offset: the TO tracks ``alpha (q_h - index_offset)``, which is what
 T_p compares (and T_tau compares tau_h with ``beta tau_e``). The operator away for longer than
 ``mapping.presence_timeout_s`` is a safety stop (the staged stop of ``teleop_rt.site``).
 
+Live inputs: with ``can.hsi.clutch_input`` / ``presence_input`` (a drive's 0x60FD bit) the
+HSI's map also reads the backend's ``Feedback.inputs`` each tick, with the same ramp and
+timeout; only the HSI decouples (no packet tells the TO): the TO, fed a flow of 0, holds.
+
 With the identity (alpha = beta = 1, no script) the block is inactive and the sites compute
 exactly what they computed before it existed.
 """
@@ -67,6 +71,7 @@ import numpy as np
 from teleop_rt.com.port import HSI, TO
 from teleop_rt.config import SessionConfig
 from teleop_rt.flat import Block, Int, Scalar, Vector, jit, vec
+from teleop_rt.hal.signals import INPUT_CLUTCH, INPUT_PRESENT
 
 PRESENCE_LOST = 200  # a site finding (teleop_rt.safety's codes are below 200)
 JOINT, PLANE = 0, 1  # channel.space: joint to joint, or the tools' x-y velocity and force
@@ -100,6 +105,9 @@ class Mapping(Block):
     timeout_ticks = Int("away longer than this: a finding (-1: never)", param=True)
     clutch_at = Int("the first clutch interval not yet over")
     absent_at = Int("the first absence interval not yet over")
+    live = Int("the live inputs read (INPUT_CLUTCH | INPUT_PRESENT bits; 0: script only)",
+               param=True)
+    live_away = Int("ticks the live presence input has been off, in a row")
     coupled = Int("1: clutch released and operator present")
     engagements = Int("re-engagements so far")
     space = Int("JOINT or PLANE", param=True)
@@ -129,10 +137,12 @@ class Mapping(Block):
         ramp_s: float = 0.0, step_limit: float = math.inf, timeout_ticks: int = -1,
         space: int = JOINT, joints: int | None = None, speed_limit: float = math.inf,
         force_limit: float = math.inf, walls: list[tuple[float, ...]] | None = None,
+        live: int = 0,
     ) -> None:  # fmt: skip
         """``n``: the port's size (the joints, or TASK in the plane); ``joints``: the robot's
         (default n). ``speed_limit``, ``force_limit``, ``walls`` (x, y, nx, ny, k, d each):
-        the TO's tool limits in the plane (``teleop_rt.task_limits``)."""
+        the TO's tool limits in the plane (``teleop_rt.task_limits``). ``live``: the
+        backend's inputs (``Feedback.inputs``) read besides the script, INPUT_* bits."""
         clutch, absent, walls = clutch or [], absent or [], walls or []
         script = 2 * (len(clutch) + len(absent))
         nj = n if joints is None else joints
@@ -161,9 +171,11 @@ class Mapping(Block):
             at = 2 * len(clutch) * k
             tail[at : at + len(intervals)] = [a for a, _ in intervals]
             tail[at + len(intervals) : at + 2 * len(intervals)] = [b for _, b in intervals]
+        self.live = live
         self.active = int(
             motion_scale != 1.0 or force_scale != 1.0 or bool(clutch or absent) or space != JOINT
-        )
+            or live != 0
+        )  # fmt: skip
         self.gain, self.coupled = 1.0, 1
 
 
@@ -182,6 +194,7 @@ M_CLUTCH_AT, M_ABSENT_AT, M_COUPLED, M_ENGAGEMENTS = (
     Mapping.clutch_at.k, Mapping.absent_at.k, Mapping.coupled.k, Mapping.engagements.k
 )  # fmt: skip
 M_SPACE, M_KIN_AT, M_JOINTS = Mapping.space.k, Mapping.kin_at.k, Mapping.joints.k
+M_LIVE, M_LIVE_AWAY = Mapping.live.k, Mapping.live_away.k
 M_LIMITS, M_WALLS, M_SPEED_LIMIT, M_FORCE_LIMIT, M_SPEED_CAP, M_MIN_SPEED_CAP = (
     Mapping.limits.k, Mapping.walls.k, Mapping.speed_limit.k, Mapping.force_limit.k,
     Mapping.speed_cap.k, Mapping.min_speed_cap.k,
@@ -210,16 +223,24 @@ def _inside(f: np.ndarray, i: np.ndarray, at: int, count: int, cursor: int, tick
 
 @jit
 def mapping_engage(
-    f: np.ndarray, i: np.ndarray, n: int, tick: int, effort: np.ndarray
+    f: np.ndarray, i: np.ndarray, n: int, tick: int, effort: np.ndarray, inputs: int
 ) -> int:  # fmt: skip
-    """This tick's coupling gain r from the script; PRESENCE_LOST when the operator has been
-    away too long (at the HSI), else 0. ``effort``: the torque r multiplies (its ramp's
-    limit)."""
+    """This tick's coupling gain r from the script and the live ``inputs`` (the feedback's,
+    those ``live`` names); PRESENCE_LOST when the operator has been away too long (at the
+    HSI), else 0. ``effort``: the torque r multiplies (its ramp's limit)."""
     s = N_MAPPING_VECTORS * n
     tail = s + N_MAPPING_SCALARS
     clutches, absences = i[M_CLUTCH_COUNT], i[M_ABSENT_COUNT]
     clutched = _inside(f, i, tail, clutches, M_CLUTCH_AT, tick) > 0
     away = _inside(f, i, tail + 2 * clutches, absences, M_ABSENT_AT, tick)
+    live = i[M_LIVE]
+    if live & INPUT_CLUTCH and inputs & INPUT_CLUTCH:
+        clutched = True
+    if live & INPUT_PRESENT and not inputs & INPUT_PRESENT:
+        i[M_LIVE_AWAY] += 1  # (counted like the script's: 1 on the first tick away)
+    else:
+        i[M_LIVE_AWAY] = 0
+    away = max(away, i[M_LIVE_AWAY])
     if i[M_SIDE] == HSI and i[M_TIMEOUT] >= 0 and away > i[M_TIMEOUT]:
         return PRESENCE_LOST
     coupled = not clutched and away == 0
@@ -411,5 +432,15 @@ def mapping_for(cfg: SessionConfig, joints: int, side: int) -> Mapping:
         TASK if space == PLANE else joints, side, cfg.dt, spec.motion_scale, spec.force_scale,
         ticks(cfg.operator.clutch), ticks(cfg.operator.absent), spec.engage_ramp_s,
         spec.engage_step_nm, -1 if timeout is None else round(timeout * rate),
-        space, joints, speed, force, walls,
+        space, joints, speed, force, walls, live_inputs(cfg) if side == HSI else 0,
     )  # fmt: skip
+
+
+def live_inputs(cfg: SessionConfig) -> int:
+    """The INPUT_* bits the HSI's backend delivers: the CAN backend's ``can.hsi``
+    ``clutch_input`` / ``presence_input`` (off unless given)."""
+    if cfg.backend_for("hsi") != "can" or cfg.can is None:
+        return 0
+    side = cfg.can.hsi
+    return (INPUT_CLUTCH if side.clutch_input is not None else 0) | (
+        INPUT_PRESENT if side.presence_input is not None else 0)  # fmt: skip

@@ -33,7 +33,7 @@ from teleop_rt.com.port import (
 )
 from teleop_rt.control import A_DES, OUT, TAU, ct_finish, ct_prepare, pid_step
 from teleop_rt.flat import Block, Int, Vector, floats_of, ints_of, jit, vec
-from teleop_rt.hal.signals import FB_AGE_TICKS, FB_Q, FB_TAU_EXT, FB_V
+from teleop_rt.hal.signals import FB_AGE_TICKS, FB_INPUTS, FB_Q, FB_TAU_EXT, FB_V
 from teleop_rt.mapping import (
     M_ACTIVE,
     M_ALPHA,
@@ -103,7 +103,9 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
         for j in range(nj):
             tau[j] = tau_ext[j]
         if mapped:  # omega_c = r v_h (teleop_rt.mapping)
-            code = mapping_engage(mf, mi, n, i[si + S_TICK], vec(port, EFFORT, n))
+            code = mapping_engage(
+                mf, mi, n, i[si + S_TICK], vec(port, EFFORT, n), i[o[2 * FB + 1] + FB_INPUTS]
+            )
             if code:
                 return code
             if mi[M_SPACE] == PLANE:
@@ -126,7 +128,7 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
                         return code
             else:
                 to_map_input(mf, n, tau)
-            mapping_engage(mf, mi, n, i[si + S_TICK], vec(mf, TAU_MAPPED, n))
+            mapping_engage(mf, mi, n, i[si + S_TICK], vec(mf, TAU_MAPPED, n), 0)
             if limited:
                 to_speed_ceiling(mf, n)
             to_map_gain(mf, n)

@@ -20,6 +20,7 @@ class Feedback(Block):
     v = Vector("joint velocities, rad/s")
     tau_ext = Vector("torque the outside applies to the robot, N m")
     age_ticks = Int("ticks since the sensors last delivered (0: fresh)")
+    inputs = Int("the operator's live digital inputs: INPUT_CLUTCH | INPUT_PRESENT bits")
 
     def _bind(self) -> None:
         super()._bind()
@@ -35,7 +36,9 @@ class Feedback(Block):
 
 # where a kernel finds the feedback's signals (vector k at k * n; age_ticks is int 0)
 FB_Q, FB_V, FB_TAU_EXT = Feedback.q.k, Feedback.v.k, Feedback.tau_ext.k
-FB_AGE_TICKS = Feedback.age_ticks.k
+FB_AGE_TICKS, FB_INPUTS = Feedback.age_ticks.k, Feedback.inputs.k
+# the bits of ``inputs`` (a backend with digital inputs sets them: teleop_rt.hal.can, 0x60FD)
+INPUT_CLUTCH, INPUT_PRESENT = 1, 2
 
 
 class WorldSnapshot(Block):

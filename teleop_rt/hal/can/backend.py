@@ -47,7 +47,7 @@ from teleop_rt.errors import BackendError, ConfigError, SafetyStop
 from teleop_rt.hal.base import Backend
 from teleop_rt.hal.can import codec
 from teleop_rt.hal.can.config import CanSpec
-from teleop_rt.hal.signals import Feedback
+from teleop_rt.hal.signals import INPUT_CLUTCH, INPUT_PRESENT, Feedback
 
 if TYPE_CHECKING:
     import threading
@@ -59,9 +59,10 @@ if TYPE_CHECKING:
     from teleop_rt.model import RobotModel
     from teleop_rt.world import Load
 
-_TPDO1, _TPDO2, _EMCY, _HEARTBEAT, _SENSOR = range(5)
+_TPDO1, _TPDO2, _EMCY, _HEARTBEAT, _SENSOR, _TPDO3 = range(6)
 _TPDO1_SIZE, _TPDO2_SIZE = codec.TPDO1_STRUCT.size, codec.TPDO2_STRUCT.size
 _unpack_tpdo1, _unpack_tpdo2 = codec.TPDO1_STRUCT.unpack_from, codec.TPDO2_STRUCT.unpack_from
+_TPDO3_SIZE, _unpack_tpdo3 = codec.TPDO3_STRUCT.size, codec.TPDO3_STRUCT.unpack_from
 _SOD = "SWITCH ON DISABLED"
 # the stop's phases
 _QUICK_STOP, _DISABLE, _NMT, _DONE = "quick stop", "disable", "NMT pre-operational", "done"
@@ -143,6 +144,16 @@ class CanBackend(Backend):
         self._units: list[codec.JointUnits] = []
         self._steppers: list = []
         self._sensor_raw: list[int] = [0] * (width if sensor is not None else 0)
+        # the operator's inputs (0x60FD in TPDO3 every SYNC): the drives carrying one, their
+        # raw inputs, and (drive index, bit mask) of the clutch / presence bit (-1: none)
+        where = {d.node_id: j for j, d in enumerate(side_spec.drives)}
+        inputs = side_spec.inputs()
+        self._input_drives = sorted({where[x.drive] for x in inputs.values()})
+        self._di = [0] * n
+        self._clutch, self._presence = (
+            (where[x.drive], 1 << x.bit) if x is not None else (-1, 0)
+            for x in (side_spec.clutch_input, side_spec.presence_input)
+        )
         self._sensor_zero = [0.0] * n
         self._sensor_miss = 0
         self._routes: dict[int, tuple[int, int]] = {}
@@ -307,6 +318,8 @@ class CanBackend(Backend):
             r[codec.tpdo2_cob_id(node)] = (_TPDO2, i)
             r[codec.emcy_cob_id(node)] = (_EMCY, i)
             r[codec.heartbeat_cob_id(node)] = (_HEARTBEAT, i)
+        for i in self._input_drives:
+            r[codec.tpdo3_cob_id(self.node_ids[i])] = (_TPDO3, i)
         if self.sensor is not None:
             r[self.sensor.cob_id] = (_SENSOR, 0)
 
@@ -419,6 +432,8 @@ class CanBackend(Backend):
                     expected |= 1 << (n + i)
             if self.sensor is not None:
                 expected |= 1 << (2 * n)
+            for i in self._input_drives:
+                expected |= 1 << (2 * n + 1 + i)
             self._got = 0
             deadline = time.perf_counter_ns() + self.window_ns
             while self._got & expected != expected:
@@ -432,7 +447,9 @@ class CanBackend(Backend):
         got = self._got
         missed = False
         for i in range(self.n):
-            if got & (1 << i) and (got & (1 << (n + i)) or not expected & (1 << (n + i))):
+            status, inputs = 1 << (n + i), 1 << (2 * n + 1 + i)
+            if (got & (1 << i) and (got & status or not expected & status)
+                    and (got & inputs or not expected & inputs)):  # fmt: skip
                 self._miss[i] = 0
             else:
                 self._miss[i] += 1
@@ -489,6 +506,12 @@ class CanBackend(Backend):
                 if fresh:
                     self._got |= 1 << (self.n + i)
                 self._next_status[i] = self.tick + self.status_every
+            elif kind == _TPDO3:
+                if len(data) != _TPDO3_SIZE:
+                    self._long_pdo(msg, codec.TPDO3_NAME, _TPDO3_SIZE)
+                (self._di[i],) = _unpack_tpdo3(data)
+                if fresh:
+                    self._got |= 1 << (2 * self.n + 1 + i)
             elif kind == _SENSOR:
                 layout = self._sensor_layout
                 if len(data) != layout.size:
@@ -596,6 +619,9 @@ class CanBackend(Backend):
             )
             for j, c in enumerate(self._sensor_channels):
                 te[j] = (raw[c] - zero[j]) * scale[j]
+        (ci, cb), (pi, pb), di = self._clutch, self._presence, self._di
+        fb.inputs = (INPUT_CLUTCH if ci >= 0 and di[ci] & cb else 0) | (
+            INPUT_PRESENT if pi >= 0 and di[pi] & pb else 0)  # fmt: skip
         emu = self.emulator
         if emu is not None:  # an emulated world: log what it knows, like the sim backend
             w, ew = self.world, emu.plant.world

@@ -64,6 +64,11 @@ def tpdo1_cob_id(node_id: int) -> int:
     return _TPDO1_BASE + check_node_id(node_id)
 
 
+def tpdo3_cob_id(node_id: int) -> int:
+    """COB-ID of TPDO3, drive -> master (0x380 + node)."""
+    return 0x380 + check_node_id(node_id)
+
+
 def rpdo1_cob_id(node_id: int) -> int:
     """COB-ID of RPDO1, master -> drive (0x200 + node)."""
     return _RPDO1_BASE + check_node_id(node_id)
@@ -87,11 +92,13 @@ class CanFrameError(BackendError, ValueError):
 RPDO1_STRUCT = struct.Struct("<Hh")  # 0x6040 controlword, 0x6071 target torque
 TPDO1_STRUCT = struct.Struct("<ii")  # 0x6064 position actual, 0x606C velocity actual
 TPDO2_STRUCT = struct.Struct("<Hh")  # 0x6041 statusword, 0x6077 torque actual
+TPDO3_STRUCT = struct.Struct("<I")  # 0x60FD digital inputs (on a drive carrying an input)
 EMCY_STRUCT = struct.Struct("<HB5s")  # CiA 301: error code, error register 0x1001, vendor bytes
 
 RPDO1_NAME = "RPDO1 (0x6040 controlword u16 + 0x6071 target torque i16)"
 TPDO1_NAME = "TPDO1 (0x6064 position actual i32 + 0x606C velocity actual i32)"
 TPDO2_NAME = "TPDO2 (0x6041 statusword u16 + 0x6077 torque actual i16)"
+TPDO3_NAME = "TPDO3 (0x60FD digital inputs u32)"
 EMCY_NAME = "EMCY (error code u16 + error register u8 + 5 manufacturer bytes)"
 HEARTBEAT_NAME = "heartbeat (NMT state u8)"
 

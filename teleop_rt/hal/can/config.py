@@ -117,18 +117,40 @@ class TorqueSensorSpec(_Strict):
         return self
 
 
+class DigitalInputSpec(_Strict):
+    """One bit of a drive's digital inputs (CiA 402 0x60FD: bit 0 negative limit, 1 positive
+    limit, 2 home, 16-31 manufacturer-specific), mapped in the drive's TPDO3 every SYNC."""
+
+    drive: NodeId  # the node id of one of this bus's drives
+    bit: Annotated[int, Field(ge=0, le=31)]
+
+
 class CanSideSpec(_Strict):
-    """One robot: its own bus, one drive per joint (in joint order), an optional sensor."""
+    """One robot: its own bus, one drive per joint (in joint order), an optional sensor, and
+    the operator's clutch and presence (dead-man) inputs (HSI only, off unless given:
+    teleop_rt.mapping reads them each tick)."""
 
     bus: CanBusSpec
     drives: list[DriveSpec] = Field(min_length=1)
     torque_sensor: TorqueSensorSpec | None = None
+    clutch_input: DigitalInputSpec | None = None  # bit set: the clutch is pressed
+    presence_input: DigitalInputSpec | None = None  # bit set: the operator is present
+
+    def inputs(self) -> dict[str, DigitalInputSpec]:
+        """The digital inputs given, by key."""
+        given = {"clutch_input": self.clutch_input, "presence_input": self.presence_input}
+        return {k: v for k, v in given.items() if v is not None}
 
     @model_validator(mode="after")
     def _unique_ids(self) -> CanSideSpec:
         ids = [d.node_id for d in self.drives]
         if len(set(ids)) != len(ids):
             raise ValueError(f"drives: node ids must be unique on a bus, got {ids}")
+        for key, spec in self.inputs().items():
+            if spec.drive not in ids:
+                raise ValueError(
+                    f"{key}.drive: node {spec.drive} is not one of this bus's drives {ids}"
+                )
         if self.torque_sensor is not None:
             cob = self.torque_sensor.cob_id
             own = {f(i) for i in ids for f in _DRIVE_COBS}
@@ -153,6 +175,7 @@ _DRIVE_COBS = (
     lambda i: 0x180 + i,  # TPDO1
     lambda i: 0x200 + i,  # RPDO1
     lambda i: 0x280 + i,  # TPDO2
+    lambda i: 0x380 + i,  # TPDO3 (digital inputs)
     lambda i: 0x580 + i,  # SDO
     lambda i: 0x600 + i,
     lambda i: 0x700 + i,  # heartbeat
@@ -211,6 +234,9 @@ class CanSpec(_Strict):
             raise ValueError("heartbeat_timeout_ms: must exceed heartbeat_ms")
         if self.master_heartbeat_timeout_ms <= self.master_heartbeat_ms:
             raise ValueError("master_heartbeat_timeout_ms: must exceed master_heartbeat_ms")
+        if self.to.inputs():  # (the operator's inputs act on the HSI's map)
+            key = next(iter(self.to.inputs()))
+            raise ValueError(f"to.{key}: the operator's clutch and presence are the HSI's")
         return self
 
     def side(self, name: str) -> CanSideSpec:

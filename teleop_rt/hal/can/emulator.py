@@ -150,6 +150,9 @@ class EmulatedDrive:
         self.commands: list[tuple[int, int, str]] = []
         # SYNCs a quick stop takes (QUICK STOP ACTIVE, decelerating) before SWITCH ON DISABLED
         self.quick_stop_syncs = 0
+        # the drive's digital input pins (0x60FD, sampled at each SYNC): wires, not state, so
+        # an NMT reset keeps them; a test sets bits here (the operator's clutch, presence)
+        self.digital_inputs = 0
         self.power_on()
 
     # --- life cycle ---------------------------------------------------------------------
@@ -165,6 +168,7 @@ class EmulatedDrive:
             0x606C: 0,
             0x6071: 0,
             0x6077: 0,
+            0x60FD: self.digital_inputs,
             0x603F: 0,
             0x1001: 0,
         }
@@ -315,6 +319,7 @@ class EmulatedDrive:
         self.obj[0x606C] = round(v / u.velocity_to_rad_s(1))
         self.obj[0x6041] = STATUSWORD[self.state]
         self.obj[0x6077] = self.active_permille
+        self.obj[0x60FD] = self.digital_inputs
 
     def tpdo_frames(self, now_us: int, out: list) -> None:
         """Append the TPDOs due at the SYNC of ``now_us`` to ``out`` as (cob_id, data)."""

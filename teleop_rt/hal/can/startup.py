@@ -13,7 +13,9 @@ Per drive, in this order (all by SDO, expedited, the drive in PRE-OPERATIONAL):
 6. PDO mapping with canopen's PDO maps (disable, map, set transmission type, enable):
    RPDO1 = controlword 0x6040 + target torque 0x6071 (synchronous), TPDO1 = position 0x6064
    + velocity 0x606C every SYNC, TPDO2 = statusword 0x6041 + torque actual 0x6077 every
-   ``status_every_sync`` SYNCs; the other PDOs are disabled;
+   ``status_every_sync`` SYNCs, TPDO3 = digital inputs 0x60FD every SYNC on a drive that
+   carries the operator's clutch or presence input (``clutch_input``, ``presence_input``);
+   the other PDOs are disabled;
 
 then NMT start for all drives at once. canopen needs its notifier thread for SDO answers; the
 caller stops it afterwards and the cyclic loop owns the bus.
@@ -224,6 +226,8 @@ class Startup:
             ("tpdo", 1): ([0x6064, 0x606C], 1),
             ("tpdo", 2): ([0x6041, 0x6077], self.spec.status_every_sync),
         }
+        if any(x.drive == d.node_id for x in self.side.inputs().values()):
+            layout["tpdo", 3] = ([0x60FD], 1)
         try:
             for kind in ("rpdo", "tpdo"):
                 maps = getattr(node, kind).map
