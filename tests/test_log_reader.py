@@ -237,6 +237,10 @@ def test_mcap_from_another_program(tmp_path):
         ({"meta": {"joints": None}}, "lacks 'joints'"),
         ({"meta": {"joints": "x"}}, "is not an integer"),
         ({"meta": {"joints": "3"}}, "schema of /hsi does not match"),
+        ({"meta": {"joints_to": "9"}}, "schema of /to does not match"),
+        ({"meta": {"joints_hsi": "0"}}, "a robot of 0 joints"),
+        ({"meta": {"mapped": "2"}}, "is not 0 or 1"),
+        ({"meta": {"mapped": "1"}}, "schema of /hsi does not match"),
     ],
 )
 def test_bad_logs(tmp_path, kwargs, message):

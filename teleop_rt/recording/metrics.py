@@ -33,8 +33,7 @@ def log_metrics(data: LogData, offset: np.ndarray | None = None) -> dict:
     """
     hsi, to, channel, timing = (data.topics[name] for name in TOPICS)
     n, dt = len(hsi), data.dt
-    # tau_e: the torque the TO applies to the environment, as the session has it
-    t_p, t_tau = transparency_sums(hsi["q"], to["q"], hsi["tau_ext"], -to["tau_ext"], dt, offset)
+    t_p, t_tau = transparency_sums(*compared(data), dt, offset)
     energy = channel["total_energy"]
     finite = energy[~np.isnan(energy)]
     return {
@@ -55,6 +54,16 @@ def log_metrics(data: LogData, offset: np.ndarray | None = None) -> dict:
         "truncated": data.truncated,
         "cut_reason": data.cut_reason,
     }
+
+
+def compared(data: LogData) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """q_h, q_t, tau_h, tau_e as the session's metrics take them: the robots' own (tau_e the
+    torque the TO applies to the environment), or a mapped log's mapped ones (in the plane the
+    tools' positions and forces: ``LogLayout.mapped``)."""
+    hsi, to = data.topics["/hsi"], data.topics["/to"]
+    if data.layout.mapped:
+        return hsi["q_mapped"], to["q_mapped"], hsi["tau_mapped"], to["tau_mapped"]
+    return hsi["q"], to["q"], hsi["tau_ext"], -to["tau_ext"]
 
 
 def transparency_sums(
@@ -97,7 +106,8 @@ def session_offset(path: str | Path, dt: float) -> np.ndarray | None:
     first = read_log(path, ("/hsi", "/to"), None, dt)
     if not first.ticks:
         return None
-    return first.topics["/hsi"]["q"][0] - first.topics["/to"]["q"][0]
+    q_h, q_t = compared(first)[:2]
+    return q_h[0] - q_t[0]
 
 
 def format_metrics(m: dict) -> str:

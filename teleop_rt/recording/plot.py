@@ -23,6 +23,7 @@ from matplotlib.patches import Patch
 
 from teleop_rt.errors import TeleopError
 from teleop_rt.output import check_output, save_figure
+from teleop_rt.recording.metrics import compared
 from teleop_rt.recording.reader import (
     LogData,
     LogError,
@@ -61,21 +62,25 @@ def make_figure(data: LogData, title: str | None = None, original: LogData | Non
     ratios = [1.0] * n + ([0.75] if show_energy else [])
     grid = fig.add_gridspec(len(ratios), cols, height_ratios=ratios)
     t = hsi["t"]
-    if original is not None and original.layout.n != n:
+    if original is not None and _robots(original) != _robots(data):
         original = None  # not the same robots: nothing to draw under (replays keep them)
+    # what T_p and T_tau compare: per joint, or a mapped log's mapped series (the tools' x, y)
+    q_h, q_t, tau_h, tau_e = compared(data)
+    q_label, tau_label = ("mapped q{}", "mapped tau{}") if data.layout.mapped else (
+        "q{} (rad)", "tau{} (N m)")  # fmt: skip
     for j in range(n):
         ax = fig.add_subplot(grid[j, 0])
         ax_tau = fig.add_subplot(grid[j, 1])
         if original is not None:
             _draw_original(ax, ax_tau, original, j)
         # TO first: the dashed HSI line stays visible where the two coincide
-        ax.plot(*_envelope(t, to["q"][:, j]), **TO_STYLE, label="TO q_t")
-        ax.plot(*_envelope(t, hsi["q"][:, j]), **HSI_STYLE, label="HSI q_h")
-        ax.set_ylabel(f"q{j + 1} (rad)")
+        ax.plot(*_envelope(t, q_t[:, j]), **TO_STYLE, label="TO q_t")
+        ax.plot(*_envelope(t, q_h[:, j]), **HSI_STYLE, label="HSI q_h")
+        ax.set_ylabel(q_label.format(j + 1))
         ax = ax_tau
-        ax.plot(*_envelope(t, -to["tau_ext"][:, j]), **TO_STYLE, label="TO tau_e")
-        ax.plot(*_envelope(t, hsi["tau_ext"][:, j]), **HSI_STYLE, label="HSI tau_h")
-        ax.set_ylabel(f"tau{j + 1} (N m)")
+        ax.plot(*_envelope(t, tau_e[:, j]), **TO_STYLE, label="TO tau_e")
+        ax.plot(*_envelope(t, tau_h[:, j]), **HSI_STYLE, label="HSI tau_h")
+        ax.set_ylabel(tau_label.format(j + 1))
     for ax in fig.axes[-2:]:
         ax.set_xlabel("t (s)")
     handles = [
@@ -107,16 +112,23 @@ def make_figure(data: LogData, title: str | None = None, original: LogData | Non
     return fig
 
 
+def _robots(data: LogData) -> tuple:
+    """What a log's robot rows are: the channel's size, each robot's joints, mapped or not."""
+    lay = data.layout
+    return lay.n, lay.joints_hsi, lay.joints_to, lay.mapped
+
+
 def _nonzero(energy: np.ndarray) -> bool:
     return bool(np.any(energy[~np.isnan(energy)] != 0))
 
 
 def _draw_original(ax_q, ax_tau, original: LogData, j: int) -> None:
     """Joint ``j`` of the run a replay replays, wide and faint, under the replay's lines."""
-    hsi, to = original.topics["/hsi"], original.topics["/to"]
-    for rows, style, sign in ((to, TO_STYLE, -1.0), (hsi, HSI_STYLE, 1.0)):
-        ax_q.plot(*_envelope(rows["t"], rows["q"][:, j]), **_faint(style))
-        ax_tau.plot(*_envelope(rows["t"], sign * rows["tau_ext"][:, j]), **_faint(style))
+    q_h, q_t, tau_h, tau_e = compared(original)
+    t = original.topics["/hsi"]["t"]
+    for q, tau, style in ((q_t, tau_e, TO_STYLE), (q_h, tau_h, HSI_STYLE)):
+        ax_q.plot(*_envelope(t, q[:, j]), **_faint(style))
+        ax_tau.plot(*_envelope(t, tau[:, j]), **_faint(style))
 
 
 def default_title(data: LogData, show_energy: bool = True, why_no_path: str | None = None) -> str:
@@ -170,16 +182,18 @@ def tool_paths(data: LogData) -> tuple[dict | None, str | None]:
         models = {t: RobotModel.from_spec(getattr(cfg, t[1:]).robot, t[1:]) for t in TOPICS[:2]}
     except TeleopError as err:
         return None, str(err)
+    joints = {"/hsi": data.layout.joints_hsi, "/to": data.layout.joints_to}
     for topic, model in models.items():
-        if model.model.nq != data.layout.n:
-            nq, n = model.model.nq, data.layout.n
+        if model.model.nq != joints[topic]:
+            nq, n = model.model.nq, joints[topic]
             return None, f"the attached {topic[1:]} robot has {nq} joints, not {n}"
     stride = max(1, -(-data.ticks // PATH_POINTS))
     xyz = {}
     for topic, model in models.items():
         q = data.topics[topic]["q"][::stride]
         xyz[topic] = np.array([model.ee_position(qk) for qk in q])
-    return {"xyz": xyz, "environment": cfg.environment}, None
+    # a channel in the plane couples the tools' x, y: drawn there, whatever else drifts
+    return {"xyz": xyz, "environment": cfg.environment, "plane": cfg.channel.space == "plane"}, None
 
 
 def _plane(points: np.ndarray) -> tuple[int, int]:
@@ -194,7 +208,7 @@ def _plane(points: np.ndarray) -> tuple[int, int]:
 def _draw_paths(ax, paths: dict) -> list:
     xyz = paths["xyz"]
     points = np.vstack(list(xyz.values()))
-    a, b = _plane(points)
+    a, b = (0, 1) if paths.get("plane") else _plane(points)
     names = "xyz"
     ax.plot(xyz["/to"][:, a], xyz["/to"][:, b], **TO_STYLE)
     ax.plot(xyz["/hsi"][:, a], xyz["/hsi"][:, b], **HSI_STYLE)
@@ -221,7 +235,7 @@ def _draw_paths(ax, paths: dict) -> list:
     for e in elements:
         label = _env_label(e)
         color = ENV_COLORS.get(e.kind, "0.5")
-        p = np.array([e.point_m[a], e.point_m[b]])
+        p = np.array([_axis(e.point_m, a), _axis(e.point_m, b)])
         normal = np.array([_axis(e.normal, a), _axis(e.normal, b)])
         normal /= np.linalg.norm(normal)
         along = np.array([-normal[1], normal[0]]) * size
@@ -238,7 +252,7 @@ def _draw_paths(ax, paths: dict) -> list:
 
 def _foot(center: np.ndarray, element, a: int, b: int) -> np.ndarray:
     """The point of the element's surface line nearest to ``center`` (drawing plane)."""
-    p = np.array([element.point_m[a], element.point_m[b]])
+    p = np.array([_axis(element.point_m, a), _axis(element.point_m, b)])
     normal = np.array([_axis(element.normal, a), _axis(element.normal, b)])
     normal /= np.linalg.norm(normal)
     return center - np.dot(center - p, normal) * normal

@@ -38,6 +38,8 @@ META = "teleop_rt"
 SUMMARY_META = "teleop_rt.summary"
 _HEAD = 31  # message record: opcode 1, length 8, channel 2, sequence 4, log and publish time 16
 _META_INTS = ("joints", "env_elements", "schema_version")
+# a log of robots with their own joint counts, or of mapped sites (LogLayout): absent in others
+_OPTIONAL_INTS = ("delay_ticks", "joints_hsi", "joints_to", "mapped")
 
 
 class LogError(TeleopError):
@@ -422,9 +424,9 @@ class _Reader:
             by = f" (written by '{self.library}')" if self.library else ""
             raise self.fail(f"not a teleop_rt log: no '{META}' metadata record{by}")
         ints: dict[str, int] = {}
-        for key in (*_META_INTS, "delay_ticks"):  # delay_ticks: optional
+        for key in (*_META_INTS, *_OPTIONAL_INTS):
             if key not in meta:
-                if key == "delay_ticks":
+                if key in _OPTIONAL_INTS:
                     continue
                 raise self.fail(f"'{META}' metadata lacks '{key}'")
             try:
@@ -464,7 +466,12 @@ class _Reader:
         site = meta.get("site", "") if meta.get("log_kind") == "site" else ""
         if site not in ("", *SITES):
             raise self.fail(f"'{META}' metadata: site = {quote(site)} is neither hsi nor to")
-        return LogLayout(ints["joints"], ints["env_elements"], site), meta
+        if ints.get("mapped", 0) > 1:
+            raise self.fail(f"'{META}' metadata: mapped = {quote(meta['mapped'])} is not 0 or 1")
+        if 0 in (ints.get("joints_hsi"), ints.get("joints_to")):
+            raise self.fail(f"'{META}' metadata: a robot of 0 joints")
+        shape = (ints.get("joints_hsi", 0), ints.get("joints_to", 0), bool(ints.get("mapped")))
+        return LogLayout(ints["joints"], ints["env_elements"], site, *shape), meta
 
     def _decode(self, topic: Topic, parts: list[np.ndarray]) -> np.ndarray:
         channels = [c for c in self.channels.values() if c.topic == topic.name]

@@ -22,6 +22,7 @@ makes none for ``CLOSE_STALL_S`` (or a second Ctrl-C) is killed and the log repo
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import datetime as _dt
 import errno
 import math
@@ -39,11 +40,12 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from teleop_rt.errors import ConfigError, RecordingFailure, TeleopError
+from teleop_rt.errors import RecordingFailure, TeleopError
 from teleop_rt.flat import jit
 from teleop_rt.loop import StopSignals
+from teleop_rt.mapping import JOINT
 from teleop_rt.recording.scene import scene_spec, shift_sources
-from teleop_rt.recording.schema import SCHEMA_VERSION, LogLayout
+from teleop_rt.recording.schema import MAPPED_FIELDS, SCHEMA_VERSION, LogLayout
 from teleop_rt.recording.writer import (
     CLOSED,
     CONSUMED,
@@ -124,17 +126,23 @@ class LogParts:
 
 
 def session_parts(session: Session) -> LogParts:
-    """A one-process session's log: both robots, the channel, the timing."""
-    if not session.hsi.n == session.to.n == session.n:  # (the layout has one joint count)
-        raise ConfigError(
-            f"recording: the log takes robots of one joint count and a channel of the same "
-            f"size (here {session.hsi.n}, {session.to.n} and {session.n}); run with --no-log"
-        )
-    layout = LogLayout(session.n, len(session.cfg.environment))
+    """A one-process session's log: both robots (each with its own joints), the channel (of its
+    size), the timing; a session whose sites map their ports also logs what its T_p and T_tau
+    compare."""
+    layout = session_layout(session)
     return LogParts(
-        layout, row_sources(session, layout), shift_sources(session), _metadata(session),
+        layout, row_sources(session, layout), shift_sources(session),
+        {**_metadata(session), **_shape(layout)},
         _attachments(session), scene_spec(session),
     )  # fmt: skip
+
+
+def session_layout(session: Session) -> LogLayout:
+    """The log layout of ``session``: the channel's size, each robot's joints, mapped or not."""
+    mapped = any(site.mapping.active for site in session.sites)
+    return LogLayout(
+        session.n, len(session.cfg.environment), "", session.hsi.n, session.to.n, mapped
+    )
 
 
 class Recorder:
@@ -223,7 +231,7 @@ class Recorder:
             args=(
                 self.shm.name,
                 capacity,
-                (self.layout.n, self.layout.n_env, self.layout.site),
+                dataclasses.astuple(self.layout),
                 str(self.path),
                 self._period_ns,
                 {**parts.metadata, **(metadata or {})},
@@ -479,6 +487,16 @@ def _ended(exitcode: int | None) -> str:
     return f"exited with code {exitcode}"
 
 
+def _mapped_source(site, name: str) -> tuple[Any, str]:
+    """The block and vector of a mapped field: what the session's metrics take from the site
+    (``teleop_rt.site_tick.site_position``, ``site_torque``)."""
+    active = bool(site.mapping.active)
+    if name == "q_mapped":
+        return (site.mapping, "q_mapped") if active else (site.feedback, "q")
+    torque_mapped = active and (site.name != "hsi" or site.mapping.space != JOINT)
+    return (site.mapping, "tau_mapped") if torque_mapped else (site.signals, "tau")
+
+
 ROBOT_SOURCES = {
     "q": "feedback.q", "v": "feedback.v", "tau_ext": "feedback.tau_ext",
     "tau_cmd": "computed_torque.tau", "a_ref": "controller.out",
@@ -490,6 +508,9 @@ WORLD_SOURCES = {
     "environment_force_n": "force",
     "in_contact": "contacts",
 }
+
+
+MAPPED_NAMES = {name for name, _ in MAPPED_FIELDS}
 
 
 def row_sources(session: Session, layout: LogLayout) -> np.ndarray:
@@ -516,6 +537,8 @@ def robot_columns(packed, site, topic) -> list[int]:
         if field.name in ROBOT_SOURCES:
             owner, name = ROBOT_SOURCES[field.name].split(".")
             block = getattr(site, owner)
+        elif field.name in MAPPED_NAMES:
+            block, name = _mapped_source(site, field.name)
         else:
             block, name = site.world, WORLD_SOURCES[field.name]
         first = packed.index_of(block, name)
@@ -548,6 +571,14 @@ def fill_row(
     row[m + 2] = 1.0 if missed else 0.0
     for e in range(shifts.size):
         row[m + 3 + e] = f[shifts[e]] if shifts[e] >= 0 else 0.0
+
+
+def _shape(layout: LogLayout) -> dict[str, str]:
+    """The metadata of a layout that is not the plain one of ``joints`` (LogLayout.plain)."""
+    if layout.plain:
+        return {}
+    return {"joints_hsi": str(layout.joints_hsi), "joints_to": str(layout.joints_to),
+            "mapped": str(int(layout.mapped))}  # fmt: skip
 
 
 def _metadata(session: Session) -> dict[str, str]:

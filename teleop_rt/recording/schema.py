@@ -5,7 +5,12 @@ them without plugins, and because every field has a fixed size the payloads of a
 ticks are one numpy view: the writer encodes thousands of messages with a single ``astype``
 instead of one encoder call per message, and the reader decodes a topic the same way.
 
-Topics (n joints, E environment elements; all SI units, joint space):
+Topics (n joints, E environment elements; all SI units, joint space). A session whose
+robots have their own joint counts (a heterogeneous pair, coupled in the plane) logs each robot
+with its own (``joints_hsi``, ``joints_to``) and the channel with its size n (the task's
+dimension); one whose sites map their ports (``mapped``: a task-space channel, motion or force
+scaling, a clutch) also logs per robot what T_p and T_tau compare (``q_mapped``, ``tau_mapped``,
+of size n; ``teleop_rt.mapping``), so that its metrics are the live ones:
 
 * ``/hsi``       teleop_rt/msg/HsiTick: the HSI robot and the operator
 * ``/to``        teleop_rt/msg/ToTick: the TO robot and the environment
@@ -24,10 +29,12 @@ the epoch (``start_time_ns + k * period_ns``); the field ``t`` is the tick's tim
 
 Besides the messages a log holds (so that it describes itself):
 * metadata ``teleop_rt`` at the start: software_version (with the git commit when run from a
-  checkout), schema_version, joints, env_elements, rate_hz, period_ns, delay_ticks, name,
-  backend, operator ("damper", "hand" or "none"), start_time_ns and start_time_utc (ISO 8601),
-  and from the command line config (its path) and overrides (a JSON list of the --set
-  values), for a replay replay_of (the replayed log);
+  checkout), schema_version, joints (the channel's size), env_elements, rate_hz, period_ns,
+  delay_ticks, name, backend, operator ("damper", "hand" or "none"), start_time_ns and
+  start_time_utc (ISO 8601), and from the command line config (its path) and overrides (a JSON
+  list of the --set values), for a replay replay_of (the replayed log); a mapped session's
+  also joints_hsi, joints_to and mapped ("1"), which logs of one joint count without a map
+  leave out;
 * attachments ``config.yaml`` (the resolved session config) and ``urdf/hsi.urdf``,
   ``urdf/to.urdf`` when the robots came from URDF files;
 * in a site's log also log_kind ("site"), site ("hsi" or "to"), session_id (hex, from the
@@ -107,6 +114,12 @@ def _joint(names: list[str], n: int, doc: str) -> list[Field]:
     return [Field(name, "float64", n, doc) for name in names]
 
 
+# what T_p and T_tau (eq 18) compare at a mapped site, of the channel's size
+MAPPED_FIELDS = (
+    ("q_mapped", "position T_p compares: the mapped, indexed q, or the tool's x, y (rad, m)"),
+    ("tau_mapped", "what T_tau compares: tau_h or beta tau_e, or the tool's force (N m, N)"),
+)
+
 ROBOT_FIELDS = (
     ("q", "joint angles, rad"),
     ("v", "joint velocities, rad/s"),
@@ -128,23 +141,39 @@ SITES = ("hsi", "to")
 @dataclass(frozen=True)
 class LogLayout:
     """Row layout and topics of a session with n joints and E environment elements, or of one
-    site's log (``site``: "hsi" or "to"; "" for a session's)."""
+    site's log (``site``: "hsi" or "to"; "" for a session's). ``n_hsi``, ``n_to``: the robots'
+    joints when they are not n (0: n); ``mapped``: the robots' topics hold ``MAPPED_FIELDS``."""
 
     n: int
     n_env: int
     site: str = ""
+    n_hsi: int = 0
+    n_to: int = 0
+    mapped: bool = False
+
+    @property
+    def joints_hsi(self) -> int:
+        return self.n_hsi or self.n
+
+    @property
+    def joints_to(self) -> int:
+        return self.n_to or self.n
+
+    @property
+    def plain(self) -> bool:
+        """One joint count and no mapped fields: the layout of the metadata's joints alone."""
+        return self.joints_hsi == self.joints_to == self.n and not self.mapped
 
     @property
     def topics(self) -> tuple[Topic, ...]:
         """The topics in row order; /timing last (the recorder fills it, not the gather)."""
         n, e = self.n, self.n_env
-        robot = [Field(name, "float64", n, doc) for name, doc in ROBOT_FIELDS]
         hsi = Topic(
             "/hsi",
             "teleop_rt/msg/HsiTick",
             (
                 *_common(),
-                *robot,
+                *self._robot(self.joints_hsi),
                 Field("operator_reference_m", "float64", 3, "hand reference, world frame"),
                 Field("operator_reference_velocity_m_s", "float64", 3, ""),
                 Field("operator_force_n", "float64", 3, "operator force on the HSI tool"),
@@ -156,7 +185,7 @@ class LogLayout:
             "teleop_rt/msg/ToTick",
             (
                 *_common(),
-                *robot,
+                *self._robot(self.joints_to),
                 Field("environment_force_n", "float64", 3, "environment force on the TO tool"),
                 *contact,
             ),
@@ -188,6 +217,12 @@ class LogLayout:
         if not self.site:
             return (hsi, to, channel, timing)
         return ({"hsi": hsi, "to": to}[self.site], *self._site_topics(), timing)
+
+    def _robot(self, joints: int) -> list[Field]:
+        """A robot's fields: per joint, then (a mapped layout) of the channel's size."""
+        robot = [Field(name, "float64", joints, doc) for name, doc in ROBOT_FIELDS]
+        mapped = [Field(name, "float64", self.n, doc) for name, doc in MAPPED_FIELDS]
+        return robot + (mapped if self.mapped else [])
 
     def _site_topics(self) -> tuple[Topic, Topic]:
         n, side = self.n, self.site
