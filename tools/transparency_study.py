@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import math
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -314,7 +315,13 @@ def design(path: Path) -> list[str]:
 def study(out_dir: Path, quick: bool = False, long_s: float = 120.0) -> Path:
     """Every run, the long foam runs, and the report DIR/transparency_under_loss.md."""
     start = time.perf_counter()
-    traces = write_traces(out_dir)
+    with tempfile.TemporaryDirectory(prefix="teleop_rt_traces_") as scratch:
+        return _study(out_dir, Path(scratch), quick, long_s, start)
+
+
+def _study(out_dir: Path, scratch: Path, quick: bool, long_s: float, start: float) -> Path:
+    """The study, its traces in ``scratch`` (not the report's folder: they are inputs)."""
+    traces = write_traces(scratch)
     results, cleans = [], {}
     for task, nets in networks(traces, quick).items():
         for net in nets:
