@@ -9,6 +9,7 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from teleop_rt.analysis.transparency import transparency_labels
 from teleop_rt.loop import format_percentiles
 from teleop_rt.session import Summary
 
@@ -54,9 +55,10 @@ def print_summary(summary: Summary, console: Console | None = None) -> None:
     table.add_column("value")
     table.add_row("ticks", f"{summary.ticks} ({summary.simulated_time_s:.3f} s simulated)")
     table.add_row("channel delay", f"{summary.delay_ticks} ticks")
-    table.add_row("T_p per joint (rad^2 s)", _fmt(summary.t_p))
+    t_p_label, t_tau_label = transparency_labels(summary.space)
+    table.add_row(t_p_label, _fmt(summary.t_p))
     table.add_row("T_p total", f"{summary.t_p_total:.4g}")
-    table.add_row("T_tau per joint (N^2 m^2 s)", _fmt(summary.t_tau))
+    table.add_row(t_tau_label, _fmt(summary.t_tau))
     table.add_row("T_tau total", f"{summary.t_tau_total:.4g}")
     table.add_row(
         "channel energy (J)",

@@ -120,6 +120,7 @@ class Summary:
     link: dict | None = None  # what an impaired link did (sent, lost, late, ...; per site)
     channel: dict | None = None  # the channel kind and its protection's activity per port
     tool_limits: dict | None = None  # what the TO's task-space limits did (safety.tool)
+    space: str = "joint"  # what the channel couples (channel.space): T_p / T_tau's coordinates
 
     @property
     def t_p_total(self) -> float:
@@ -382,6 +383,7 @@ class Session:
     def _summary(self, outcome: LoopOutcome) -> Summary:
         return Summary(
             name=self.cfg.name,
+            space=self.cfg.channel.space,
             ticks=outcome.stats.count,
             simulated_time_s=outcome.stats.count * self.dt,
             delay_ticks=self.cfg.delay_ticks,

@@ -85,6 +85,7 @@ def test_a_joint_space_log_keeps_its_layout(tmp_path) -> None:
     session.run(recorder=Recorder(session, tmp_path / "wall.mcap"))
     data = read_log(tmp_path / "wall.mcap")
     assert data.layout == LogLayout(2, len(cfg.environment)) and data.layout.plain
+    assert data.channel_space() == "joint"
     assert not {"joints_hsi", "joints_to", "mapped"} & set(data.meta)
     assert [f.name for f in data.layout.topics[0].fields] == [
         "tick", "t", "q", "v", "tau_ext", "tau_cmd", "a_ref", "operator_reference_m",
@@ -98,9 +99,13 @@ def test_metrics_info_plot_and_replay_of_a_pair_log(tmp_path, capsys) -> None:
     log, again = tmp_path / "panda.mcap", tmp_path / "again.mcap"
     cfg = str(CONFIGS / "task_space" / "scara_panda_plane.yaml")
     assert main(["run", cfg, "--set", SHORT[0], "--log", str(log)]) == 0
-    capsys.readouterr()
+    live = capsys.readouterr().out
+    assert "T_p per axis (m^2 s)" in live and "T_tau per axis (N^2 s)" in live
     assert main(["metrics", str(log)]) == 0
-    assert "agrees exactly" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "agrees exactly" in out  # the plane's figures are named in its units (tool x-y)
+    assert "T_p per axis (m^2 s)" in out and "T_tau per axis (N^2 s)" in out
+    assert "per joint" not in out
     assert main(["info", str(log)]) == 0
     assert "complete" in capsys.readouterr().out
     assert main(["plot", str(log), "-o", str(tmp_path / "panda.png")]) == 0

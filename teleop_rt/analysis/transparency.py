@@ -10,6 +10,16 @@ import numpy as np
 from teleop_rt.flat import jit
 from teleop_rt.transparency_tick import TransparencyAccumulator, accumulate
 
+# eq 18's terms per coordinate of the channel, with their units: a joint channel compares joint
+# angles and torques, a plane channel the tools' x-y positions and forces (teleop_rt.mapping)
+_TERMS = {"joint": ("joint", "rad^2 s", "N^2 m^2 s"), "plane": ("axis", "m^2 s", "N^2 s")}
+
+
+def transparency_labels(space: str) -> tuple[str, str]:
+    """The row names of T_p and T_tau per coordinate for a channel in ``space``."""
+    what, p_unit, tau_unit = _TERMS.get(space, _TERMS["joint"])
+    return f"T_p per {what} ({p_unit})", f"T_tau per {what} ({tau_unit})"
+
 
 def add_series(
     acc: TransparencyAccumulator,

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from teleop_rt.analysis.transparency import add_series
+from teleop_rt.analysis.transparency import add_series, transparency_labels
 from teleop_rt.loop import TimingStats, format_percentiles
 from teleop_rt.recording.reader import LogData, LogError, check_window, read_log, require_ticks
 from teleop_rt.transparency_tick import TransparencyAccumulator
@@ -38,6 +38,7 @@ def log_metrics(data: LogData, offset: np.ndarray | None = None) -> dict:
     finite = energy[~np.isnan(energy)]
     return {
         "name": data.meta.get("name", ""),
+        "space": data.channel_space(),
         "ticks": n,
         "simulated_time_s": n * dt,
         "delay_ticks": int(data.meta.get("delay_ticks", 0)),
@@ -120,6 +121,7 @@ def format_metrics(m: dict) -> str:
         return "  ".join(f"{v:.6g}" for v in values)
 
     t = m["timing"]
+    t_p_label, t_tau_label = transparency_labels(m.get("space", "joint"))
     lines = [
         row("session", f"{m['name']} (delay {m['delay_ticks']} ticks)"),
         row("ticks", f"{m['ticks']} ({m['simulated_time_s']:.3f} s)"),
@@ -129,9 +131,9 @@ def format_metrics(m: dict) -> str:
         end = "the end" if hi is None else f"{hi:g}"
         lines.append(row("window (s)", f"{0.0 if lo is None else lo:g} to {end}"))
     lines += [
-        row("T_p per joint (rad^2 s)", vec(m["t_p"])),
+        row(t_p_label, vec(m["t_p"])),
         row("T_p total", f"{m['t_p_total']:.6g}"),
-        row("T_tau per joint (N^2 m^2 s)", vec(m["t_tau"])),
+        row(t_tau_label, vec(m["t_tau"])),
         row("T_tau total", f"{m['t_tau_total']:.6g}"),
         row(
             "channel energy (J)",

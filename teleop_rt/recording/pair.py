@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from teleop_rt.analysis.transparency import transparency_labels
 from teleop_rt.recording.metrics import _timing, gap_text, transparency_sums
 from teleop_rt.recording.reader import LogData, LogError, check_window, read_log, require_ticks
 from teleop_rt.recording.schema import LogLayout
@@ -119,6 +120,7 @@ def pair_metrics(
     energy = hsi.topics["/port"]["total_energy"][ih] + to.topics["/port"]["total_energy"][it]
     return {
         "name": hsi.meta.get("name", ""),
+        "space": hsi.channel_space(),
         "session_id": hsi.meta.get("session_id"),
         "delay_ticks": int(hsi.meta.get("delay_ticks", 0)),
         "ticks": len(k),
@@ -157,6 +159,7 @@ def format_pair(m: dict) -> str:
     def vec(values: list[float]) -> str:
         return "  ".join(f"{v:.6g}" for v in values)
 
+    t_p_label, t_tau_label = transparency_labels(m.get("space", "joint"))
     rows = [
         ("session", f"{m['name']} {m['session_id']} (delay {m['delay_ticks']} ticks), two sites"),
         ("ticks of both", f"{m['ticks']} (aligned by tick: both started at the agreed instant)"),
@@ -166,9 +169,9 @@ def format_pair(m: dict) -> str:
         rows.append(("window (s)", f"{0.0 if lo is None else lo:g} to "
                      f"{'the end' if hi is None else f'{hi:g}'}"))  # fmt: skip
     rows += [
-        ("T_p per joint (rad^2 s)", vec(m["t_p"])),
+        (t_p_label, vec(m["t_p"])),
         ("T_p total", f"{m['t_p_total']:.6g}"),
-        ("T_tau per joint (N^2 m^2 s)", vec(m["t_tau"])),
+        (t_tau_label, vec(m["t_tau"])),
         ("T_tau total", f"{m['t_tau_total']:.6g}"),
         ("channel energy (J)",
          f"{m['channel_energy_j']:.6g} (minimum {m['min_channel_energy_j']:.6g})"),

@@ -130,6 +130,16 @@ class LogData:
             raise LogError(f"{where} is not a mapping but {quote(repr(data))}")
         return data
 
+    def channel_space(self) -> str:
+        """The channel's space in the config attachment: joint when it says none (or the
+        attachment is damaged: the figures stand without it, only their row names need it)."""
+        try:
+            raw = self.raw_config()
+        except LogError:
+            return "joint"
+        channel = (raw or {}).get("channel")
+        return str(channel.get("space", "joint")) if isinstance(channel, dict) else "joint"
+
     def config(self) -> SessionConfig | None:
         """The session config stored in the log (None if the log has no config.yaml); LogError
         naming the attachment if it is not a valid config."""
