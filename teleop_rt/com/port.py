@@ -61,9 +61,9 @@ stays passive when the network varies its delay, loses, duplicates or reorders p
                the wave energy it DECLARES in its packets (monotone; the peer's budget is what
                was declared), so the peer cannot spend the reflected energy again (the energy
                observers of TDPA moved onto the waves: Ryu, Artigas & Preusche, Mechatronics
-               2010; the energy a port reflects, Panzirsch, Ryu & Ferre, "Reducing the
-               conservatism of the time domain passivity approach through consideration of
-               energy reflection in delayed coupled network systems", Mechatronics 58, 2019).
+               2010; the idea of crediting the energy a port reflects, after the energy
+               reflection in TDPA of Panzirsch, Ryu & Ferre, Mechatronics 2019, as issue 23
+               cites it: the derivation here is our own and was not checked against it).
                Proof: OUT_i <= G_i + S_i - D_i, G_i <= D_j (now), so OUT_h + OUT_t <= S_h + S_t.
                With no loss D = S and the bound never acts: ``bounded`` bit for bit.
 - ``tdpa``: the time-domain passivity approach (Ryu, Artigas & Preusche, Mechatronics 2010):
