@@ -16,12 +16,14 @@ module constants with the same indices, listed next to the names.
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import cast, overload
+from typing import Any, cast, overload
 
 import numba
 import numpy as np
+
+from teleop_rt.kernel_lock import CompileLock, locked
 
 
 def _source_hash() -> str:
@@ -50,11 +52,23 @@ def _kernel_cache_dir() -> Path:
 # compiled once per version of the sources and cached (the first run pays some seconds); the
 # decorators below pick the folder up when they are applied
 numba.config.CACHE_DIR = str(_kernel_cache_dir())  # type: ignore[attr-defined]
-jit = numba.njit(cache=True, nogil=True)
+# processes that start together compile one at a time (numba's cache is not safe otherwise)
+COMPILE_LOCK = CompileLock(Path(numba.config.CACHE_DIR))  # type: ignore[attr-defined]
+_njit = numba.njit(cache=True, nogil=True)
 # for the small helpers that slice the buffers: inlined where they are called, which saves the
 # call (about a third of a slice's cost here); the view itself still costs tens of ns for its
 # reference counting, which is why the plant's kernels index by offset instead
-jit_inline = numba.njit(cache=True, nogil=True, inline="always")
+_njit_inline = numba.njit(cache=True, nogil=True, inline="always")
+
+
+def jit(func: Callable[..., Any]) -> Any:
+    """A compiled, cached kernel (``numba.njit``) that compiles under ``COMPILE_LOCK``."""
+    return locked(_njit(func), COMPILE_LOCK)
+
+
+def jit_inline(func: Callable[..., Any]) -> Any:
+    """``jit``, inlined where it is called."""
+    return locked(_njit_inline(func), COMPILE_LOCK)
 
 
 @jit_inline

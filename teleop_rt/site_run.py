@@ -126,6 +126,8 @@ def run_site(
     ``cpu``: the CPU its loop pins to (None: its role's, ``SITE_CPU_INDEX``)."""
     cpu_index = site_cpu_index(name, cpu)
     site: Site = (HsiSite if name == "hsi" else ToSite)(cfg, backend)
+    # the kernels load (or compile, after any other process compiling into the same cache:
+    # teleop_rt.kernel_lock) here and in the link's constructor, before the loop: no tick waits
     site.warm_up()
     ZenohLink.check(cfg, name)
     # the log's writer is forked before Zenoh starts its threads

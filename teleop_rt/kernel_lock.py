@@ -1,0 +1,87 @@
+"""One process at a time compiles into (or loads from) the kernel cache.
+
+numba's on-disk cache is not safe for processes that fill one folder at once (numba/numba#4807):
+two sites started together from an empty cache (after an install or an upgrade) could fail with
+"RuntimeError: no compiled object yet for ...". So every kernel's compilation, which first tries
+the cache, holds an exclusive ``flock`` on a lock file in the cache folder: a second process
+waits for the first's kernel and then loads it from the cache. Kernels compile at warm-up (the
+site's, the backends', the link's, a session's start), before any real-time loop starts, so
+the wait holds no tick. Held per kernel, not per run: a process that only loads (a warm cache)
+holds it for milliseconds, and a process that forks (the log's writer) never forks it held.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+LOCK_NAME = "compile.lock"
+
+
+class CompileLock:
+    """Reentrant (a kernel's compilation compiles its callees) within a process, exclusive
+    across processes; without a usable lock file (a read-only install) it says so once on
+    stderr and lets numba go on unlocked (numba then falls back on its own)."""
+
+    def __init__(self, folder: Path) -> None:
+        self.path = folder / LOCK_NAME
+        self._threads = threading.RLock()  # one flock per process: a second fd would block
+        self._depth = 0
+        self._fd: int | None = None
+        self._unusable = False
+        self.waited = 0  # how many times another process held it (tests, diagnosis)
+
+    def __enter__(self) -> CompileLock:
+        self._threads.acquire()
+        self._depth += 1
+        if self._depth == 1 and not self._unusable:
+            self._fd = self._take()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._depth -= 1
+        if self._depth == 0 and self._fd is not None:
+            os.close(self._fd)  # closing the file releases its flock
+            self._fd = None
+        self._threads.release()
+
+    def _take(self) -> int | None:
+        fd = None
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                self.waited += 1
+                fcntl.flock(fd, fcntl.LOCK_EX)
+            return fd
+        except OSError as err:
+            if fd is not None:
+                os.close(fd)
+            self._unusable = True
+            print(f"teleop-rt: note: kernels compile without the cache lock ({self.path}: "
+                  f"{err.strerror or err}); two processes starting at once from an empty "
+                  "cache may race", file=sys.stderr)  # fmt: skip
+            return None
+
+
+def locked(dispatcher: Any, lock: CompileLock) -> Any:
+    """``dispatcher`` (a numba one) compiling under ``lock``; a plain function (with
+    ``NUMBA_DISABLE_JIT=1``) as it is. numba's dispatchers call ``self.compile`` both for a
+    call from Python and for a call from another kernel, so this covers every compilation."""
+    compile_: Callable[[Any], Any] | None = getattr(dispatcher, "compile", None)
+    if compile_ is None:
+        return dispatcher
+
+    def compile(sig: Any) -> Any:
+        with lock:
+            return compile_(sig)
+
+    dispatcher.compile = compile
+    return dispatcher
