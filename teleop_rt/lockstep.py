@@ -18,7 +18,9 @@ from __future__ import annotations
 import numpy as np
 
 from teleop_rt.com.channel import monitor_step
+from teleop_rt.com.codec import codec_line_ahead
 from teleop_rt.com.link import link_deliver, link_offsets, link_push
+from teleop_rt.com.port import HSI, TO
 from teleop_rt.flat import Block, Int, floats_of, ints_of, jit
 from teleop_rt.safety import SATURATED
 from teleop_rt.site_tick import (
@@ -70,6 +72,8 @@ def lockstep_before(f: np.ndarray, i: np.ndarray, o: np.ndarray, at: np.ndarray,
         i[finding] = 1
         return code
     link_deliver(f, i, at, n)
+    codec_line_ahead(f, i, at, n, TO, floats_of(f, oh, PORT), ints_of(i, oh, PORT))
+    codec_line_ahead(f, i, at, n, HSI, floats_of(f, ot, PORT), ints_of(i, ot, PORT))
     site_before_models(f, i, oh, n)
     site_before_models(f, i, ot, n)
     link_push(f, i, at, n)

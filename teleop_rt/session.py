@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pinocchio as pin
 
+from teleop_rt.com import codec
 from teleop_rt.com.channel import ChannelMonitor, monitor_step
 from teleop_rt.com.link import InProcessLink, Link
 from teleop_rt.com.port import WAVE
@@ -190,6 +191,11 @@ class Session:
             from teleop_rt.lockstep_fused import fuse_plants
 
             pair = fuse_plants(self.hsi.backend, self.to.backend)
+        if compiled_link and cfg.channel.codec != "none":
+            # the in-process link hands each packet over at once and plays it D ticks later:
+            # the receivers look D - 1 ticks ahead, the senders count on part of it
+            for site in self.sites:
+                codec.look_ahead(site.port, codec.ahead_ticks(cfg.delay_ticks))
         self._pack(pair)
         self.compiled_link = compiled_link
         self._boxed = [s for s in self.sites if s.guard.workspace is not None and s.guard.enabled]

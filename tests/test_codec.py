@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 
 from teleop_rt import config
 from teleop_rt.com import codec
-from teleop_rt.com.channel import make_port
+from teleop_rt.com.channel import TwoPort, make_port, make_ports
 from teleop_rt.com.codec import codec_receive, codec_send
 from teleop_rt.com.port import HSI, TO, Packet, port_input, port_step
 from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink, _first_difference
@@ -37,13 +37,17 @@ class CodecHarness:
 
     def __init__(self, mode: str, n: int = 1, filter_hz: float | None = None,
                  max_ticks: int = MAX_TICKS, predictions: tuple[str, str] = ("linear", "hold"),
-                 ) -> None:  # fmt: skip
+                 arrival: int | None = None, ahead_ticks: int = 0) -> None:  # fmt: skip
         self.n = n
         self.ports = [make_port(side, mode, [1.5] * n, 1, 1e-3, filter_hz, CODEC_RECONSTRUCTION)
                       for side in (HSI, TO)]  # fmt: skip
         for side, port in enumerate(self.ports):  # predictions: of the HSI's, of the TO's packets
             codec.configure(port, WEBER, FLOOR, 1, max_ticks, 0.0, predictions[side],
                             predictions[1 - side])  # fmt: skip
+            codec.look_ahead(port, ahead_ticks)  # (the senders' model of it: any)
+        # the look-ahead: a packet has arrived ``arrival`` ticks after it was sent (None: none
+        # is known before it is due); the newest arrived is the receiver's, due or not
+        self.arrival = arrival
         self.tx = [Packet(n), Packet(n)]
         self.rx = [Packet(n), Packet(n)]
         self.sent: list[list[tuple[np.ndarray, np.ndarray]]] = [[], []]
@@ -64,11 +68,21 @@ class CodecHarness:
                     rx.f[:], rx.i[:] = pf, pi
                     self.last[side] = s
             port, tx = self.ports[side], self.tx[side]
+            if self.arrival is not None:
+                port.codec_ahead[:] = self.newest_arrived(1 - side, k - self.arrival)
             codec_receive(port.f, port.i, self.n, rx.f, rx.i)
             port_step(port.f, port.i, self.n, rx.f, rx.i, tx.f)
             codec_send(port.f, port.i, self.n, tx.f, tx.i)
         for side in (HSI, TO):
             self.sent[side].append((self.tx[side].f.copy(), self.tx[side].i.copy()))
+
+    def newest_arrived(self, sender: int, by: int) -> np.ndarray:
+        """The wave energy declared in ``sender``'s newest packet sent at or before ``by``."""
+        for s in range(min(by, len(self.sent[sender]) - 1), -1, -1):
+            pf, pi = self.sent[sender][s]
+            if not pi[Packet.unsent.k]:
+                return pf[Packet.wave_energy.k * self.n : (Packet.wave_energy.k + 1) * self.n]
+        return np.zeros(self.n)
 
     def lowest(self) -> float:
         h, t = self.ports
@@ -86,6 +100,19 @@ def test_ports_with_the_codec_are_passive_for_any_delays_losses_and_inputs(
     schedule, mode, filter_hz, max_ticks, predictions
 ) -> None:
     harness = CodecHarness(mode, 1, filter_hz, max_ticks, predictions)
+    assert drive(harness, schedule) >= PASSIVE_J
+
+
+@settings(max_examples=150, deadline=None)
+@given(schedule=schedules(150), filter_hz=st.sampled_from([None, 30.0]),
+       max_ticks=st.sampled_from([5, 50]), predictions=st.tuples(PREDICTION, PREDICTION),
+       arrival=st.integers(1, 12), ahead_ticks=st.sampled_from([0, 3, 19]))  # fmt: skip
+def test_a_look_ahead_of_the_room_stays_passive_for_any_delays_losses_and_arrivals(
+    schedule, filter_hz, max_ticks, predictions, arrival, ahead_ticks
+) -> None:
+    """The receiver's budget counts the newest declared energy that has arrived, due or not
+    (any arrival lag, whatever delay plays it, whatever the senders assume): passive."""
+    harness = CodecHarness("wave", 1, filter_hz, max_ticks, predictions, arrival, ahead_ticks)
     assert drive(harness, schedule) >= PASSIVE_J
 
 
@@ -272,12 +299,15 @@ def test_sessions_with_the_codec_stay_passive_under_impairments(mode: str, impai
         assert c["hsi"]["sent"] > 0 and c["hsi"]["silent_ticks"] > 0  # the codec was at work
 
 
-def test_the_links_carry_only_what_the_codec_sent() -> None:
+def test_the_links_carry_only_what_the_codec_sent(monkeypatch: pytest.MonkeyPatch) -> None:
     """Over the impaired link (no impairment) every packet sent arrives and nothing else:
     the receivers count exactly the codec's packets, and the run equals the same codec over
-    the compiled in-process link, bit for bit."""
+    the compiled in-process link, bit for bit, its senders counting on no look-ahead (the
+    impaired link's playout gives none: its receivers' extra room is then never used)."""
     base = ["duration_s=3", "channel.delay_ms=20", "channel.codec=deadband"]
-    plain = session(CONFIGS / "stiff_wall.yaml", base)
+    with monkeypatch.context() as m:
+        m.setattr(codec, "AHEAD_TICKS", 0)
+        plain = session(CONFIGS / "stiff_wall.yaml", base)
     impaired = session(CONFIGS / "stiff_wall.yaml", base, {})
     for side, peer in (("hsi", "to"), ("to", "hsi")):
         sent = impaired.summary.channel["codec"][peer]["sent"]
@@ -361,3 +391,31 @@ def test_over_zenoh_a_silent_codec_is_no_lost_peer_and_a_lost_peer_still_stops()
         assert link.silence(4600) is None
     finally:
         link.close()
+
+
+def test_the_in_process_look_ahead_is_the_newest_packet_arrived_and_the_bound_never_cuts() -> None:
+    """D = 20, no loss: at every tick each port's look-ahead is exactly the wave energy the
+    peer declared in its newest packet sent 1 .. D - 1 ticks before (arrived, not due: never
+    this tick's, never one not sent); the senders' model of the peer's room then holds (the
+    bound never cuts) and the ports emit no more than the peer had sent by then."""
+    d, ticks = 20, 3000
+    h, t = make_ports("wave", [1.5], d, 1e-3, None, CODEC_RECONSTRUCTION)
+    for port, mine, peers in ((h, "linear", "hold"), (t, "hold", "linear")):
+        codec.configure(port, WEBER, FLOOR, 1, 100, 0.0, mine, peers)
+        codec.look_ahead(port, codec.ahead_ticks(d))
+    two = TwoPort(1, h, t, d, 1e-3)
+    x = smooth(ticks)
+    sent: list[list[tuple[bool, float]]] = [[], []]  # per side, per tick: sent, declared
+    for k in range(ticks):
+        two.step([x[k]], [-0.5 * x[k]])
+        for side, (port, other) in enumerate(((h, t), (t, h))):
+            newest = next((e for s, e in reversed(sent[1 - side][max(0, k - d + 1):k]) if s),
+                          0.0)  # fmt: skip
+            assert port.codec_ahead[0] == newest
+            assert port.used_energy[0] <= other.wave_energy[0] + 1e-12
+        for side, tx in enumerate((two.tx_h, two.tx_t)):
+            sent[side].append((not tx.unsent, float(tx.wave_energy[0])))
+    assert h.acted == 0 and t.acted == 0
+    for side in sent:  # a packet at the latest every A + 1 ticks: the peer's room in time
+        ticks_sent = [k for k, (s, _) in enumerate(side) if s]
+        assert max(np.diff(ticks_sent)) <= codec.ahead_ticks(d) + 1

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop_rt.com.codec import codec_receive, codec_send
+from teleop_rt.com.codec import codec_line_ahead, codec_receive, codec_send
 from teleop_rt.com.link import InProcessLink, link_deliver, link_offsets, link_push
 from teleop_rt.com.port import (
     EFFORT,
@@ -146,6 +146,8 @@ def two_port_step(
     for tx in (TP_TX_H, TP_TX_T):  # tick and sequence number count from 0, as a site's do
         ints_of(i, o, tx)[P_VALID] = 1
     link_deliver(f, i, at, n)
+    codec_line_ahead(f, i, at, n, TO, ph, pih)
+    codec_line_ahead(f, i, at, n, HSI, pt, pit)
     rxi_h, rxi_t = ints_of(i, o, TP_RX_H), ints_of(i, o, TP_RX_T)
     codec_receive(ph, pih, n, rx_h, rxi_h)
     codec_receive(pt, pit, n, rx_t, rxi_t)

@@ -182,6 +182,8 @@ class Port(Block):
     codec_rx_slope = Vector("the slope of the peer's last two packets, per tick")
     codec_rx_sum = Vector("TDPA: dt times the sum of the peer's values as reconstructed here")
     codec_debt = Vector("TDPA: the peer's x integral minus the one reconstructed, not yet paid")
+    codec_ahead = Vector("the wave energy the peer declared in its newest packet that has "
+                         "arrived but is not due yet, J (the link's look-ahead; 0: none)")
     codec_weber = Scalar("Weber fraction of the deadband", param=True)
     codec_floor = Scalar("its absolute floor, in the signal's units", param=True)
     codec_velocity_gain = Scalar("velocity-adaptive gain, s/rad (0: constant)", param=True)
@@ -195,6 +197,8 @@ class Port(Block):
     codec = Int("0: a packet every tick; 1: the deadband codec", param=True)
     codec_min = Int("the fewest ticks between two packets sent", param=True)
     codec_max = Int("the most ticks between two packets sent", param=True)
+    codec_ahead_ticks = Int("the look-ahead the link gives the peer: a packet reaches it this "
+                            "many ticks before it is due (0: none known)", param=True)
     codec_rx_seq = Int("sequence number of the peer's last packet (-1: none)")
     codec_since = Int("ticks since this port last sent")
     codec_age = Int("ticks since the peer's last packet")
