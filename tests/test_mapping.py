@@ -356,14 +356,6 @@ def test_a_scara_drives_a_ur5_in_the_plane(delay_ms: int) -> None:
     assert summary.min_channel_energy_j >= PASSIVE_J and summary.stopped_early is None
 
 
-def test_a_pair_of_other_joint_counts_is_not_recorded(tmp_path) -> None:
-    from teleop_rt.recording.recorder import Recorder
-
-    session = Session(config.load(CONFIGS / "task_space" / "scara_ur5_plane.yaml"))
-    with pytest.raises(ConfigError, match="run with --no-log"):
-        Recorder(session, tmp_path / "x.mcap")
-
-
 @pytest.mark.parametrize("space", ["joint", "plane"])
 def test_sites_alone_over_a_link_map_as_the_lock_step_session(space: str) -> None:
     """What a site in a process of its own runs (its sense / update over a Link) maps exactly
