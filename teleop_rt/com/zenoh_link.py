@@ -70,7 +70,7 @@ from teleop_rt.com.impairment import MAX_ARRIVALS, Impairment
 from teleop_rt.com.link import Link
 from teleop_rt.com.playout import Receiver
 from teleop_rt.com.port import HSI, Packet
-from teleop_rt.com.wire import OK, WireBuffer, encode_into, wire_size
+from teleop_rt.com.wire import OK, VERSION, WireBuffer, encode_into, wire_size
 from teleop_rt.com.zenoh_transport import ZenohTransport, zenoh_config
 from teleop_rt.errors import ConfigError, SafetyStop, TeleopError
 from teleop_rt.exit_signals import Terminated
@@ -353,7 +353,7 @@ class ZenohLink(Link):
         ``KeyboardInterrupt`` / ``Terminated`` at once on a stop signal."""
         timeout_s = self.cfg.link.handshake_timeout_s if timeout_s is None else timeout_s
         session = self.transport.session
-        mine = {"site": self.name, **shared_parts(self.cfg, self.n),
+        mine = {"site": self.name, "wire_version": VERSION, **shared_parts(self.cfg, self.n),
                 "peer_timeout_ms": self.cfg.link.peer_timeout_ms}  # fmt: skip
         if self.side == HSI:
             mine["session_id"] = random.getrandbits(63) or 1
@@ -425,8 +425,8 @@ class ZenohLink(Link):
         return f"; ignored {sum(ignored.values())} invalid hellos ({reasons})"
 
     def _check_compatible(self, mine: dict, theirs: dict) -> None:
-        for key in ("joints", "rate_hz", "delay_ticks", "channel", "peer_timeout_ms",
-                    "config_hash"):  # fmt: skip
+        for key in ("wire_version", "joints", "rate_hz", "delay_ticks", "channel",
+                    "peer_timeout_ms", "config_hash"):  # fmt: skip
             if theirs.get(key) != mine[key]:
                 name = "link.peer_timeout_ms" if key == "peer_timeout_ms" else key
                 if key == "channel" and isinstance(theirs.get(key), dict):
