@@ -46,8 +46,8 @@ def test_a_peer_of_another_wire_version_is_refused_in_one_line() -> None:
     from teleop_rt.com.wire import VERSION
     from teleop_rt.com.zenoh_link import HandshakeError, shared_parts
 
-    mine = {"site": "hsi", "wire_version": VERSION,
-            **shared_parts(config.load(PAPER), 2), "peer_timeout_ms": 100}  # fmt: skip
+    mine = {"site": "hsi", **shared_parts(config.load(PAPER), 2), "peer_timeout_ms": 100}
+    assert mine["wire_version"] == VERSION
     older = {k: v for k, v in mine.items() if k != "wire_version"} | {"site": "to"}
     for theirs, there in ((older, "None"), (older | {"wire_version": 3}, "3")):
         with pytest.raises(HandshakeError) as err:

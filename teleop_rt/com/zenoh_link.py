@@ -243,6 +243,7 @@ def certificate_names(path: Any) -> tuple[list[str], list[str]]:
 def shared_parts(cfg: SessionConfig, joints: int) -> dict:
     """What both sites must agree on, and a hash of it."""
     parts = {
+        "wire_version": VERSION,  # (the packet's layout: a peer of another is refused)
         "name": cfg.name,
         "joints": joints,
         "rate_hz": cfg.rate_hz,
@@ -353,7 +354,7 @@ class ZenohLink(Link):
         ``KeyboardInterrupt`` / ``Terminated`` at once on a stop signal."""
         timeout_s = self.cfg.link.handshake_timeout_s if timeout_s is None else timeout_s
         session = self.transport.session
-        mine = {"site": self.name, "wire_version": VERSION, **shared_parts(self.cfg, self.n),
+        mine = {"site": self.name, **shared_parts(self.cfg, self.n),
                 "peer_timeout_ms": self.cfg.link.peer_timeout_ms}  # fmt: skip
         if self.side == HSI:
             mine["session_id"] = random.getrandbits(63) or 1
