@@ -56,7 +56,13 @@ T_p compares (and T_tau compares tau_h with ``beta tau_e``). The operator away f
 
 Live inputs: with ``can.hsi.clutch_input`` / ``presence_input`` (a drive's 0x60FD bit) the
 HSI's map also reads the backend's ``Feedback.inputs`` each tick, with the same ramp and
-timeout; only the HSI decouples (no packet tells the TO): the TO, fed a flow of 0, holds.
+timeout. Its coupling state goes to the TO in every packet (``Packet.engaged``), and the TO's
+map (``follow``) decouples on it, as on its script: r = 0, so its port is terminated (a matched
+damper absorbs what is left of the waves in the channel: none of it is replayed on release)
+and the same ramp on re-engaging. The TO reads the state of the packet of the tick before
+(its port input goes out before this tick's packet arrives): it decouples D + 1 ticks after
+the HSI, where the script shifted by D (kept for a scripted operator: the reference figures
+bit for bit) does it after D.
 
 With the identity (alpha = beta = 1, no script) the block is inactive and the sites compute
 exactly what they computed before it existed.
@@ -108,6 +114,9 @@ class Mapping(Block):
     live = Int("the live inputs read (INPUT_CLUTCH | INPUT_PRESENT bits; 0: script only)",
                param=True)
     live_away = Int("ticks the live presence input has been off, in a row")
+    follow = Int("TO: 1: decoupled while the HSI's packets say so (it has live inputs)",
+                 param=True)
+    peer_engaged = Int("TO: the HSI's coupling state as of its newest packet (1: none yet)")
     coupled = Int("1: clutch released and operator present")
     engagements = Int("re-engagements so far")
     space = Int("JOINT or PLANE", param=True)
@@ -137,12 +146,13 @@ class Mapping(Block):
         ramp_s: float = 0.0, step_limit: float = math.inf, timeout_ticks: int = -1,
         space: int = JOINT, joints: int | None = None, speed_limit: float = math.inf,
         force_limit: float = math.inf, walls: list[tuple[float, ...]] | None = None,
-        live: int = 0,
+        live: int = 0, follow: bool = False,
     ) -> None:  # fmt: skip
         """``n``: the port's size (the joints, or TASK in the plane); ``joints``: the robot's
         (default n). ``speed_limit``, ``force_limit``, ``walls`` (x, y, nx, ny, k, d each):
         the TO's tool limits in the plane (``teleop_rt.task_limits``). ``live``: the
-        backend's inputs (``Feedback.inputs``) read besides the script, INPUT_* bits."""
+        backend's inputs (``Feedback.inputs``) read besides the script, INPUT_* bits;
+        ``follow``: the TO decouples while the HSI's packets say it is decoupled."""
         clutch, absent, walls = clutch or [], absent or [], walls or []
         script = 2 * (len(clutch) + len(absent))
         nj = n if joints is None else joints
@@ -171,10 +181,10 @@ class Mapping(Block):
             at = 2 * len(clutch) * k
             tail[at : at + len(intervals)] = [a for a, _ in intervals]
             tail[at + len(intervals) : at + 2 * len(intervals)] = [b for _, b in intervals]
-        self.live = live
+        self.live, self.follow, self.peer_engaged = live, int(follow), 1
         self.active = int(
             motion_scale != 1.0 or force_scale != 1.0 or bool(clutch or absent) or space != JOINT
-            or live != 0
+            or live != 0 or follow
         )  # fmt: skip
         self.gain, self.coupled = 1.0, 1
 
@@ -195,6 +205,7 @@ M_CLUTCH_AT, M_ABSENT_AT, M_COUPLED, M_ENGAGEMENTS = (
 )  # fmt: skip
 M_SPACE, M_KIN_AT, M_JOINTS = Mapping.space.k, Mapping.kin_at.k, Mapping.joints.k
 M_LIVE, M_LIVE_AWAY = Mapping.live.k, Mapping.live_away.k
+M_FOLLOW, M_PEER_ENGAGED = Mapping.follow.k, Mapping.peer_engaged.k
 M_LIMITS, M_WALLS, M_SPEED_LIMIT, M_FORCE_LIMIT, M_SPEED_CAP, M_MIN_SPEED_CAP = (
     Mapping.limits.k, Mapping.walls.k, Mapping.speed_limit.k, Mapping.force_limit.k,
     Mapping.speed_cap.k, Mapping.min_speed_cap.k,
@@ -235,6 +246,8 @@ def mapping_engage(
     away = _inside(f, i, tail + 2 * clutches, absences, M_ABSENT_AT, tick)
     live = i[M_LIVE]
     if live & INPUT_CLUTCH and inputs & INPUT_CLUTCH:
+        clutched = True
+    if i[M_FOLLOW] and not i[M_PEER_ENGAGED]:  # the HSI decoupled, as its packet said
         clutched = True
     if live & INPUT_PRESENT and not inputs & INPUT_PRESENT:
         i[M_LIVE_AWAY] += 1  # (counted like the script's: 1 on the first tick away)
@@ -433,6 +446,7 @@ def mapping_for(cfg: SessionConfig, joints: int, side: int) -> Mapping:
         ticks(cfg.operator.clutch), ticks(cfg.operator.absent), spec.engage_ramp_s,
         spec.engage_step_nm, -1 if timeout is None else round(timeout * rate),
         space, joints, speed, force, walls, live_inputs(cfg) if side == HSI else 0,
+        side == TO and live_inputs(cfg) != 0,
     )  # fmt: skip
 
 

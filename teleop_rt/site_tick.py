@@ -24,6 +24,8 @@ from teleop_rt.com.port import (
     EFFORT,
     FLOW,
     HSI,
+    LAST_SEQ,
+    P_ENGAGED,
     P_SEQ,
     P_TICK,
     P_VALID,
@@ -37,9 +39,12 @@ from teleop_rt.hal.signals import FB_AGE_TICKS, FB_INPUTS, FB_Q, FB_TAU_EXT, FB_
 from teleop_rt.mapping import (
     M_ACTIVE,
     M_ALPHA,
+    M_COUPLED,
+    M_FOLLOW,
     M_GAIN,
     M_JOINTS,
     M_LIMITS,
+    M_PEER_ENGAGED,
     M_SPACE,
     N_MAPPING_VECTORS,
     PLANE,
@@ -140,6 +145,7 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
     i[ti + P_TICK] = i[si + S_TICK]
     i[ti + P_SEQ] = i[si + S_TICK]
     i[ti + P_VALID] = 1
+    i[ti + P_ENGAGED] = i[o[2 * MAP + 1] + M_COUPLED] if mapped else 1  # (the peer follows it)
     return 0
 
 
@@ -148,6 +154,11 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
     """From the received packet to the acceleration the model is evaluated at."""
     port, port_i = floats_of(f, o, PORT), ints_of(i, o, PORT)
     rx, rx_i, tx = floats_of(f, o, RX), ints_of(i, o, RX), floats_of(f, o, TX)
+    mi = o[2 * MAP + 1]
+    if i[mi + M_FOLLOW] and rx_i[P_VALID] and rx_i[P_SEQ] > port_i[LAST_SEQ]:
+        # the HSI's coupling state, from a packet that arrived (not the codec's hold): the
+        # next tick's map decouples on it
+        i[mi + M_PEER_ENGAGED] = rx_i[P_ENGAGED]
     codec_receive(port, port_i, n, rx, rx_i)
     port_step(port, port_i, n, rx, rx_i, tx)
     codec_send(port, port_i, n, tx, ints_of(i, o, TX))

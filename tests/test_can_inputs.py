@@ -37,7 +37,8 @@ def session_for(*overrides: str) -> Session:
 
 def run(session: Session, inputs) -> tuple[np.ndarray, object]:
     """Each tick: ``inputs(tick)`` -> {node: 0x60FD bits} onto the HSI's emulated drives (for
-    the next SYNC); rows of rendered torque r tau_c (2), q_h (2), q_t (2), r."""
+    the next SYNC); rows of rendered torque r tau_c (2), q_h (2), q_t (2), r, the TO's r and
+    the wave energy in flight on the link, J."""
     rows: list[np.ndarray] = []
 
     def observe(s: Session) -> None:
@@ -46,8 +47,10 @@ def run(session: Session, inputs) -> tuple[np.ndarray, object]:
             emu.by_node[node].digital_inputs = bits
         hsi = s.hsi
         rendered = hsi.signals.tau - hsi.signals.error
+        energy = s.channel.stored_energy()
         rows.append(np.concatenate([
-            rendered, hsi.feedback.q, s.to.feedback.q, [hsi.mapping.gain]
+            rendered, hsi.feedback.q, s.to.feedback.q, [hsi.mapping.gain, s.to.mapping.gain,
+                                                        energy]
         ]))  # fmt: skip
 
     summary = session.run(observer=observe)
@@ -141,3 +144,34 @@ def test_without_the_keys_no_tpdo3_and_the_mapping_stays_the_identity() -> None:
     session.run()
     assert session.hsi.mapping.active == 0 and session.hsi.mapping.live == 0
     assert not any(map(tpdo3_maps_0x60fd, session.hsi.backend.emulator.drives))
+
+
+DELAY_TICKS = 50  # channel.delay_ms=50 at 1 kHz
+
+
+def test_the_to_decouples_on_the_hsis_packets_and_drains_the_channel() -> None:
+    """The HSI's coupling state rides in its packets (``Packet.engaged``): the TO decouples
+    D + 1 ticks after the HSI (the packet of the HSI's first decoupled tick reaches the TO
+    after D, and is read by its next tick's map) and its port is terminated, a matched damper
+    that absorbs the waves left in the channel while the HSI, at zero flow, reflects them: in
+    closed form the lines are empty 2 D + 1 ticks after the TO decoupled (0 J), but for what
+    the received-wave filters (30 Hz here) still let out, which decays geometrically from
+    then on (measured at release: 1.3e-143 J; the TO coupled to the reflecting HSI kept
+    ~0.0028 J). On release the TO re-engages D + 1 ticks after the HSI, with the same
+    ramp."""
+    session = session_for(CLUTCH)
+    rows, summary = run(session, clutch_pressed())
+    assert summary.stopped_early is None
+    hsi_gain, to_gain, energy = rows[:, 6], rows[:, 7], rows[:, 8]
+    hsi_off, to_off = np.flatnonzero(hsi_gain == 0), np.flatnonzero(to_gain == 0)
+    assert to_off[0] - hsi_off[0] == DELAY_TICKS + 1, (hsi_off[0], to_off[0])
+    assert to_off[-1] - hsi_off[-1] == DELAY_TICKS + 1 and len(to_off) == len(hsi_off)
+    release = hsi_off[-1]  # the HSI's last decoupled tick
+    assert energy[hsi_off[0]] > 1e-3  # (there was a wave to drain)
+    assert energy[release] <= 1e-9, energy[release]
+    assert (np.diff(energy[to_off[0] + 2 * DELAY_TICKS + 1 : release + 1]) <= 0).all()
+    assert session.to.mapping.engagements == 1
+    rise = np.diff(to_gain[to_off[-1] :])
+    step = session.to.mapping.ramp_step  # the TO's gain climbs by the ramp, no faster
+    assert rise.max() <= step * (1 + 1e-12) and 0 < to_gain[to_off[-1] + 1] < 1
+    assert summary.min_channel_energy_j >= -1e-9

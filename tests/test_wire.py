@@ -1,6 +1,7 @@
 """The packet's wire layout and its defensive decoder: the layout as documented (against an
 independent struct/zlib writer), bit-exact round trips, and bad bytes (random, truncated,
-bit-flipped, foreign, from the receiver's own side, non-finite, implausible, ahead, stale)
+bit-flipped, foreign, from the receiver's own side, non-finite, implausible (an ``engaged``
+flag other than 0 or 1 too), ahead, stale)
 rejected and counted by reason without ever raising or touching the packet given to the
 decoder."""
 
@@ -44,7 +45,7 @@ def packet(n: int, tick: int = 5, values: np.ndarray | None = None) -> Packet:
     p = Packet(n)
     p.f[:] = np.arange(1, p.f.size + 1) * 0.25 if values is None else values
     p.tick = p.seq = tick
-    p.valid = 1
+    p.valid = p.engaged = 1
     return p
 
 
@@ -55,9 +56,9 @@ def encoded(p: Packet, session: int = SESSION_ID, side: int = SENDER) -> bytes:
 def struct_layout(p: Packet, session: int, time_ns: int, side: int) -> bytes:
     """The layout of the module's docstring, written field by field with struct and zlib."""
     n = p.n
-    head = struct.pack("<4sBBHQQqq", b"TRWV", 3, side, n, session, p.seq, p.tick, time_ns)
+    head = struct.pack("<4sBBHQQqq", b"TRWV", 4, side, n, session, p.seq, p.tick, time_ns)
     vectors = (p.x, p.wave, p.wave_sum, p.x_sum, p.wave_energy, p.e_in, p.e_out)
-    body = head + struct.pack(f"<{7 * n}dd", *np.concatenate(vectors), p.energy)
+    body = head + struct.pack(f"<{7 * n}ddQ", *np.concatenate(vectors), p.energy, p.engaged)
     return body + struct.pack("<II", zlib.crc32(body), 0)
 
 
@@ -81,7 +82,7 @@ def test_the_layout_is_the_documented_one() -> None:
     for n, side in ((1, HSI), (2, TO), (7, HSI)):
         p = packet(n, tick=2**40 + 3)
         raw = bytes(encode_into(WireBuffer(n), p, SESSION_ID, -5, side))
-        assert len(raw) == wire_size(n) == 56 + 56 * n
+        assert len(raw) == wire_size(n) == 64 + 56 * n
         assert raw == struct_layout(p, SESSION_ID, -5, side)
 
 
@@ -103,6 +104,7 @@ def test_valid_packets_round_trip_bit_for_bit(n, data, tick, session, time_ns) -
     cumulative = data.draw(st.lists(non_negative, min_size=3 * n, max_size=3 * n))
     values = np.array([*signed, *cumulative, data.draw(finite)])
     p = packet(n, tick, values)
+    p.engaged = data.draw(st.sampled_from((0, 1)))
     raw = bytes(encode_into(WireBuffer(n), p, session, time_ns, SENDER))
     decoder, into = Decoder(n, SENDER), sentinel(n)
     assert decoder.decode(raw, session, into) == OK
@@ -125,7 +127,7 @@ def test_random_bytes_are_rejected_counted_and_never_written(raw) -> None:
 def test_random_bytes_of_the_right_size_with_a_valid_crc_never_raise(body) -> None:
     """Past the CRC: the header and values of random bytes are still checked."""
     decoder, into = Decoder(2, SENDER), sentinel(2)
-    raw = b"TRWV\x03\x01\x02\x00" + body[8:]
+    raw = b"TRWV\x04\x01\x02\x00" + body[8:]
     status = decoder.decode(reseal(raw + bytes(8)), SESSION_ID, into)
     assert status in (SESSION, NON_FINITE, IMPLAUSIBLE, OK)
     assert status == OK or untouched(into)
@@ -176,6 +178,7 @@ def test_each_reason_is_counted_under_its_own_name() -> None:
     good = encoded(p)
     case(good[:-1], SIZE)
     case(b"XRWV" + good[4:], MAGIC_VERSION)
+    case(reseal(good[:4] + bytes([3]) + good[5:]), MAGIC_VERSION)  # version 3: no engaged
     case(reseal(good[:4] + bytes([2]) + good[5:]), MAGIC_VERSION)  # version 2: no side
     case(reseal(good[:4] + struct.pack("<H", 1) + good[6:]), MAGIC_VERSION)  # version 1
     case(good[:-8] + bytes([good[-8] ^ 1]) + good[-7:], CHECKSUM)
@@ -190,6 +193,8 @@ def test_each_reason_is_counted_under_its_own_name() -> None:
         case(with_value(k, big), IMPLAUSIBLE)
     for k, bad in ((8, -1e-9), (11, 11.0), (13, -1.0)):  # cumulative energies >= 0; bounded
         case(with_value(k, bad), IMPLAUSIBLE)
+    for flag in (2, 1 << 32, 2**64 - 1):  # engaged: 0 or 1, nothing else (a damaged flag)
+        case(reseal(good[:-16] + struct.pack("<Q", flag) + good[-8:]), IMPLAUSIBLE)
     q = packet(n, values=good_values.copy())
     q.seq = -1  # 2**64 - 1 on the wire
     case(encoded(q), IMPLAUSIBLE)
@@ -206,10 +211,10 @@ def test_each_reason_is_counted_under_its_own_name() -> None:
     newer = packet(n, tick=p.seq + 1, values=good_values.copy())
     assert decoder.decode(encoded(newer), SESSION_ID, into) == OK
     assert decoder.counts_by_reason() == {
-        "ok": 1, "size": 1, "magic_version": 3, "checksum": 1, "joints": 1, "session": 1,
-        "side": 1, "non_finite": 6, "implausible": 10, "ahead": 2, "stale": 2,
+        "ok": 1, "size": 1, "magic_version": 4, "checksum": 1, "joints": 1, "session": 1,
+        "side": 1, "non_finite": 6, "implausible": 13, "ahead": 2, "stale": 2,
     }  # fmt: skip
-    assert decoder.rejected == 28
+    assert decoder.rejected == 32
 
 
 def test_the_bounds_must_be_positive_and_finite() -> None:

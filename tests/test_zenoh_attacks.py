@@ -38,6 +38,27 @@ S = 1_000_000_000
 
 
 # --- hellos -------------------------------------------------------------------------------
+def test_a_peer_of_another_wire_version_is_refused_in_one_line() -> None:
+    """Version 4 added the packet's clutch state: a version-3 peer's hello carries no
+    ``wire_version`` (and its packets would all be dropped as ``magic_version``)."""
+    from types import SimpleNamespace
+
+    from teleop_rt.com.wire import VERSION
+    from teleop_rt.com.zenoh_link import HandshakeError, shared_parts
+
+    mine = {"site": "hsi", **shared_parts(config.load(PAPER), 2), "peer_timeout_ms": 100}
+    assert mine["wire_version"] == VERSION
+    older = {k: v for k, v in mine.items() if k != "wire_version"} | {"site": "to"}
+    for theirs, there in ((older, "None"), (older | {"wire_version": 3}, "3")):
+        with pytest.raises(HandshakeError) as err:
+            ZenohLink._check_compatible(SimpleNamespace(peer="to"), mine, theirs)  # type: ignore[arg-type]
+        assert str(err.value) == (
+            f"link: the to site runs another session: wire_version is {there} there, "
+            f"{VERSION} here"
+        )
+    ZenohLink._check_compatible(SimpleNamespace(peer="to"), mine, mine | {"site": "to"})  # type: ignore[arg-type]
+
+
 def test_a_hello_is_checked_like_a_packet() -> None:
     now, past = 10**18, 10 * S
     good = {"site": "hsi", "session_id": 5, "start_ns": now + S}

@@ -19,6 +19,7 @@ from teleop_rt.com.port import (
     EFFORT,
     FLOW,
     HSI,
+    P_ENGAGED,
     P_SEQ,
     P_TICK,
     P_VALID,
@@ -145,6 +146,7 @@ def two_port_step(
     port_input(pt, pit, n, tau_t, tx_t)
     for tx in (TP_TX_H, TP_TX_T):  # tick and sequence number count from 0, as a site's do
         ints_of(i, o, tx)[P_VALID] = 1
+        ints_of(i, o, tx)[P_ENGAGED] = 1  # (no operator map: always coupled)
     link_deliver(f, i, at, n)
     codec_line_ahead(f, i, at, n, TO, ph, pih)
     codec_line_ahead(f, i, at, n, HSI, pt, pit)

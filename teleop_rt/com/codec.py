@@ -77,6 +77,7 @@ from teleop_rt.com.port import (
     MODE,
     N_PORT_VECTORS,
     P_E_IN,
+    P_ENGAGED,
     P_SEQ,
     P_SUM,
     P_TICK,
@@ -138,6 +139,7 @@ C_SENT, C_BY_THRESHOLD, C_BY_INTERVAL, C_BY_ENERGY = (
     Port.codec_sent.k, Port.codec_by_threshold.k, Port.codec_by_interval.k, Port.codec_by_energy.k
 )  # fmt: skip
 C_SILENT, C_HELD, C_EXPIRED = Port.codec_silent.k, Port.codec_held.k, Port.codec_expired.k
+C_ENGAGED = Port.codec_engaged.k
 
 
 def configure(
@@ -332,7 +334,10 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
                 short = True
     first = i[C_SENT] == 0
     due = since >= i[C_MAX] or (ahead and since > i[C_AHEAD_TICKS])
-    if first or due or (since >= i[C_MIN] and (crossed or short)):
+    # the clutch or presence changed: the peer decouples on it, so it goes out now
+    changed = tx_i[P_ENGAGED] != i[C_ENGAGED]
+    crossed = crossed or changed
+    if first or due or changed or (since >= i[C_MIN] and (crossed or short)):
         if crossed or first:
             i[C_BY_THRESHOLD] += 1
         elif short:
@@ -340,6 +345,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
         else:
             i[C_BY_INTERVAL] += 1
         i[C_SENT] += 1
+        i[C_ENGAGED] = tx_i[P_ENGAGED]
         tx_i[P_UNSENT] = 0
         since_sent, since = since, 0
         for j in range(n):

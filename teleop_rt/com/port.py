@@ -122,6 +122,8 @@ class Packet(Block):
     seq = Int("sequence number")
     valid = Int("1: a packet; 0: none arrived")
     unsent = Int("1: the sender's codec sent nothing this tick (the links carry nothing)")
+    engaged = Int("the sender's operator map: 1 coupled, 0 decoupled (the HSI's clutch pressed "
+                  "or its operator away; teleop_rt.mapping); the wire carries 0 or 1")
 
 
 class Port(Block):
@@ -209,6 +211,7 @@ class Port(Block):
     codec_silent = Int("ticks this port sent nothing")
     codec_held = Int("ticks with no packet from the peer, its last value held")
     codec_expired = Int("ticks with no packet past the maximum interval (a loss)")
+    codec_engaged = Int("the coupling state of the last packet sent (a change is sent at once)")
     terminated = Int("1: the site is decoupled (teleop_rt.mapping): a matched damper b ends "
                      "the wave port, absorbing what arrives and sending no wave")
 
@@ -265,6 +268,7 @@ P_SUM, P_X_SUM, P_WAVE_ENERGY, P_E_IN, P_E_OUT = (
 )  # fmt: skip
 P_ENERGY = Packet.energy.k  # scalar, after the vectors
 P_TICK, P_SEQ, P_VALID, P_UNSENT = Packet.tick.k, Packet.seq.k, Packet.valid.k, Packet.unsent.k
+P_ENGAGED = Packet.engaged.k
 N_PACKET_VECTORS = len(Packet.VECTORS)
 B, SQRT_2B, SQRT_2_OVER_B = Port.b.k, Port.sqrt_2b.k, Port.sqrt_2_over_b.k
 FLOW, EFFORT, WAVE_OUT, WAVE_IN = Port.flow.k, Port.effort.k, Port.wave_out.k, Port.wave_in.k

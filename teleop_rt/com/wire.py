@@ -1,11 +1,11 @@
 """The packet on the network: one fixed little-endian layout, encoded without allocation and
 decoded defensively.
 
-Layout (n joints; 56 + 56 n bytes, every field 8-byte aligned)::
+Layout (n joints; 64 + 56 n bytes, every field 8-byte aligned)::
 
     offset      type     field
     0           u32      magic b"TRWV"
-    4           u8       version (3)
+    4           u8       version (4)
     5           u8       the sender's side: 0 the HSI, 1 the TO
     6           u16      n, the joint count
     8           u64      session id (both sites' handshake agrees on it)
@@ -22,14 +22,17 @@ Layout (n joints; 56 + 56 n bytes, every field 8-byte aligned)::
                 f64[n]   E_in per joint, J (monotone)           |  in its order
                 f64[n]   E_out per joint, J (monotone)          |
                 f64      energy crossed the sender's port, J    /
-    48 + 56 n   u32      CRC-32 (zlib's) of every byte before it
-    52 + 56 n   u32      zero
+    48 + 56 n   u64      engaged: 1 the sender's operator map couples, 0 it is decoupled (the
+                         HSI's clutch pressed or its operator away: the TO decouples on it)
+    56 + 56 n   u32      CRC-32 (zlib's) of every byte before it
+    60 + 56 n   u32      zero
 
 The decoder rejects, and counts by reason, a packet of the wrong size, magic or version, a
 corrupted one (CRC), one for another joint count or session, one sent by the receiver's own
 side (``side``: its own packets reflected back, or a second site of its role), one holding a
 non-finite value or a magnitude beyond the bounds it was given (the integrals within the
-energy bound's magnitude; the cumulative wave energy, E_in and E_out also >= 0), one whose
+energy bound's magnitude; the cumulative wave energy, E_in and E_out also >= 0; ``engaged``
+0 or 1: ``implausible``), one whose
 sequence number or tick is beyond the newest the receiver can play (``ahead``: the playout's
 early horizon; a forged jump of the sequence would otherwise make every genuine packet stale),
 and one whose sequence number is not newer than the newest one the receiver has used
@@ -56,7 +59,8 @@ if sys.byteorder != "little":  # the layout is read through native views
     raise ImportError("teleop_rt.com.wire needs a little-endian host")
 
 MAGIC = int.from_bytes(b"TRWV", "little")
-VERSION = 3  # 2: the integrals, wave energy and E_in/E_out per joint; 3: the sender's side
+# 2: the integrals, wave energy and E_in/E_out per joint; 3: the sender's side; 4: engaged
+VERSION = 4
 NO_LIMIT = (1 << 63) - 1  # ``decode``'s newest tick when the caller bounds nothing
 HEADER_WORDS = 5  # magic/version/n, session, seq, tick, time
 W_ID, W_SESSION, W_SEQ, W_TICK, W_TIME = range(HEADER_WORDS)
@@ -76,7 +80,7 @@ USED_SEQ, SENDER_TIME, SEEN_TICK, COUNTS = range(4)  # the decoder's state, then
 
 def wire_size(n: int) -> int:
     """Bytes of a packet of ``n`` joints."""
-    return 8 * (HEADER_WORDS + N_FLOATS_PER_JOINT * n + 1 + 1)
+    return 8 * (HEADER_WORDS + N_FLOATS_PER_JOINT * n + 1 + 1 + 1)  # floats, engaged, CRC
 
 
 def _as_i64(value: int) -> int:
@@ -137,7 +141,7 @@ def encode_into(
     return buffer.data
 
 
-I_TICK, I_SEQ = Packet.tick.k, Packet.seq.k
+I_TICK, I_SEQ, I_ENGAGED = Packet.tick.k, Packet.seq.k, Packet.engaged.k
 
 
 @jit
@@ -154,6 +158,7 @@ def _encode(
     for k in range(N_FLOATS_PER_JOINT * n + 1):
         floats[HEADER_WORDS + k] = pf[k]
     last = words.size - 1
+    words[last - 1] = pi[I_ENGAGED]
     words[last] = crc32(words.view(np.uint8), 8 * last)
 
 
@@ -264,6 +269,7 @@ def _decode(
         pi[I_SEQ] = words[W_SEQ]
         pi[I_VALID] = 1
         pi[I_UNSENT] = 0  # (it arrived: it was sent)
+        pi[I_ENGAGED] = words[words.size - 2]
         state[SENDER_TIME] = words[W_TIME]
     return status
 
@@ -301,6 +307,8 @@ def _check(
         if abs(floats[HEADER_WORDS + P_X_SUM * n + k]) > e_max:
             return IMPLAUSIBLE
     if abs(floats[HEADER_WORDS + m]) > e_max:
+        return IMPLAUSIBLE
+    if words[last - 1] != 0 and words[last - 1] != 1:  # engaged: a flag, nothing else
         return IMPLAUSIBLE
     for k in range(P_WAVE_ENERGY * n, m):  # cumulative energies: monotone from zero
         e = floats[HEADER_WORDS + k]

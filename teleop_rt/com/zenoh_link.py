@@ -70,7 +70,7 @@ from teleop_rt.com.impairment import MAX_ARRIVALS, Impairment
 from teleop_rt.com.link import Link
 from teleop_rt.com.playout import Receiver
 from teleop_rt.com.port import HSI, Packet
-from teleop_rt.com.wire import OK, WireBuffer, encode_into, wire_size
+from teleop_rt.com.wire import OK, VERSION, WireBuffer, encode_into, wire_size
 from teleop_rt.com.zenoh_transport import ZenohTransport, zenoh_config
 from teleop_rt.errors import ConfigError, SafetyStop, TeleopError
 from teleop_rt.exit_signals import Terminated
@@ -243,6 +243,7 @@ def certificate_names(path: Any) -> tuple[list[str], list[str]]:
 def shared_parts(cfg: SessionConfig, joints: int) -> dict:
     """What both sites must agree on, and a hash of it."""
     parts = {
+        "wire_version": VERSION,  # (the packet's layout: a peer of another is refused)
         "name": cfg.name,
         "joints": joints,
         "rate_hz": cfg.rate_hz,
@@ -425,8 +426,8 @@ class ZenohLink(Link):
         return f"; ignored {sum(ignored.values())} invalid hellos ({reasons})"
 
     def _check_compatible(self, mine: dict, theirs: dict) -> None:
-        for key in ("joints", "rate_hz", "delay_ticks", "channel", "peer_timeout_ms",
-                    "config_hash"):  # fmt: skip
+        for key in ("wire_version", "joints", "rate_hz", "delay_ticks", "channel",
+                    "peer_timeout_ms", "config_hash"):  # fmt: skip
             if theirs.get(key) != mine[key]:
                 name = "link.peer_timeout_ms" if key == "peer_timeout_ms" else key
                 if key == "channel" and isinstance(theirs.get(key), dict):
