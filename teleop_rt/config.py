@@ -58,6 +58,13 @@ class Strict(StrictModel):
     (teleop_rt.schema)."""
 
 
+def _nonzero_normal(v: list[float]) -> list[float]:
+    """A surface's normal: any direction, not the zero vector."""
+    if math.hypot(*v) < 1e-9:
+        raise ValueError("normal must not be the zero vector")
+    return v
+
+
 def _vec3(values: list[float], key: str) -> list[float]:
     if len(values) not in (2, 3):
         raise ValueError(f"{key} needs 2 (x, y) or 3 (x, y, z) numbers, got {len(values)}")
@@ -268,12 +275,7 @@ class VirtualWall(Strict):
             raise ValueError(f"{info.field_name} needs 2 numbers (x, y: the plane), got {len(v)}")
         return list(v)
 
-    @field_validator("normal")
-    @classmethod
-    def _nonzero(cls, v: list[float]) -> list[float]:
-        if math.hypot(*v) < 1e-9:
-            raise ValueError("normal must not be the zero vector")
-        return v
+    _nonzero = field_validator("normal")(classmethod(lambda cls, v: _nonzero_normal(v)))
 
 
 class ToolLimits(Strict):
@@ -421,12 +423,7 @@ class HalfPlane(Strict):
     def _xyz(cls, v: list[float], info: Any) -> list[float]:
         return _vec3(v, info.field_name)
 
-    @field_validator("normal")
-    @classmethod
-    def _nonzero(cls, v: list[float]) -> list[float]:
-        if math.hypot(*v) < 1e-9:
-            raise ValueError("normal must not be the zero vector")
-        return v
+    _nonzero = field_validator("normal")(classmethod(lambda cls, v: _nonzero_normal(v)))
 
 
 class WallSpec(HalfPlane):
