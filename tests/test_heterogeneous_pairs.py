@@ -25,7 +25,14 @@ from teleop_rt import config
 from teleop_rt.analysis.discrete import filter_group_delay_s
 from teleop_rt.session import Session, Summary
 from tests.conftest import CONFIGS
-from tests.test_mapping import CLUTCH, STROKES, TAU_STEP_BOUND_NM, WINDOW, re_engaged
+from tests.test_mapping import (
+    CLUTCH,
+    STROKES,
+    TAU_STEP_BOUND_NM,
+    WINDOW,
+    re_engaged,
+    run_in_the_plane,
+)  # fmt: skip
 from tests.test_passive_channels import CLASSES, assert_passive_and_bounded, run, write_traces
 
 PASSIVE_J = -1e-9
@@ -47,12 +54,7 @@ def test_a_pair_follows_and_feels_the_wall(name: str, n_hsi: int, n_to: int, del
     on the wall within 5 % (y, along the wall's normal); the channel's energy >= -1e-9 J."""
     session = Session(pair(name, f"channel.delay_ms={delay_ms}"))
     assert (session.hsi.n, session.to.n, session.n) == (n_hsi, n_to, 2)
-    rows: list[np.ndarray] = []
-    summary = session.run(observer=lambda s: rows.append(np.concatenate([
-        s.hsi.mapping.tau_mapped, s.to.mapping.tau_mapped,
-        s.hsi.mapping.q_mapped, s.to.mapping.q_mapped])))  # fmt: skip
-    a = np.array(rows)
-    follow = np.abs((a[:, 4:6] - a[0, 4:6]) - (a[:, 6:8] - a[0, 6:8])).max()
+    summary, a, follow = run_in_the_plane(session)
     assert follow < (1e-3 if delay_ms == 0 else 6e-3)
     held = a[HELD].mean(axis=0)
     assert held[3] < -3.0  # pressing the wall (N)

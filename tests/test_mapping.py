@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 
 from teleop_rt import config
 from teleop_rt.errors import ConfigError
-from teleop_rt.session import Session
+from teleop_rt.session import Session, Summary
 from tests.conftest import CONFIGS
 
 PASSIVE_J = -1e-9
@@ -334,6 +334,19 @@ def test_in_the_plane_the_operator_feels_beta_times_the_wall_force(delay_ms: int
     np.testing.assert_allclose(f_h, beta_f_e, rtol=0.05, atol=0.05)
 
 
+def run_in_the_plane(session: Session) -> tuple[Summary, np.ndarray, float]:
+    """Run a plane session: its summary, per tick the mapped forces and positions (tau_mapped
+    of the HSI, of the TO, then q_mapped of each: 2 columns each), and how far the TO's tool
+    moved otherwise than the HSI's from their start (m, largest)."""
+    rows: list[np.ndarray] = []
+    summary = session.run(observer=lambda s: rows.append(np.concatenate([
+        s.hsi.mapping.tau_mapped, s.to.mapping.tau_mapped,
+        s.hsi.mapping.q_mapped, s.to.mapping.q_mapped])))  # fmt: skip
+    a = np.array(rows)
+    follow = float(np.abs((a[:, 4:6] - a[0, 4:6]) - (a[:, 6:8] - a[0, 6:8])).max())
+    return summary, a, follow
+
+
 @pytest.mark.parametrize("delay_ms", [0, 50])
 def test_a_scara_drives_a_ur5_in_the_plane(delay_ms: int) -> None:
     """The heterogeneous pair (configs/task_space/scara_ur5_plane.yaml): the UR5's tool
@@ -343,12 +356,7 @@ def test_a_scara_drives_a_ur5_in_the_plane(delay_ms: int) -> None:
                       [f"channel.delay_ms={delay_ms}"])  # fmt: skip
     session = Session(cfg)
     assert (session.hsi.n, session.to.n, session.n) == (2, 6, 2) and not session.fused
-    rows: list[np.ndarray] = []
-    summary = session.run(observer=lambda s: rows.append(np.concatenate([
-        s.hsi.mapping.tau_mapped, s.to.mapping.tau_mapped,
-        s.hsi.mapping.q_mapped, s.to.mapping.q_mapped])))  # fmt: skip
-    a = np.array(rows)
-    follow = np.abs((a[:, 4:6] - a[0, 4:6]) - (a[:, 6:8] - a[0, 6:8])).max()
+    summary, a, follow = run_in_the_plane(session)
     assert follow < (1e-3 if delay_ms == 0 else 6e-3)
     held = a[3500:3900].mean(axis=0)
     assert abs(held[3]) > 1.0
