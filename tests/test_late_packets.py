@@ -149,7 +149,8 @@ CHANNELS = [("bounded", "wave"), ("corrected", "wave"), ("reflected", "wave"),
 
 @settings(max_examples=120, deadline=None)
 @given(schedule=network(240, 5), channel=st.sampled_from(CHANNELS),
-       policy=st.sampled_from(["newest", "fixed"]), filter_hz=st.sampled_from([None, 30.0]))  # fmt: skip
+       policy=st.sampled_from(["newest", "fixed"]),
+       filter_hz=st.sampled_from([None, 30.0]))  # fmt: skip
 def test_ports_fed_late_packets_by_the_playout_stay_passive(schedule, channel, policy,
                                                             filter_hz) -> None:  # fmt: skip
     to_to, to_hsi, x_h, x_t = schedule

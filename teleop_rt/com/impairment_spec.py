@@ -68,7 +68,9 @@ class ImpairmentSpec(_Strict):
         if self.loss_percent and self.gilbert_elliott is not None:
             raise ValueError("give loss_percent or gilbert_elliott, not both")
         if self.trace is not None:
-            others = [k for k in _MODEL_FIELDS if k in self.model_fields_set]
+            # a field at its default is no conflict: a log's config attachment writes them all
+            fields = type(self).model_fields
+            others = [k for k in _MODEL_FIELDS if getattr(self, k) != fields[k].default]
             if others:
                 raise ValueError(f"trace replaces {', '.join(others)}: give one or the other")
         steps = [self.delay_ms] + ([self.delay_step.delay_ms] if self.delay_step else [])
