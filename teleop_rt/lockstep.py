@@ -2,12 +2,11 @@
 
 The session packs both sites' blocks (``teleop_rt.site_tick.SITE_ORDER``, the HSI's then the
 TO's), the link, the channel monitor, the transparency metrics and the pair's own counters into
-one pair of buffers (``SESSION_ORDER``), so that one compiled call reaches everything:
-
-    lockstep_before:  both sites sense; the link delivers; both sites up to their models; the
-                      link takes this tick's packets; the monitor accounts the two-port's power
-    (Python)          RNEA of each robot
-    lockstep_after:   both sites' computed torque and checks; T_p, T_tau (eq 18)
+one pair of buffers (``SESSION_ORDER``), so that one compiled call reaches everything. The
+two kernels hold the stages of ``teleop_rt.tick_stages`` on either side of the RNEA calls, in
+``tick_stages.lockstep()``'s order: ``lockstep_before`` up to the monitor, ``lockstep_after``
+from computed torque to T_p, T_tau (``pair_monitor`` and ``pair_account`` are the pair's
+stages, shared with a session stepped from Python).
 
 Each site's arithmetic is its own kernel on its own blocks: the same kernels run a site alone,
 in a process of its own.
@@ -18,9 +17,8 @@ from __future__ import annotations
 import numpy as np
 
 from teleop_rt.com.channel import monitor_step
-from teleop_rt.com.codec import codec_line_ahead
-from teleop_rt.com.link import link_deliver, link_offsets, link_push
-from teleop_rt.com.port import HSI, TO
+from teleop_rt.com.exchange import link_exchange
+from teleop_rt.com.link import link_offsets, link_push
 from teleop_rt.flat import Block, Int, floats_of, ints_of, jit
 from teleop_rt.safety import SATURATED
 from teleop_rt.site_tick import (
@@ -71,14 +69,36 @@ def lockstep_before(f: np.ndarray, i: np.ndarray, o: np.ndarray, at: np.ndarray,
     if code:
         i[finding] = 1
         return code
-    link_deliver(f, i, at, n)
-    codec_line_ahead(f, i, at, n, TO, floats_of(f, oh, PORT), ints_of(i, oh, PORT))
-    codec_line_ahead(f, i, at, n, HSI, floats_of(f, ot, PORT), ints_of(i, ot, PORT))
+    link_exchange(
+        f, i, at, n, floats_of(f, oh, PORT), ints_of(i, oh, PORT), floats_of(f, ot, PORT),
+        ints_of(i, ot, PORT),
+    )  # fmt: skip
     site_before_models(f, i, oh, n)
     site_before_models(f, i, ot, n)
     link_push(f, i, at, n)
-    monitor_step(floats_of(f, o, MONITOR), n, floats_of(f, oh, PORT), floats_of(f, ot, PORT))
+    pair_monitor(f, o, n)
     return 0
+
+
+@jit
+def pair_monitor(f: np.ndarray, o: np.ndarray, n: int) -> None:
+    """The two-port's power and energy (eq 7, 8) from both sites' ports."""
+    port_h, port_t = floats_of(f, o, HSI_SITE + PORT), floats_of(f, o, TO_SITE + PORT)
+    monitor_step(floats_of(f, o, MONITOR), n, port_h, port_t)
+
+
+@jit
+def pair_account(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> None:
+    """What the pair counts once both sites' torques are checked: the ticks either robot
+    saturated, and T_p, T_tau (eq 18) of the sites' positions and torques."""
+    oh, ot = o[: 2 * SITE_BLOCKS], o[2 * SITE_BLOCKS : 4 * SITE_BLOCKS]
+    if i[oh[2 * GUARD + 1] + SATURATED] or i[ot[2 * GUARD + 1] + SATURATED]:
+        i[o[2 * PAIR + 1] + SATURATED_TICKS] += 1
+    accumulate(
+        floats_of(f, o, METRICS), ints_of(i, o, METRICS), n,
+        site_position(f, i, oh, n), site_position(f, i, ot, n),
+        site_torque(f, i, oh, n), site_torque(f, i, ot, n),
+    )  # fmt: skip
 
 
 @jit
@@ -96,11 +116,5 @@ def lockstep_after(
     if code:
         i[pair + FINDING_SITE] = 1
         return code
-    if i[oh[2 * GUARD + 1] + SATURATED] or i[ot[2 * GUARD + 1] + SATURATED]:
-        i[pair + SATURATED_TICKS] += 1
-    accumulate(
-        floats_of(f, o, METRICS), ints_of(i, o, METRICS), n,
-        site_position(f, i, oh, n), site_position(f, i, ot, n),
-        site_torque(f, i, oh, n), site_torque(f, i, ot, n),
-    )  # fmt: skip
+    pair_account(f, i, o, n)
     return 0

@@ -1,7 +1,8 @@
 """Two simulated plants run inside a one-process session's tick: the lock-step kernels
 (``teleop_rt.lockstep``) and both plants' compiled pieces (``teleop_rt.hal.sim``) in four
 compiled calls around the Pinocchio calls (six when loads act at the tools), instead of ten
-compiled calls and four backend method calls:
+compiled calls and four backend method calls (the stages' order is ``teleop_rt.tick_stages``'s
+lock-step one, the plants' read and write in place of the backends'):
 
     sense_and_prepare:  both plants' sensors; lockstep_before
     (Python)            RNEA of each controller model

@@ -1,22 +1,17 @@
 """A one-process session: the two sites (``teleop_rt.site``) joined by an in-process link,
 stepped in lock-step, in fast mode or in real time.
 
-One tick k (see docs/architecture.md), in this order:
-1. wait for the deadline (real-time mode);
-2. each site reads its backend (q, v, tau_ext) and checks its measurements;
-3. the link hands each site's port the packet due (eq 10: the peer's of D ticks ago, or of
-   this tick when D = 0); each port computes its output (eq 9): tau_c at the HSI, omega_t at
-   the TO, and the wave it sends;
-4. controllers: a_ref_h = C1(tau_h - tau_c), a_ref_t = C2(omega_t - v_t) (eq 4, 14);
-5. computed torque: g = M M_v^-1 a_ref + n - tau_ext (eq 2, 12), one RNEA per robot;
-6. each site's safety checks, then each writes its backend; T_p, T_tau (eq 18), the
-   channel's energy (eq 7, 8) and timing are accumulated.
+One tick k is the stages of ``teleop_rt.tick_stages`` (read, check, port input, the link's
+delivery, port, C1 / C2, M_v^-1 a_ref, the link's push, the monitor, RNEA, workspace, computed
+torque, guard, T_p / T_tau, write), run in lock-step: ``tick_stages.lockstep()`` is the order
+``step`` runs, ``tick_stages.phased()`` the order over a link stepped from Python
+(tests/test_tick_stages.py traces both). In real-time mode the loop waits for the deadline first.
 
-Steps 2-6 but the RNEA calls are compiled (``teleop_rt.lockstep`` around each site's kernels,
-``teleop_rt.site_tick``) and run on the blocks' state, packed into two flat buffers when the
-session is built (``teleop_rt.flat``). Backends that can (two simulated plants) run inside those
-kernels instead of through ``read`` / ``write`` (``teleop_rt.lockstep_fused``): bit for bit the
-same.
+All but the backend, Pinocchio and workspace calls are compiled (``teleop_rt.lockstep``
+around each site's kernels, ``teleop_rt.site_tick``) and run on the blocks' state, packed into
+two flat buffers when the session is built (``teleop_rt.flat``). Backends that can (two
+simulated plants) run inside those kernels instead of through ``read`` / ``write``
+(``teleop_rt.lockstep_fused``): bit for bit the same.
 """
 
 from __future__ import annotations
@@ -29,7 +24,7 @@ import numpy as np
 import pinocchio as pin
 
 from teleop_rt.com import codec
-from teleop_rt.com.channel import ChannelMonitor, monitor_step
+from teleop_rt.com.channel import ChannelMonitor
 from teleop_rt.com.link import InProcessLink, Link
 from teleop_rt.com.port import WAVE
 from teleop_rt.config import SessionConfig
@@ -42,13 +37,15 @@ from teleop_rt.lockstep import (
     link_at,
     lockstep_after,
     lockstep_before,
+    pair_account,
+    pair_monitor,
 )
 from teleop_rt.loop import TickClock
 from teleop_rt.mapping import JOINT
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
 from teleop_rt.task_limits import tool_limits_figures
-from teleop_rt.transparency_tick import TransparencyAccumulator, accumulate
+from teleop_rt.transparency_tick import TransparencyAccumulator
 
 if TYPE_CHECKING:
     from teleop_rt.lockstep_fused import FusedPlants
@@ -302,7 +299,8 @@ class Session:
 
     def _step_over(self, link: Link) -> None:
         """One tick of both sites through a link stepped from Python (an impaired one): each
-        site's own entry points, then the two-port's monitor and the metrics."""
+        site's own entry points, then the pair's stages on the session's buffers
+        (``tick_stages.phased``)."""
         hsi, to = self.hsi, self.to
         try:
             hsi.sense(link)
@@ -311,14 +309,9 @@ class Session:
         to.sense(link)
         hsi.update(link)
         to.update(link)
-        n, mon, met = self.n, self.monitor, self.metrics
-        monitor_step(mon.f, n, hsi.port.f, to.port.f)
-        if hsi.guard.saturated or to.guard.saturated:
-            self.pair.saturated_ticks += 1
-        q_h = hsi.mapping.q_mapped if hsi.mapping.active else hsi.feedback.q
-        tau_e = to.mapping.tau_mapped if to.mapping.active else to.signals.tau
-        q_t = to.mapping.q_mapped if to.mapping.active else to.feedback.q
-        accumulate(met.f, met.i, n, q_h, q_t, hsi.signals.tau, tau_e)
+        f, i, o, n = self._buffers  # the pair's stages: the same kernels as the lock-step's
+        pair_monitor(f, o, n)
+        pair_account(f, i, o, n)
         self.tick += 1
 
     def _read_to_after(self, exc: SafetyStop) -> SafetyStop:

@@ -7,7 +7,9 @@ receives, and its own signals. It knows the other site only through packets. ``H
 
 A site runs alone (``sense`` and ``update``, on buffers of its own, against any ``Link``), or
 as half of a one-process session, which packs both sites and steps them in lock-step
-(``teleop_rt.session``, ``teleop_rt.lockstep``); the arithmetic is the same compiled kernels.
+(``teleop_rt.session``, ``teleop_rt.lockstep``); the arithmetic is the same compiled kernels,
+and the order of both is ``teleop_rt.tick_stages``'s (``sense``: its sense phase, ``update``:
+the rest).
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""The compiled parts of one site's tick (one robot's loop), around the Pinocchio call:
+"""The compiled parts of one site's tick (one robot's loop), around the Pinocchio call (each
+kernel a run of consecutive stages of ``teleop_rt.tick_stages``):
 
     site_sense:          measured values finite; tau_h or tau_e; the port's input, into the
                          outgoing packet
@@ -19,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop_rt.com.codec import codec_receive, codec_send
+from teleop_rt.com.exchange import port_stage
 from teleop_rt.com.port import (
     EFFORT,
     FLOW,
@@ -31,7 +32,6 @@ from teleop_rt.com.port import (
     P_VALID,
     TERMINATED,
     port_input,
-    port_step,
 )
 from teleop_rt.control import A_DES, OUT, TAU, ct_finish, ct_prepare, pid_step
 from teleop_rt.flat import Block, Int, Vector, floats_of, ints_of, jit, vec
@@ -159,9 +159,7 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
         # the HSI's coupling state, from a packet that arrived (not the codec's hold): the
         # next tick's map decouples on it
         i[mi + M_PEER_ENGAGED] = rx_i[P_ENGAGED]
-    codec_receive(port, port_i, n, rx, rx_i)
-    port_step(port, port_i, n, rx, rx_i, tx)
-    codec_send(port, port_i, n, tx, ints_of(i, o, TX))
+    port_stage(port, port_i, n, rx, rx_i, tx, ints_of(i, o, TX))
     nj = i[o[2 * MAP + 1] + M_JOINTS]  # (n: the port's size)
     sig = floats_of(f, o, SIG)
     error, tau = vec(sig, S_ERROR, nj), vec(sig, S_TAU, nj)

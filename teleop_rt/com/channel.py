@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop_rt.com.codec import codec_line_ahead, codec_receive, codec_send
-from teleop_rt.com.link import InProcessLink, link_deliver, link_offsets, link_push
+from teleop_rt.com.exchange import link_exchange, port_stage
+from teleop_rt.com.link import InProcessLink, link_offsets, link_push
 from teleop_rt.com.port import (
     EFFORT,
     FLOW,
@@ -27,7 +27,6 @@ from teleop_rt.com.port import (
     Packet,
     Port,
     port_input,
-    port_step,
 )
 from teleop_rt.declarations import (
     DEFAULT_RECONSTRUCTION,
@@ -137,7 +136,8 @@ def two_port_step(
     f: np.ndarray, i: np.ndarray, o: np.ndarray, at: np.ndarray, n: int, omega_c: np.ndarray,
     tau_t: np.ndarray,
 ) -> None:  # fmt: skip
-    """A tick of both ports, the link and the monitor, in the order of a lock-step session."""
+    """A tick of both ports, the link and the monitor: the port stages of a lock-step pair
+    (``teleop_rt.tick_stages.TWO_PORT``), the port inputs given instead of sensed."""
     ph, pih = floats_of(f, o, TP_PORT_H), ints_of(i, o, TP_PORT_H)
     pt, pit = floats_of(f, o, TP_PORT_T), ints_of(i, o, TP_PORT_T)
     tx_h, rx_h = floats_of(f, o, TP_TX_H), floats_of(f, o, TP_RX_H)
@@ -147,16 +147,9 @@ def two_port_step(
     for tx in (TP_TX_H, TP_TX_T):  # tick and sequence number count from 0, as a site's do
         ints_of(i, o, tx)[P_VALID] = 1
         ints_of(i, o, tx)[P_ENGAGED] = 1  # (no operator map: always coupled)
-    link_deliver(f, i, at, n)
-    codec_line_ahead(f, i, at, n, TO, ph, pih)
-    codec_line_ahead(f, i, at, n, HSI, pt, pit)
-    rxi_h, rxi_t = ints_of(i, o, TP_RX_H), ints_of(i, o, TP_RX_T)
-    codec_receive(ph, pih, n, rx_h, rxi_h)
-    codec_receive(pt, pit, n, rx_t, rxi_t)
-    port_step(ph, pih, n, rx_h, rxi_h, tx_h)
-    port_step(pt, pit, n, rx_t, rxi_t, tx_t)
-    codec_send(ph, pih, n, tx_h, ints_of(i, o, TP_TX_H))
-    codec_send(pt, pit, n, tx_t, ints_of(i, o, TP_TX_T))
+    link_exchange(f, i, at, n, ph, pih, pt, pit)
+    port_stage(ph, pih, n, rx_h, ints_of(i, o, TP_RX_H), tx_h, ints_of(i, o, TP_TX_H))
+    port_stage(pt, pit, n, rx_t, ints_of(i, o, TP_RX_T), tx_t, ints_of(i, o, TP_TX_T))
     link_push(f, i, at, n)
     for tx in (TP_TX_H, TP_TX_T):
         tx_i = ints_of(i, o, tx)

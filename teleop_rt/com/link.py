@@ -11,6 +11,8 @@ lines (zeros until filled, like Drake's DiscreteTimeDelay). D = 0 hands each sit
 packet of the same tick: the sites must both have sent before either receives (the one-process
 session steps them in lock-step, sense then update). It is also a compiled block, so that the
 lock-step session runs the exchange inside its tick kernel (``link_deliver``, ``link_push``).
+There is one delay line: the ``Link`` methods, for sites stepped from Python, run the same
+kernels (``line_put``, ``line_get``) on the link's own buffers.
 """
 
 from __future__ import annotations
@@ -88,9 +90,8 @@ class InProcessLink(Block, Link):
 
     def receive(self, side: int, into: Packet) -> None:
         if self.delay_ticks:
-            entry, m = self._slot(1 - side), packet_floats(self.n)
-            into.f[:] = entry[:m]
-            into.i[:] = entry[m:]
+            start = line_start(self.i, 0, 0, self.n, 1 - side)
+            line_get(self.f, start, self.n, into.f, 0, into.i, 0)
             return
         sent = self._sent[1 - side]
         if sent is None:
@@ -101,18 +102,12 @@ class InProcessLink(Block, Link):
         self._ended[side] = True
         if not all(self._ended):
             return  # the lines move once both sites have used this tick's slot
-        if self.delay_ticks:
-            m = packet_floats(self.n)
+        if self.delay_ticks:  # the compiled lines' own kernels: one delay line, two callers
             for sender, packet in enumerate(self._sent):
                 assert packet is not None
-                entry = self._slot(sender)
-                if not packet.unsent:
-                    entry[:m] = packet.f
-                    entry[m:] = packet.i
-                else:  # not sent (the codec): nothing travels
-                    entry[:] = 0.0
-            slot = self.slot + 1
-            self.slot = 0 if slot == self.delay_ticks else slot
+                start = line_start(self.i, 0, 0, self.n, sender)
+                line_put(self.f, start, self.n, packet.f, 0, packet.i, 0)
+            next_slot(self.i, 0)
         self._sent, self._ended = [None, None], [False, False]
 
 
@@ -126,34 +121,47 @@ LF, LI, TXH, RXH, TXT, RXT = 0, 1, 2, 4, 6, 8
 
 
 @jit
-def _line_start(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int, sender: int) -> int:
-    """Float index of this tick's slot in the line of packets from ``sender`` (the block has
-    no vectors or scalars: the lines are its whole float buffer, forward then backward)."""
-    d = i[at[LI] + DELAY]
-    return at[LF] + (sender * d + i[at[LI] + SLOT]) * entry_size(n)
+def line_start(li: np.ndarray, link_i: int, link_f: int, n: int, sender: int) -> int:
+    """Float index of this tick's slot in the line of packets from ``sender``; ``link_i``,
+    ``link_f``: where the link's ints and floats start in ``li`` and its float buffer (the
+    block has no vectors or scalars: the lines are its whole float buffer, forward then
+    backward)."""
+    d = li[link_i + DELAY]
+    return link_f + (sender * d + li[link_i + SLOT]) * entry_size(n)
 
 
 @jit
-def line_store(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int, sender: int, p: int) -> None:
-    """Put the packet at offsets at[p], at[p + 1] from ``sender`` into this tick's slot (one
-    the codec did not send, as a zero packet: nothing travels)."""
-    s, m, pf, pi = _line_start(f, i, at, n, sender), packet_floats(n), at[p], at[p + 1]
-    sent = i[pi + P_UNSENT] == 0
+def line_put(
+    lines: np.ndarray, s: int, n: int, pf: np.ndarray, pf0: int, pi: np.ndarray, pi0: int
+) -> None:  # fmt: skip
+    """The packet at ``pf[pf0:]``, ``pi[pi0:]`` into the slot at ``lines[s:]`` (one the codec
+    did not send, as a zero packet: nothing travels)."""
+    m = packet_floats(n)
+    sent = pi[pi0 + P_UNSENT] == 0
     for k in range(m):
-        f[s + k] = f[pf + k] if sent else 0.0
+        lines[s + k] = pf[pf0 + k] if sent else 0.0
     for k in range(N_PACKET_INTS):
-        f[s + m + k] = i[pi + k] if sent else 0
+        lines[s + m + k] = pi[pi0 + k] if sent else 0
 
 
 @jit
-def line_load(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int, sender: int, p: int) -> None:
-    """The packet from ``sender`` in this tick's slot (pushed D ticks ago; zeros before) into
-    the packet at offsets at[p], at[p + 1]."""
-    s, m, pf, pi = _line_start(f, i, at, n, sender), packet_floats(n), at[p], at[p + 1]
+def line_get(
+    lines: np.ndarray, s: int, n: int, pf: np.ndarray, pf0: int, pi: np.ndarray, pi0: int
+) -> None:  # fmt: skip
+    """The packet in the slot at ``lines[s:]`` (pushed D ticks ago; zeros before) into the
+    packet at ``pf[pf0:]``, ``pi[pi0:]``."""
+    m = packet_floats(n)
     for k in range(m):
-        f[pf + k] = f[s + k]
+        pf[pf0 + k] = lines[s + k]
     for k in range(N_PACKET_INTS):
-        i[pi + k] = np.int64(f[s + m + k])
+        pi[pi0 + k] = np.int64(lines[s + m + k])
+
+
+@jit
+def next_slot(li: np.ndarray, link_i: int) -> None:
+    """Both lines on by one slot (after this tick's packets are in)."""
+    slot = li[link_i + SLOT] + 1
+    li[link_i + SLOT] = 0 if slot == li[link_i + DELAY] else slot
 
 
 @jit
@@ -168,18 +176,17 @@ def link_deliver(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int) -> None:
             i[at[RXT + 1] + k] = i[at[TXH + 1] + k]
             i[at[RXH + 1] + k] = i[at[TXT + 1] + k]
     else:
-        line_load(f, i, at, n, HSI, RXT)
-        line_load(f, i, at, n, 1 - HSI, RXH)
+        line_get(f, line_start(i, at[LI], at[LF], n, HSI), n, f, at[RXT], i, at[RXT + 1])
+        line_get(f, line_start(i, at[LI], at[LF], n, 1 - HSI), n, f, at[RXH], i, at[RXH + 1])
 
 
 @jit
 def link_push(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int) -> None:
     """This tick's packets into the lines (after both ports have written their waves)."""
     if i[at[LI] + DELAY]:
-        line_store(f, i, at, n, HSI, TXH)
-        line_store(f, i, at, n, 1 - HSI, TXT)
-        slot = i[at[LI] + SLOT] + 1
-        i[at[LI] + SLOT] = 0 if slot == i[at[LI] + DELAY] else slot
+        line_put(f, line_start(i, at[LI], at[LF], n, HSI), n, f, at[TXH], i, at[TXH + 1])
+        line_put(f, line_start(i, at[LI], at[LF], n, 1 - HSI), n, f, at[TXT], i, at[TXT + 1])
+        next_slot(i, at[LI])
 
 
 def link_offsets(offsets: np.ndarray, link: int, tx_h: int, rx_h: int, tx_t: int, rx_t: int):
