@@ -30,6 +30,7 @@ from teleop_rt.declarations import (
     MAX_DELAY_MS,
     ChannelMode,
     Reconstruction,
+    Space,
 )
 from teleop_rt.errors import ConfigError, quote
 from teleop_rt.hal.can.config import CanSpec
@@ -198,10 +199,11 @@ class ChannelSpec(Strict):
         if isinstance(data, dict) and data.get("codec", "none") != "none":
             data = {"wave_reconstruction": CODEC_RECONSTRUCTION, **data}
         return data
-    # what the channel couples (teleop_rt.mapping): joint j to joint j, or the tools' x-y
-    # velocity and force in the world plane (each site through its own Jacobian; 2 joints
-    # a side; wave_impedance then in N s/m)
-    space: Literal["joint", "plane"] = "joint"
+    # what the channel couples (teleop_rt.mapping): joint j to joint j, or the tools in task
+    # space, each site through its own Jacobian: the plane (x, y), position (x, y, z) or the
+    # pose (x, y, z and the orientation; wave_impedance then in N s/m, for the pose per
+    # component: 3 in N s/m, then 3 in N m s/rad)
+    space: Space = "joint"
 
 
 class FaultSpec(Strict):
@@ -584,6 +586,9 @@ class MappingSpec(Strict):
     engage_step_nm: PositiveFloat = 0.005
     # the operator away (operator.absent) for longer than this: a safety stop (None: never)
     presence_timeout_s: PositiveFloat | None = None
+    # channel.space: pose, at the TO: the gain K (1/s) of its orientation's correction toward
+    # the orientation the channel commanded, integrated on SO(3) (0: none)
+    orientation_gain_per_s: NonNegFloat = 5.0
 
 
 class SessionConfig(Strict):
@@ -662,10 +667,10 @@ class SessionConfig(Strict):
 
     @model_validator(mode="after")
     def _tool_limits_in_task_space(self) -> SessionConfig:
-        if self.safety.tool.active and self.channel.space == "joint":
+        if self.safety.tool.active and self.channel.space != "plane":
             raise ValueError(
-                "safety.tool: the tool's limits act in task space; they need "
-                "channel.space: plane"
+                "safety.tool: the tool's limits act in the task's plane; they need "
+                f"channel.space: plane (not {self.channel.space})"
             )
         return self
 

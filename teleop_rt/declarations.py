@@ -24,6 +24,12 @@ DEFAULT_RECONSTRUCTION: Reconstruction = "reflected"
 # the deadband codec holds waves within the honest bound (teleop_rt.com.codec): the one it takes
 CODEC_RECONSTRUCTION: Reconstruction = "bounded"
 
+# what the channel couples (channel.space; teleop_rt.mapping): joint j to joint j, or the tools
+# in task space, each robot through its own Jacobian: the plane (x, y), 3-D position (x, y, z),
+# or the pose (position and orientation: the twist and wrench, world axes at the tool)
+Space = Literal["joint", "plane", "position", "pose"]
+TASK_DIMS: dict[str, int] = {"plane": 2, "position": 3, "pose": 6}  # the port's vector length
+
 MAX_DELAY_MS = 10_000.0  # 10 s one way: beyond any teleoperation link, and bounded memory
 
 

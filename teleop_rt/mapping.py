@@ -76,16 +76,26 @@ import numpy as np
 
 from teleop_rt.com.port import HSI, TO
 from teleop_rt.config import SessionConfig
+from teleop_rt.declarations import TASK_DIMS
 from teleop_rt.flat import Block, Int, Scalar, Vector, jit, vec
 from teleop_rt.hal.signals import INPUT_CLUTCH, INPUT_PRESENT
+from teleop_rt.task_math import dls_inverse, so3_exp, so3_log, times, times_transposed
 
 PRESENCE_LOST = 200  # a site finding (teleop_rt.safety's codes are below 200)
-JOINT, PLANE = 0, 1  # channel.space: joint to joint, or the tools' x-y velocity and force
-SPACES = {"joint": JOINT, "plane": PLANE}
-TASK = 2  # the plane's dimension: the port's vectors hold x, y
+# channel.space: joint to joint, or the tools in task space: x-y velocity and force (PLANE),
+# x-y-z (POSITION), or the twist and wrench, world axes at the tool (POSE)
+JOINT, PLANE, POSITION, POSE = 0, 1, 2, 3
+SPACES = {"joint": JOINT, "plane": PLANE, "position": POSITION, "pose": POSE}
+TASK = TASK_DIMS["plane"]  # the plane's dimension: the port's vectors hold x, y
+POSE_DIM = TASK_DIMS["pose"]
 # damped least squares (Wampler 1986; Nakamura & Hanafusa 1986): J# = J^T (J J^T + l^2 I)^-1,
-# l in m (the SCARA's links are ~0.2 m: it acts within ~1 mm of a singular pose)
+# l in m (the SCARA's links are ~0.2 m: it acts within ~1 mm of a singular pose; in the pose
+# the same l, in rad, for the angular rows, whose singular values are ~1)
 DLS_DAMPING_M = 1e-3
+# the DLS "acts" while J's smallest singular value is below 10 l: there the damping takes
+# more than 1 % of the motion along the weakest direction (sigma^2 / (sigma^2 + l^2) < 0.99)
+DLS_ACTIVE_SINGULAR = 10.0 * DLS_DAMPING_M
+ROTATIONS = 5  # POSE: R, R0 (at the start), R_ref (the TO's reference), 2 scratch: 9 each
 WALL_FLOATS = 6  # a virtual wall in the tail: x, y, unit normal x, y, stiffness, damping
 
 
@@ -136,6 +146,16 @@ class Mapping(Block):
     max_wall_force = Scalar("N: the largest virtual wall force")
     speed_limited = Int("ticks the speed limit capped the gain")
     wall_ticks = Int("ticks a virtual wall pushed")
+    # task space (PLANE, POSITION, POSE): the DLS's report, and the pose's orientation
+    task = Int("the task's dimension (the port's size; 0: joint space)", param=True)
+    work_at = Int("POSITION, POSE: the DLS's Cholesky factor, then its singular vector",
+                  param=True)
+    rot_at = Int("POSE: the tool's rotations R, R0, R_ref and 2 scratch, 9 floats each",
+                 param=True)
+    orientation_gain = Scalar("POSE, TO: K, 1/s: the angular velocity K log(R_ref R^T)",
+                              param=True)
+    dls_ticks = Int("ticks whose J# the DLS took more than 1 % of (sigma_min < 10 l)")
+    min_singular = Scalar("the smallest singular value of J so far (inf: none yet)")
     # the script: starts then ends of the clutch, then of the absences; then (PLANE) the
     # kinematics, refreshed by ``map_kinematics`` after every tick
     TAIL_IS_STATE = False
@@ -146,23 +166,33 @@ class Mapping(Block):
         ramp_s: float = 0.0, step_limit: float = math.inf, timeout_ticks: int = -1,
         space: int = JOINT, joints: int | None = None, speed_limit: float = math.inf,
         force_limit: float = math.inf, walls: list[tuple[float, ...]] | None = None,
-        live: int = 0, follow: bool = False,
+        live: int = 0, follow: bool = False, orientation_gain: float = 0.0,
     ) -> None:  # fmt: skip
         """``n``: the port's size (the joints, or TASK in the plane); ``joints``: the robot's
         (default n). ``speed_limit``, ``force_limit``, ``walls`` (x, y, nx, ny, k, d each):
         the TO's tool limits in the plane (``teleop_rt.task_limits``). ``live``: the
         backend's inputs (``Feedback.inputs``) read besides the script, INPUT_* bits;
-        ``follow``: the TO decouples while the HSI's packets say it is decoupled."""
+        ``follow``: the TO decouples while the HSI's packets say it is decoupled.
+        ``orientation_gain``: POSE at the TO, K of its orientation's correction (1/s)."""
         clutch, absent, walls = clutch or [], absent or [], walls or []
         script = 2 * (len(clutch) + len(absent))
         nj = n if joints is None else joints
-        kin = 4 * nj + TASK + WALL_FLOATS * len(walls) if space == PLANE else 0
-        super().__init__(n, tail=script + kin)
+        m = n if space != JOINT else 0  # J (m x nj), J# (nj x m), the tool's m coordinates
+        kin = 2 * m * nj + m + WALL_FLOATS * len(walls) if space != JOINT else 0
+        work = m * m + m if m > TASK else 0  # the DLS's Cholesky factor and singular vector
+        rotations = 9 * ROTATIONS if space == POSE else 0
+        super().__init__(n, tail=script + kin + work + rotations)
+        self.task = m
+        self.work_at = self.tail_start + script + kin
+        self.rot_at = self.work_at + work
+        self.f[self.work_at + m * m : self.work_at + work] = 1.0 / math.sqrt(max(m, 1))
+        self.orientation_gain = orientation_gain if space == POSE and side == TO else 0.0
+        self.min_singular = math.inf
         self.speed_limit, self.force_limit, self.walls = speed_limit, force_limit, len(walls)
         self.limits = int(space == PLANE and (
             math.isfinite(speed_limit) or math.isfinite(force_limit) or bool(walls)))  # fmt: skip
         self.speed_cap = self.min_speed_cap = 1.0
-        wall_at = self.tail_start + script + 4 * nj + TASK
+        wall_at = self.tail_start + script + 2 * m * nj + m
         for k, wall in enumerate(walls):
             x, y, nx, ny, stiffness, damping = wall
             norm = math.hypot(nx, ny)  # (a unit normal: the penetration in m)
@@ -215,6 +245,10 @@ M_PEAK_SPEED, M_PEAK_FORCE, M_MAX_PENETRATION, M_MAX_WALL_FORCE = (
     Mapping.max_wall_force.k,
 )  # fmt: skip
 M_SPEED_LIMITED, M_WALL_TICKS = Mapping.speed_limited.k, Mapping.wall_ticks.k
+M_TASK, M_WORK_AT, M_ROT_AT, M_ORIENTATION_GAIN, M_DLS_TICKS, M_MIN_SINGULAR = (
+    Mapping.task.k, Mapping.work_at.k, Mapping.rot_at.k, Mapping.orientation_gain.k,
+    Mapping.dls_ticks.k, Mapping.min_singular.k,
+)  # fmt: skip
 N_MAPPING_VECTORS, N_MAPPING_SCALARS = len(Mapping.VECTORS), len(Mapping.SCALARS)
 
 
@@ -320,51 +354,118 @@ def to_map_gain(f: np.ndarray, n: int) -> None:
 
 @jit
 def map_kinematics(f: np.ndarray, i: np.ndarray, jac: np.ndarray, x: np.ndarray) -> None:
-    """PLANE: the tool's Jacobian rows x, y (of ``jac``, 6 x n, world-aligned), their damped
-    least-squares inverse J# = J^T (J J^T + l^2 I)^-1 and the tool's x, y (of ``x``), for the
-    next tick's map. The same J# maps flow in and effort out, so the map stays lossless
-    whatever l does to accuracy."""
-    k, n = i[M_KIN_AT], i[M_JOINTS]
-    jj, inv, pos = k, k + TASK * n, k + 4 * n
-    for a in range(TASK):
+    """Task space: the tool's Jacobian rows 0 to m - 1 (of ``jac``, 6 x n, world-aligned:
+    x, y in the plane, x, y, z for the position, and the angular rows after them in the
+    pose), their damped least-squares inverse J# = J^T (J J^T + l^2 I)^-1 and the tool's
+    position (of ``x``), for the next tick's map; the DLS's report. The same J# maps flow in
+    and effort out, so the map stays lossless whatever l does to accuracy."""
+    k, n, m = i[M_KIN_AT], i[M_JOINTS], i[M_TASK]
+    jj, inv, pos = k, k + m * n, k + 2 * m * n
+    for a in range(m):
         for j in range(n):
             f[jj + a * n + j] = jac[a, j]
+    for a in range(min(m, 3)):
         f[pos + a] = x[a]
-    # A = J J^T + l^2 I (2 x 2), then J# = J^T A^-1
-    a00 = a01 = a11 = 0.0
-    for j in range(n):
-        a00 += jac[0, j] * jac[0, j]
-        a01 += jac[0, j] * jac[1, j]
-        a11 += jac[1, j] * jac[1, j]
     damping = DLS_DAMPING_M * DLS_DAMPING_M
-    a00 += damping
-    a11 += damping
-    det = a00 * a11 - a01 * a01
-    b00, b01, b11 = a11 / det, -a01 / det, a00 / det
-    for j in range(n):
-        f[inv + j * TASK] = jac[0, j] * b00 + jac[1, j] * b01
-        f[inv + j * TASK + 1] = jac[0, j] * b01 + jac[1, j] * b11
+    if m > TASK:  # (Cholesky: teleop_rt.task_math)
+        sigma2 = dls_inverse(f, jac, n, m, damping, inv, i[M_WORK_AT])
+    else:  # the plane: A = J J^T + l^2 I (2 x 2), then J# = J^T A^-1
+        a00 = a01 = a11 = 0.0
+        for j in range(n):
+            a00 += jac[0, j] * jac[0, j]
+            a01 += jac[0, j] * jac[1, j]
+            a11 += jac[1, j] * jac[1, j]
+        half = 0.5 * (a00 - a11)  # sigma_min^2: J J^T's smaller eigenvalue
+        sigma2 = 0.5 * (a00 + a11) - math.sqrt(half * half + a01 * a01)
+        a00 += damping
+        a11 += damping
+        det = a00 * a11 - a01 * a01
+        b00, b01, b11 = a11 / det, -a01 / det, a00 / det
+        for j in range(n):
+            f[inv + j * TASK] = jac[0, j] * b00 + jac[1, j] * b01
+            f[inv + j * TASK + 1] = jac[0, j] * b01 + jac[1, j] * b11
+    s = N_MAPPING_VECTORS * m
+    sigma = math.sqrt(max(sigma2, 0.0))
+    f[s + M_MIN_SINGULAR] = min(f[s + M_MIN_SINGULAR], sigma)
+    if sigma < DLS_ACTIVE_SINGULAR:
+        i[M_DLS_TICKS] += 1
+
+
+@jit
+def map_orientation(f: np.ndarray, i: np.ndarray, rot: np.ndarray) -> None:
+    """POSE, after ``map_kinematics``: the tool's rotation R (``rot``, world), and the
+    orientation's coordinates for T_p, log(R R0^T) (rad, world axes: the rotation since the
+    start; their difference between the sites is the orientation error to first order, and
+    exact for rotations about one axis)."""
+    at, pos = i[M_ROT_AT], i[M_KIN_AT] + 2 * POSE_DIM * i[M_JOINTS]
+    for a in range(3):
+        for b in range(3):
+            f[at + 3 * a + b] = rot[a, b]
+    times_transposed(f, at, at + 9, at + 27)
+    so3_log(f, at + 27, pos + 3)
+
+
+@jit
+def start_orientation(f: np.ndarray, i: np.ndarray) -> None:
+    """POSE, at the start pose (after ``map_orientation``): R0 = R_ref = R, the coordinates 0."""
+    at, pos = i[M_ROT_AT], i[M_KIN_AT] + 2 * POSE_DIM * i[M_JOINTS]
+    for a in range(9):
+        f[at + 9 + a] = f[at + 18 + a] = f[at + a]
+    for a in range(3):
+        f[pos + 3 + a] = 0.0
+
+
+@jit
+def to_orientation_step(
+    f: np.ndarray, i: np.ndarray, g_dt: float, omega_t: np.ndarray, error: np.ndarray
+) -> None:  # fmt: skip
+    """POSE at the TO, after C2's error took J# of the channel's twist: the orientation's
+    correction J# (0, K e) added to it, e = log(R_ref R^T) the rotation (world axes) from the
+    tool's orientation to its reference; then R_ref <- exp(g dt omega) R_ref, the rotation the
+    channel commands this tick (g = r alpha), integrated on SO(3) for the next tick.
+
+    Why the TO keeps a reference on SO(3): the channel's integral of its angular flow is no
+    orientation (rotations do not commute), so unlike the position, which the wave integral
+    and TDPA's drift compensation carry, the orientation the TO lost to the DLS, its velocity
+    loop's lag or the one-tick stale J would never be taken up. With omega = K e about a fixed
+    axis, d/dt (R_ref R^T) = -(R_ref R^T) [omega]x gives de/dt = -K e: a first-order approach at
+    the rate K (Siciliano's closed-loop inverse kinematics, Robotica 1990, on SO(3)). Decoupled
+    (g = 0), R_ref stands still and the TO holds its orientation."""
+    at, nj = i[M_ROT_AT], i[M_JOINTS]
+    inv = i[M_KIN_AT] + POSE_DIM * nj
+    gain = f[N_MAPPING_VECTORS * POSE_DIM + M_ORIENTATION_GAIN]
+    if gain > 0.0:
+        e = at + 36  # (the second scratch: its first 3 floats)
+        times_transposed(f, at + 18, at, at + 27)
+        so3_log(f, at + 27, e)
+        for j in range(nj):
+            row = inv + j * POSE_DIM + 3
+            error[j] += gain * (f[row] * f[e] + f[row + 1] * f[e + 1] + f[row + 2] * f[e + 2])
+    so3_exp(f, g_dt * omega_t[3], g_dt * omega_t[4], g_dt * omega_t[5], at + 27)
+    times(f, at + 27, at + 18, at + 36)
+    for a in range(9):
+        f[at + 18 + a] = f[at + 36 + a]
 
 
 @jit
 def hsi_plane_input(
     f: np.ndarray, i: np.ndarray, n: int, v: np.ndarray, tau_h: np.ndarray
 ) -> None:  # fmt: skip
-    """PLANE at the HSI: omega_c = r J v_h; the indexing offset and the indexed tool position
-    alpha (x_h - offset); the operator's force J#^T tau_h (for T_tau). ``n``: the port's
-    size; the robot's joints are the block's ``joints``."""
+    """Task space at the HSI: omega_c = r J v_h; the indexing offset and the indexed tool
+    position alpha (x_h - offset); the operator's force J#^T tau_h (for T_tau). ``n``: the
+    port's size, the task's dimension; the robot's joints are the block's ``joints``."""
     s, k = N_MAPPING_VECTORS * n, i[M_KIN_AT]
     nj = i[M_JOINTS]
-    jj, inv, pos = k, k + TASK * nj, k + 4 * nj
+    jj, inv, pos = k, k + n * nj, k + 2 * n * nj
     r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
     x, q_mapped, offset = vec(f, X, n), vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
     force = vec(f, TAU_MAPPED, n)
-    for a in range(TASK):
+    for a in range(n):
         xd = 0.0
         fa = 0.0
         for j in range(nj):
             xd += f[jj + a * nj + j] * v[j]
-            fa += f[inv + j * TASK + a] * tau_h[j]
+            fa += f[inv + j * n + a] * tau_h[j]
         x[a] = r * xd
         offset[a] += (1.0 - r) * xd * dt
         q_mapped[a] = alpha * (f[pos + a] - offset[a])
@@ -376,27 +477,27 @@ def hsi_plane_render(
     f: np.ndarray, i: np.ndarray, n: int, tau_h: np.ndarray, tau_c: np.ndarray,
     error: np.ndarray,
 ) -> None:  # fmt: skip
-    """PLANE at the HSI: C1's error tau_h - r J^T F_c."""
+    """Task space at the HSI: C1's error tau_h - r J^T F_c."""
     s, jj, nj = N_MAPPING_VECTORS * n, i[M_KIN_AT], i[M_JOINTS]
     r = f[s + M_GAIN]
     for j in range(nj):
         rendered = 0.0
-        for a in range(TASK):
+        for a in range(n):
             rendered += f[jj + a * nj + j] * tau_c[a]
         error[j] = tau_h[j] - r * rendered
 
 
 @jit
 def to_plane_input(f: np.ndarray, i: np.ndarray, n: int, tau_e: np.ndarray) -> None:
-    """PLANE at the TO: the environment's force beta J#^T tau_e into tau_mapped."""
+    """Task space at the TO: the environment's force beta J#^T tau_e into tau_mapped."""
     nj = i[M_JOINTS]
-    s, inv = N_MAPPING_VECTORS * n, i[M_KIN_AT] + TASK * nj
+    s, inv = N_MAPPING_VECTORS * n, i[M_KIN_AT] + n * nj
     beta = f[s + M_BETA]
     force = vec(f, TAU_MAPPED, n)
-    for a in range(TASK):
+    for a in range(n):
         fa = 0.0
         for j in range(nj):
-            fa += f[inv + j * TASK + a] * tau_e[j]
+            fa += f[inv + j * n + a] * tau_e[j]
         force[a] = beta * fa
 
 
@@ -405,19 +506,22 @@ def to_plane_output(
     f: np.ndarray, i: np.ndarray, n: int, omega_t: np.ndarray, v: np.ndarray,
     error: np.ndarray,
 ) -> None:  # fmt: skip
-    """PLANE at the TO: C2's error r alpha J# omega_t - v_t; the indexing offset and the
-    indexed tool position x_t + offset."""
+    """Task space at the TO: C2's error r alpha J# omega_t - v_t (in the pose, with the
+    orientation's correction: ``to_orientation_step``); the indexing offset and the indexed
+    tool position x_t + offset."""
     s, k, nj = N_MAPPING_VECTORS * n, i[M_KIN_AT], i[M_JOINTS]
-    inv, pos = k + TASK * nj, k + 4 * nj
+    inv, pos = k + n * nj, k + 2 * n * nj
     r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
     g = r * alpha
     q_mapped, offset = vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
     for j in range(nj):
         v_ref = 0.0
-        for a in range(TASK):
-            v_ref += f[inv + j * TASK + a] * omega_t[a]
+        for a in range(n):
+            v_ref += f[inv + j * n + a] * omega_t[a]
         error[j] = g * v_ref - v[j]
-    for a in range(TASK):
+    if i[M_SPACE] == POSE:
+        to_orientation_step(f, i, g * dt, omega_t, error)
+    for a in range(n):
         offset[a] += (1.0 - r) * alpha * omega_t[a] * dt
         q_mapped[a] = f[pos + a] + offset[a]
 
@@ -442,12 +546,32 @@ def mapping_for(cfg: SessionConfig, joints: int, side: int) -> Mapping:
     walls = [(*w.point_m, *w.normal, w.stiffness_n_per_m, w.damping_n_s_per_m)
              for w in (tool.walls if limited else [])]  # fmt: skip
     return Mapping(
-        TASK if space == PLANE else joints, side, cfg.dt, spec.motion_scale, spec.force_scale,
+        port_size(cfg.channel.space, joints), side, cfg.dt, spec.motion_scale, spec.force_scale,
         ticks(cfg.operator.clutch), ticks(cfg.operator.absent), spec.engage_ramp_s,
         spec.engage_step_nm, -1 if timeout is None else round(timeout * rate),
         space, joints, speed, force, walls, live_inputs(cfg) if side == HSI else 0,
-        side == TO and live_inputs(cfg) != 0,
+        side == TO and live_inputs(cfg) != 0, spec.orientation_gain_per_s,
     )  # fmt: skip
+
+
+def port_size(space: str, joints: int) -> int:
+    """The port's vector length: the robot's joints, or the task's dimension."""
+    return TASK_DIMS.get(space, joints)
+
+
+def dls_figures(mapping: Mapping) -> dict | None:
+    """What the damped least squares did at a task-space site, for the summary (None in joint
+    space): the ticks it took more than 1 % of the weakest direction's motion, and the
+    smallest singular value of J it met (sigma_min; DLS_DAMPING_M is l)."""
+    if mapping.space == JOINT:
+        return None
+    low = float(mapping.min_singular)
+    return {
+        "active_ticks": int(mapping.dls_ticks),
+        "min_singular_value": low if math.isfinite(low) else None,
+        "active_below": DLS_ACTIVE_SINGULAR,
+        "damping": DLS_DAMPING_M,
+    }
 
 
 def live_inputs(cfg: SessionConfig) -> int:

@@ -87,6 +87,8 @@ def print_summary(summary: Summary, console: Console | None = None) -> None:
     tool = tool_limits_text(summary.tool_limits)
     if tool:
         table.add_row("TO tool limits", tool)
+    for site, figures in (summary.dls or {}).items():
+        table.add_row(f"DLS at the {site}", dls_text(figures))
     if summary.stopped_early:
         table.add_row("stopped early", f"[red]{summary.stopped_early}")
     for site, figures in (summary.link or {}).items():
@@ -114,6 +116,15 @@ def tool_limits_text(figures: dict | None) -> str:
                     f"{1000 * figures['max_penetration_m']:.3g} mm, "
                     f"{figures['max_wall_force_n']:.3g} N)")  # fmt: skip
     return "; ".join(said)
+
+
+def dls_text(figures: dict) -> str:
+    """What a site's damped least squares did: the ticks it acted on, the smallest singular
+    value of the tool's Jacobian."""
+    low = figures["min_singular_value"]
+    return (f"active on {figures['active_ticks']} ticks (sigma_min < "
+            f"{figures['active_below']:g}), min singular value "
+            f"{'-' if low is None else f'{low:.3g}'}")  # fmt: skip
 
 
 PREEMPTION_FACTOR = 10.0  # a max this far above p99 is the host, not the tick's own work

@@ -41,7 +41,7 @@ from teleop_rt.lockstep import (
     pair_monitor,
 )
 from teleop_rt.loop import TickClock
-from teleop_rt.mapping import JOINT
+from teleop_rt.mapping import JOINT, dls_figures
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
 from teleop_rt.task_limits import tool_limits_figures
@@ -118,6 +118,7 @@ class Summary:
     link: dict | None = None  # what an impaired link did (sent, lost, late, ...; per site)
     channel: dict | None = None  # the channel kind and its protection's activity per port
     tool_limits: dict | None = None  # what the TO's task-space limits did (safety.tool)
+    dls: dict | None = None  # task space: what each site's damped least squares did
     space: str = "joint"  # what the channel couples (channel.space): T_p / T_tau's coordinates
 
     @property
@@ -400,4 +401,6 @@ class Session:
             link=self.link_stats(),
             channel=channel_figures(self.cfg, {"hsi": self.hsi.port, "to": self.to.port}),
             tool_limits=tool_limits_figures(self.to.mapping),
-        )
+            dls=None if self.cfg.channel.space == "joint" else {
+                s.name: dls_figures(s.mapping) for s in self.sites},
+        )  # fmt: skip

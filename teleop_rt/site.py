@@ -30,7 +30,17 @@ from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
 from teleop_rt.hal.base import Backend
 from teleop_rt.hal.registry import create_backend
-from teleop_rt.mapping import PLANE, PRESENCE_LOST, TASK, Mapping, map_kinematics, mapping_for
+from teleop_rt.mapping import (
+    JOINT,
+    POSE,
+    PRESENCE_LOST,
+    Mapping,
+    map_kinematics,
+    map_orientation,
+    mapping_for,
+    port_size,
+    start_orientation,
+)
 from teleop_rt.model import RobotModel
 from teleop_rt.safety import RobotGuard
 from teleop_rt.site_tick import (
@@ -50,6 +60,26 @@ LWA = pin.LOCAL_WORLD_ALIGNED  # the task-space map's Jacobian: world axes, at t
 REST_SPEED_RAD_S = 1e-3  # a robot slower than this on every joint is at rest
 STOP_GAIN_OF_DEADBEAT = 0.5  # the TO's stop gain at most half the deadbeat gain M_v / dt
 STOP_DAMPING_DEFAULT = SafetySpec.model_fields["stop_damping_nm_s_per_rad"].default
+
+
+def require_task_span(model: RobotModel, space: str, task: int, name: str) -> None:
+    """ConfigError unless the tool Jacobian's rows the task takes (world-aligned, the first
+    ``task`` of x, y, z, then the angular ones) can span the task: their rank at a generic
+    configuration (a seeded random one: the rank anywhere else is at most that, and equal
+    but on a set of measure zero), so a start pose at a singularity is not refused (the DLS
+    takes it), while a robot that cannot span the task is."""
+    pm = model.model
+    rng = np.random.default_rng(0)
+    q = pin.integrate(pm, pin.neutral(pm), rng.uniform(-1.0, 1.0, pm.nv))
+    jac = pin.computeFrameJacobian(pm, model.model.createData(), q, model.ee_frame_id, LWA)
+    rank = int(np.linalg.matrix_rank(jac[:task], tol=1e-9))
+    if rank < task:
+        axes = {2: "x, y", 3: "x, y, z", 6: "x, y, z and 3 rotations"}[task]
+        raise ConfigError(
+            f"channel.space: {space} couples {task} directions ({axes}) of the tool; the "
+            f"{name}'s tool Jacobian ({model.nv} joints, frame {model.ee_frame}) spans at most "
+            f"{rank}"
+        )
 
 
 class SensorsUnusable(Exception):
@@ -79,17 +109,16 @@ class Site:
             Pid(spec.controller, n, cfg.dt, f"{name}.controller"),
             ComputedTorque(model, self.virtual_mass, spec.compensate_friction),
             RobotGuard(cfg.safety, model, name, cfg.dt),
-            port_for(cfg, TASK if cfg.channel.space == "plane" else n, SIDES[name]),
+            port_for(cfg, port_size(cfg.channel.space, n), SIDES[name]),
             cfg.dt,
             mapping_for(cfg, n, SIDES[name]),
         )
         self.stop_damping = cfg.safety.stop_damping_nm_s_per_rad
-        if self.mapping.space == PLANE and n < TASK:
-            raise ConfigError(
-                f"channel.space: plane needs at least 2 joints (x, y of the tool); the {name} "
-                f"has {n}"
-            )
+        if self.mapping.space != JOINT:
+            require_task_span(model, cfg.channel.space, self.m, name)
         self.map_kinematics(np.array(spec.robot.q0_rad or [0.0] * n, dtype=float))
+        if self.mapping.space == POSE:
+            start_orientation(self.mapping.f, self.mapping.i)
 
     @classmethod
     def from_parts(
@@ -143,9 +172,11 @@ class Site:
         kin = self._kin
         if kin is None:
             return
-        model, data, measured, frame, f, i, x = kin
+        model, data, measured, frame, f, i, x, rotation = kin
         at = measured if q is None else q
         map_kinematics(f, i, pin.computeFrameJacobian(model, data, at, frame, LWA), x)
+        if rotation is not None:  # (the pose: the tool's rotation, which oMf now holds)
+            map_orientation(f, i, rotation)
 
     def bind(self, packed: Packed, first: int = 0) -> None:
         """Work on the site's blocks where they are now: blocks ``first`` on of ``packed``."""
@@ -154,10 +185,11 @@ class Site:
         self._buffers = (packed.f, packed.i, packed.offsets[2 * first : 2 * end], self.m)
         self._pin = (self.model.model, self.model.data, self.feedback.q, self.feedback.v,
                      self.computed_torque.a_des)  # fmt: skip
-        m, mapping = self.model, self.mapping  # (the plane's map: its Pinocchio call's
-        self._kin = None if mapping.space != PLANE else (  # arguments, looked up once)
+        m, mapping = self.model, self.mapping  # (a task-space map: its Pinocchio call's
+        self._kin = None if mapping.space == JOINT else (  # arguments, looked up once)
             m.model, m.data, self.feedback.q, m.ee_frame_id, mapping.f, mapping.i,
             m._ee_translation,
+            m.data.oMf[m.ee_frame_id].rotation if mapping.space == POSE else None,
         )  # fmt: skip
 
     def warm_up(self) -> None:

@@ -37,6 +37,7 @@ from teleop_rt.control import A_DES, OUT, TAU, ct_finish, ct_prepare, pid_step
 from teleop_rt.flat import Block, Int, Vector, floats_of, ints_of, jit, vec
 from teleop_rt.hal.signals import FB_AGE_TICKS, FB_INPUTS, FB_Q, FB_TAU_EXT, FB_V
 from teleop_rt.mapping import (
+    JOINT,
     M_ACTIVE,
     M_ALPHA,
     M_COUPLED,
@@ -47,7 +48,6 @@ from teleop_rt.mapping import (
     M_PEER_ENGAGED,
     M_SPACE,
     N_MAPPING_VECTORS,
-    PLANE,
     Q_MAPPED,
     TAU_MAPPED,
     X,
@@ -113,7 +113,7 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
             )
             if code:
                 return code
-            if mi[M_SPACE] == PLANE:
+            if mi[M_SPACE] != JOINT:  # (task space: the plane, position or pose)
                 hsi_plane_input(mf, mi, n, v, tau)
             else:
                 hsi_map_input(mf, n, q, v)
@@ -125,7 +125,7 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
             tau[j] = -tau_ext[j]
         if mapped:  # tau_t = r beta tau_e
             limited = mi[M_LIMITS] != 0  # (the tool's limits in the plane: task_limits)
-            if mi[M_SPACE] == PLANE:
+            if mi[M_SPACE] != JOINT:
                 to_plane_input(mf, mi, n, tau)
                 if limited:
                     code = to_tool_sense(mf, mi, n, v)
@@ -167,7 +167,7 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
     ms = N_MAPPING_VECTORS * n
     if i[o[2 * SIG + 1] + S_SIDE] == HSI:  # M1 a_h = C1(tau_h - tau_c)
         tau_c = vec(port, EFFORT, n)
-        if mapped and ints_of(i, o, MAP)[M_SPACE] == PLANE:  # r J^T F_c
+        if mapped and ints_of(i, o, MAP)[M_SPACE] != JOINT:  # r J^T F_c
             hsi_plane_render(floats_of(f, o, MAP), ints_of(i, o, MAP), n, tau, tau_c, error)
         elif mapped:  # the rendered torque r tau_c
             r = floats_of(f, o, MAP)[ms + M_GAIN]
@@ -178,7 +178,7 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
                 error[j] = tau[j] - tau_c[j]
     else:  # M2 a_t = C2(omega_t - v_t)
         omega_t, v = vec(port, FLOW, n), vec(floats_of(f, o, FB), FB_V, nj)
-        if mapped and ints_of(i, o, MAP)[M_SPACE] == PLANE:  # r alpha J# omega_t
+        if mapped and ints_of(i, o, MAP)[M_SPACE] != JOINT:  # r alpha J# omega_t
             mf, mi = floats_of(f, o, MAP), ints_of(i, o, MAP)
             to_plane_output(mf, mi, n, omega_t, v, error)
             if mi[M_LIMITS]:
@@ -224,8 +224,8 @@ def site_position(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> np.nda
 @jit
 def site_torque(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> np.ndarray:
     """The torque this site adds to T_tau: tau_h or tau_e, or the mapped one (the TO's
-    beta tau_e; in the plane the tools' forces)."""
+    beta tau_e; in task space the tools' forces)."""
     mi = o[2 * MAP + 1]
-    if i[mi + M_ACTIVE] and (i[o[2 * SIG + 1] + S_SIDE] != HSI or i[mi + M_SPACE] == PLANE):
+    if i[mi + M_ACTIVE] and (i[o[2 * SIG + 1] + S_SIDE] != HSI or i[mi + M_SPACE] != JOINT):
         return vec(floats_of(f, o, MAP), TAU_MAPPED, n)
     return vec(floats_of(f, o, SIG), S_TAU, n)

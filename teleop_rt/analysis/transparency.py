@@ -12,7 +12,11 @@ from teleop_rt.transparency_tick import TransparencyAccumulator, accumulate
 
 # eq 18's terms per coordinate of the channel, with their units: a joint channel compares joint
 # angles and torques, a plane channel the tools' x-y positions and forces (teleop_rt.mapping)
-_TERMS = {"joint": ("joint", "rad^2 s", "N^2 m^2 s"), "plane": ("axis", "m^2 s", "N^2 s")}
+_TERMS = {
+    "joint": ("joint", "rad^2 s", "N^2 m^2 s"), "plane": ("axis", "m^2 s", "N^2 s"),
+    "position": ("axis", "m^2 s", "N^2 s"),
+    "pose": ("axis", "m^2 s x 3, rad^2 s x 3", "N^2 s x 3, N^2 m^2 s x 3"),
+}  # fmt: skip
 
 
 def transparency_labels(space: str) -> tuple[str, str]:

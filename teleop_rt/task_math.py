@@ -1,0 +1,171 @@
+"""The compiled linear algebra of the task-space map (``teleop_rt.mapping``), in place on a
+block's float buffer so that a tick allocates nothing: the damped least-squares inverse of a
+tool Jacobian, its smallest singular value, and the exponential and logarithm of SO(3).
+
+* **Damped least squares** (Wampler, "Manipulator inverse kinematic solutions based on vector
+  formulations and damped least-squares methods", IEEE T-SMC 1986; Nakamura & Hanafusa,
+  "Inverse kinematic solutions with singularity robustness for robot manipulator control",
+  J. Dyn. Sys. Meas. Control 1986): J# = J^T (J J^T + l^2 I)^-1. A = J J^T + l^2 I is
+  symmetric positive definite for any J once l > 0, so its Cholesky factor L (A = L L^T)
+  exists and row j of J# is the solution y of A y = J[:, j] (A symmetric), two triangular
+  solves per joint.
+* **Its smallest singular value**: sigma_min(J)^2 = lambda_min(A) - l^2. lambda_min(A) is found
+  by inverse iteration (the power method on A^-1, with the Cholesky factor already at hand),
+  started from the previous tick's vector: J moves little in a tick, so a few steps track it.
+  The Rayleigh quotient u^T A u = |L^T u|^2 of a unit u is never below lambda_min(A) and errs
+  by the square of the vector's error (Golub & Van Loan, Matrix Computations, 4th ed. 2013,
+  sec. 8.2), so the figure is a slight over-estimate at worst, never an under-estimate.
+* **SO(3)**: exp by Rodrigues' formula, R = I + (sin t / t) [w]x + ((1 - cos t) / t^2) [w]x^2
+  (t = |w|). log inverts it: tr R = 1 + 2 cos t and R - R^T = 2 sin t [u]x give t = atan2(sin t,
+  cos t) and w = t / (2 sin t) vee(R - R^T). Near t = pi, sin t vanishes and the axis comes from
+  the symmetric part instead, (R + R^T) / 2 = cos t I + (1 - cos t) u u^T, its sign from
+  vee(R - R^T). ``tests/test_task_math.py`` checks both against Pinocchio's exp3 and log3.
+
+Rotations are 9 floats, row-major, at an offset of the buffer.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from teleop_rt.flat import jit
+
+DLS_ITERATIONS = 2  # inverse-iteration steps per tick (warm-started: enough to track J)
+NEAR_PI_COS = -0.9  # cos t below this (t > 2.69 rad): log's axis from the symmetric part
+
+
+@jit
+def cholesky_solve(f: np.ndarray, lower: int, m: int, at: int) -> None:
+    """Solve L L^T y = b in place at f[at : at + m], L (m x m, row-major) at f[lower:]."""
+    for r in range(m):  # L z = b
+        s = f[at + r]
+        for p in range(r):
+            s -= f[lower + r * m + p] * f[at + p]
+        f[at + r] = s / f[lower + r * m + r]
+    for r in range(m - 1, -1, -1):  # L^T y = z
+        s = f[at + r]
+        for p in range(r + 1, m):
+            s -= f[lower + p * m + r] * f[at + p]
+        f[at + r] = s / f[lower + r * m + r]
+
+
+@jit
+def dls_inverse(
+    f: np.ndarray, jac: np.ndarray, n: int, m: int, damping2: float, inv: int, work: int
+) -> float:  # fmt: skip
+    """J# = J^T (J J^T + l^2 I)^-1 of J = jac[:m, :n] into f[inv:] (n x m, row-major), with
+    the Cholesky factor at f[work:] (m x m) and the inverse iteration's vector after it (m,
+    kept from call to call); returns sigma_min(J)^2 (see the module's docstring)."""
+    for r in range(m):  # A's lower triangle
+        for c in range(r + 1):
+            s = damping2 if r == c else 0.0
+            for j in range(n):
+                s += jac[r, j] * jac[c, j]
+            f[work + r * m + c] = s
+    for c in range(m):  # A = L L^T, in place
+        d = f[work + c * m + c]
+        for p in range(c):
+            d -= f[work + c * m + p] * f[work + c * m + p]
+        d = math.sqrt(d)
+        f[work + c * m + c] = d
+        for r in range(c + 1, m):
+            s = f[work + r * m + c]
+            for p in range(c):
+                s -= f[work + r * m + p] * f[work + c * m + p]
+            f[work + r * m + c] = s / d
+    for j in range(n):  # row j of J#: A^-1 J[:, j]
+        row = inv + j * m
+        for a in range(m):
+            f[row + a] = jac[a, j]
+        cholesky_solve(f, work, m, row)
+    u = work + m * m
+    for _ in range(DLS_ITERATIONS):
+        cholesky_solve(f, work, m, u)
+        norm = 0.0
+        for a in range(m):
+            norm += f[u + a] * f[u + a]
+        norm = math.sqrt(norm)
+        for a in range(m):
+            f[u + a] /= norm
+    rayleigh = 0.0  # u^T A u = |L^T u|^2
+    for c in range(m):
+        s = 0.0
+        for r in range(c, m):
+            s += f[work + r * m + c] * f[u + r]
+        rayleigh += s * s
+    return rayleigh - damping2
+
+
+@jit
+def times_transposed(f: np.ndarray, a: int, b: int, out: int) -> None:
+    """f[out] = A B^T (3 x 3 each; out apart from a and b)."""
+    for r in range(3):
+        for c in range(3):
+            f[out + 3 * r + c] = (f[a + 3 * r] * f[b + 3 * c] + f[a + 3 * r + 1] * f[b + 3 * c + 1]
+                                  + f[a + 3 * r + 2] * f[b + 3 * c + 2])  # fmt: skip
+
+
+@jit
+def times(f: np.ndarray, a: int, b: int, out: int) -> None:
+    """f[out] = A B (3 x 3 each; out apart from a and b)."""
+    for r in range(3):
+        for c in range(3):
+            f[out + 3 * r + c] = (f[a + 3 * r] * f[b + c] + f[a + 3 * r + 1] * f[b + 3 + c]
+                                  + f[a + 3 * r + 2] * f[b + 6 + c])  # fmt: skip
+
+
+@jit
+def so3_exp(f: np.ndarray, wx: float, wy: float, wz: float, out: int) -> None:
+    """f[out] = exp([w]x), Rodrigues' formula (series for |w| below 1e-6 rad)."""
+    t2 = wx * wx + wy * wy + wz * wz
+    if t2 < 1e-12:  # sin t / t and (1 - cos t) / t^2 to O(t^4), below rounding here
+        a, b = 1.0 - t2 / 6.0, 0.5 - t2 / 24.0
+    else:
+        t = math.sqrt(t2)
+        a, b = math.sin(t) / t, (1.0 - math.cos(t)) / t2
+    # I + a [w]x + b (w w^T - t^2 I)
+    f[out + 0] = 1.0 + b * (wx * wx - t2)
+    f[out + 4] = 1.0 + b * (wy * wy - t2)
+    f[out + 8] = 1.0 + b * (wz * wz - t2)
+    f[out + 1] = b * wx * wy - a * wz
+    f[out + 3] = b * wx * wy + a * wz
+    f[out + 2] = b * wx * wz + a * wy
+    f[out + 6] = b * wx * wz - a * wy
+    f[out + 5] = b * wy * wz - a * wx
+    f[out + 7] = b * wy * wz + a * wx
+
+
+@jit
+def so3_log(f: np.ndarray, at: int, out: int) -> None:
+    """f[out : out + 3] = log(R), the rotation vector t u (t in [0, pi]) of R at f[at]."""
+    sx = f[at + 7] - f[at + 5]  # vee(R - R^T) = 2 sin t u
+    sy = f[at + 2] - f[at + 6]
+    sz = f[at + 3] - f[at + 1]
+    c = 0.5 * (f[at] + f[at + 4] + f[at + 8] - 1.0)
+    s = 0.5 * math.sqrt(sx * sx + sy * sy + sz * sz)
+    t = math.atan2(s, c)
+    if c >= NEAR_PI_COS:
+        k = 0.5 if s == 0.0 else 0.5 * t / s
+        f[out], f[out + 1], f[out + 2] = k * sx, k * sy, k * sz
+        return
+    # u u^T = ((R + R^T) / 2 - c I) / (1 - c): the column of the largest diagonal
+    d = 0
+    for a in range(1, 3):
+        if f[at + 4 * a] > f[at + 4 * d]:
+            d = a
+    one_c = 1.0 - c
+    ud = math.sqrt(max(0.0, (f[at + 4 * d] - c) / one_c))
+    u0 = u1 = u2 = 0.0
+    for e in range(3):
+        ue = ud if e == d else 0.5 * (f[at + 3 * d + e] + f[at + 3 * e + d]) / (one_c * ud)
+        if e == 0:
+            u0 = ue
+        elif e == 1:
+            u1 = ue
+        else:
+            u2 = ue
+    if u0 * sx + u1 * sy + u2 * sz < 0.0:
+        t = -t
+    f[out], f[out + 1], f[out + 2] = t * u0, t * u1, t * u2

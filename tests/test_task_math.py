@@ -1,0 +1,91 @@
+"""The task-space map's compiled linear algebra (teleop_rt.task_math) against closed forms and
+Pinocchio: SO(3)'s log and exp against pin.log3 / pin.exp3, the damped least-squares inverse
+against J^T (J J^T + l^2 I)^-1, its smallest singular value against an SVD."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from teleop_rt.task_math import dls_inverse, so3_exp, so3_log
+
+RNG = np.random.default_rng(7)
+
+
+def axis() -> np.ndarray:
+    u = RNG.normal(size=3)
+    return u / np.linalg.norm(u)
+
+
+# angles from the series' range to just short of pi (where the axis comes from R + R^T)
+ANGLES = [0.0, 1e-12, 1e-7, 1e-4, 0.3, 1.0, 2.0, 2.6, 2.8, 3.0, np.pi - 1e-4, np.pi - 1e-7]
+
+
+@pytest.mark.parametrize("angle", ANGLES)
+def test_log_and_exp_are_pinocchio_s(angle: float) -> None:
+    for _ in range(20):
+        w = angle * axis()
+        f = np.zeros(32)
+        so3_exp(f, *w, 0)
+        np.testing.assert_allclose(f[:9].reshape(3, 3), pin.exp3(w), atol=1e-14)
+        f[9:18] = pin.exp3(w).ravel()
+        so3_log(f, 9, 18)
+        # near pi the axis is ill-conditioned in R itself (d log / d R ~ 1 / sin t): compare the
+        # rotation the log gives back, and the vector to what R still says
+        tol = 1e-12 if angle < 3.0 else 1e-12 / np.sin(angle)
+        np.testing.assert_allclose(f[18:21], pin.log3(pin.exp3(w)), atol=tol)
+        np.testing.assert_allclose(pin.exp3(f[18:21]), pin.exp3(w), atol=1e-13)
+
+
+def test_log_at_pi_gives_a_rotation_by_pi_about_the_axis() -> None:
+    for _ in range(20):
+        u = axis()
+        rotation = pin.exp3(np.pi * u)
+        f = np.zeros(12)
+        f[:9] = rotation.ravel()
+        so3_log(f, 0, 9)
+        assert np.linalg.norm(f[9:12]) == pytest.approx(np.pi, abs=1e-12)
+        assert abs(f[9:12] @ u) == pytest.approx(np.pi, abs=1e-7)
+        np.testing.assert_allclose(pin.exp3(f[9:12]), rotation, atol=1e-12)
+
+
+def dls(jac: np.ndarray, damping: float, calls: int = 1) -> tuple[np.ndarray, float, np.ndarray]:
+    m, n = jac.shape
+    work, inv = n * m, 0
+    f = np.zeros(n * m + m * m + m)
+    f[work + m * m :] = 1.0 / np.sqrt(m)
+    for _ in range(calls):
+        sigma2 = dls_inverse(f, jac, n, m, damping**2, inv, work)
+    return f[: n * m].reshape(n, m), sigma2, f
+
+
+@pytest.mark.parametrize("m, n", [(3, 6), (3, 9), (6, 6), (6, 9)])
+def test_the_dls_inverse_is_the_closed_form(m: int, n: int) -> None:
+    """J# against V diag(s / (s^2 + l^2)) U^T from J's SVD, to the solve's conditioning."""
+    for scale in (1.0, 1e-2, 1e-4):  # well away from, near, and at a singular pose
+        jac = RNG.normal(size=(m, n))
+        u, s, vt = np.linalg.svd(jac, full_matrices=False)
+        s[-1] *= scale
+        jac = (u * s) @ vt
+        l = 1e-3
+        inverse, _, _ = dls(jac, l)
+        u, s, vt = np.linalg.svd(jac, full_matrices=False)
+        closed = (vt.T * (s / (s**2 + l**2))) @ u.T  # V diag(s / (s^2 + l^2)) U^T
+        # a Cholesky solve errs by ~ cond(A) eps (A = J J^T + l^2 I)
+        cond = (s[0] ** 2 + l**2) / (s[-1] ** 2 + l**2)
+        tol = 10 * cond * np.finfo(float).eps * np.abs(closed).max()
+        np.testing.assert_allclose(inverse, closed, rtol=0, atol=tol)
+
+
+@pytest.mark.parametrize("m, n", [(3, 6), (6, 9)])
+def test_the_smallest_singular_value_converges_from_above(m: int, n: int) -> None:
+    """Inverse iteration from a fixed start: each call's Rayleigh quotient is above
+    sigma_min^2 + l^2 and reaches it (to 1e-12 relative) within a few calls on one J."""
+    jac = RNG.normal(size=(m, n))
+    true = np.linalg.svd(jac, compute_uv=False)[-1]
+    l = 1e-3
+    f = dls(jac, l)[2]
+    estimates = [dls_inverse(f, jac, n, m, l**2, 0, n * m) for _ in range(30)]
+    assert min(estimates) >= true**2 * (1 - 1e-12)
+    assert np.sqrt(estimates[-1]) == pytest.approx(true, rel=1e-12)
