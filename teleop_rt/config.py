@@ -584,6 +584,16 @@ class MappingSpec(Strict):
     engage_step_nm: PositiveFloat = 0.005
     # the operator away (operator.absent) for longer than this: a safety stop (None: never)
     presence_timeout_s: PositiveFloat | None = None
+    # the TO's frame against the HSI's (task space only; teleop_rt.mapping): the TO's tool is
+    # to be at R (alpha x_hsi) + offset_m, R from roll, pitch, yaw about the fixed x, y, z
+    # axes (URDF's rpy); in the plane only a yaw and an x, y offset
+    offset_m: tuple[FiniteFloat, FiniteFloat, FiniteFloat] = (0.0, 0.0, 0.0)
+    rotation_rpy_deg: tuple[FiniteFloat, FiniteFloat, FiniteFloat] = (0.0, 0.0, 0.0)
+
+    @property
+    def framed(self) -> bool:
+        """An offset or a rotation between the frames is given."""
+        return any(self.offset_m) or any(self.rotation_rpy_deg)
 
 
 class SessionConfig(Strict):
@@ -666,6 +676,22 @@ class SessionConfig(Strict):
             raise ValueError(
                 "safety.tool: the tool's limits act in task space; they need "
                 "channel.space: plane"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _frames_in_task_space(self) -> SessionConfig:
+        m = self.mapping
+        if m.framed and self.channel.space == "joint":
+            raise ValueError(
+                "mapping.offset_m, mapping.rotation_rpy_deg: frames are mapped in task space; "
+                "they need channel.space: plane"
+            )
+        if self.channel.space == "plane" and (m.offset_m[2] or any(m.rotation_rpy_deg[:2])):
+            raise ValueError(
+                "mapping: in the plane (channel.space: plane) the frames differ by an x, y "
+                "offset and a yaw only: offset_m's z and rotation_rpy_deg's roll and pitch "
+                "must be 0"
             )
         return self
 
