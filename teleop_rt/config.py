@@ -589,6 +589,16 @@ class MappingSpec(Strict):
     # channel.space: pose, at the TO: the gain K (1/s) of its orientation's correction toward
     # the orientation the channel commanded, integrated on SO(3) (0: none)
     orientation_gain_per_s: NonNegFloat = 5.0
+    # the TO's frame against the HSI's (task space only; teleop_rt.mapping): the TO's tool is
+    # to be at R (alpha x_hsi) + offset_m, R from roll, pitch, yaw about the fixed x, y, z
+    # axes (URDF's rpy); in the plane only a yaw and an x, y offset
+    offset_m: tuple[FiniteFloat, FiniteFloat, FiniteFloat] = (0.0, 0.0, 0.0)
+    rotation_rpy_deg: tuple[FiniteFloat, FiniteFloat, FiniteFloat] = (0.0, 0.0, 0.0)
+
+    @property
+    def framed(self) -> bool:
+        """An offset or a rotation between the frames is given."""
+        return any(self.offset_m) or any(self.rotation_rpy_deg)
 
 
 class SessionConfig(Strict):
@@ -671,6 +681,22 @@ class SessionConfig(Strict):
             raise ValueError(
                 "safety.tool: the tool's limits act in the task's plane; they need "
                 f"channel.space: plane (not {self.channel.space})"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _frames_in_task_space(self) -> SessionConfig:
+        m = self.mapping
+        if m.framed and self.channel.space != "plane":
+            raise ValueError(
+                "mapping.offset_m, mapping.rotation_rpy_deg: frames are mapped in task space; "
+                "they need channel.space: plane"
+            )
+        if self.channel.space == "plane" and (m.offset_m[2] or any(m.rotation_rpy_deg[:2])):
+            raise ValueError(
+                "mapping: in the plane (channel.space: plane) the frames differ by an x, y "
+                "offset and a yaw only: offset_m's z and rotation_rpy_deg's roll and pitch "
+                "must be 0"
             )
         return self
 

@@ -64,6 +64,22 @@ and the same ramp on re-engaging. The TO reads the state of the packet of the ti
 the HSI, where the script shifted by D (kept for a scripted operator: the reference figures
 bit for bit) does it after D.
 
+Frames (``mapping.offset_m``, ``mapping.rotation_rpy_deg``; task space only). The TO's tool is
+to be at ``x_t = R (alpha x_h) + offset``, R a rotation (orthogonal, det 1). The channel's
+port variables stay in the HSI's frame, so the whole frame map is the TO's:
+
+    TO:   v_ref = r alpha J# (R omega_t)      tau_t = r beta R^T F_e      (F_e = J#^T tau_e)
+          the position T_p compares: R^T (x_t - offset) + index_offset   (the HSI's frame)
+
+R on velocities, R^T on forces: ``omega_t . (R^T F) = (R omega_t) . F``, so the power through
+the map is the one without it, tick for tick, and everything above (the lever, Colgate's
+power scale, Niemeyer and Slotine's wave impedance ``b / (alpha beta)``) holds as it is; the
+map stays passive for any R because R^T R = I. R on the force instead of R^T would make power
+(by the skew part of R^2) and is what the test's power identity catches. The offset moves no
+robot: the channel carries motion, not positions, and T_p takes the motion since the first
+tick; it places the positions logged (``q_mapped``) in one frame, so the two agree, within
+the tracking error, when it is the offset between the robots' starting poses.
+
 With the identity (alpha = beta = 1, no script) the block is inactive and the sites compute
 exactly what they computed before it existed.
 """
@@ -156,6 +172,11 @@ class Mapping(Block):
                               param=True)
     dls_ticks = Int("ticks whose J# the DLS took more than 1 % of (sigma_min < 10 l)")
     min_singular = Scalar("the smallest singular value of J so far (inf: none yet)")
+    # the frames (task space): x_t = R (alpha x_h) + offset, the TO's map only
+    framed = Int("1: the TO's frame is rotated or offset against the HSI's", param=True)
+    frame_at = Int(
+        "where R (TASK x TASK, row major), the offset and a TASK scratch start", param=True
+    )
     # the script: starts then ends of the clutch, then of the absences; then (PLANE) the
     # kinematics, refreshed by ``map_kinematics`` after every tick
     TAIL_IS_STATE = False
@@ -167,13 +188,15 @@ class Mapping(Block):
         space: int = JOINT, joints: int | None = None, speed_limit: float = math.inf,
         force_limit: float = math.inf, walls: list[tuple[float, ...]] | None = None,
         live: int = 0, follow: bool = False, orientation_gain: float = 0.0,
+        frame: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:  # fmt: skip
         """``n``: the port's size (the joints, or TASK in the plane); ``joints``: the robot's
         (default n). ``speed_limit``, ``force_limit``, ``walls`` (x, y, nx, ny, k, d each):
         the TO's tool limits in the plane (``teleop_rt.task_limits``). ``live``: the
         backend's inputs (``Feedback.inputs``) read besides the script, INPUT_* bits;
         ``follow``: the TO decouples while the HSI's packets say it is decoupled.
-        ``orientation_gain``: POSE at the TO, K of its orientation's correction (1/s)."""
+        ``orientation_gain``: POSE at the TO, K of its orientation's correction (1/s). ``frame``:
+        the TO's (R, offset) in the plane, R TASK x TASK (None: the frames agree)."""
         clutch, absent, walls = clutch or [], absent or [], walls or []
         script = 2 * (len(clutch) + len(absent))
         nj = n if joints is None else joints
@@ -181,7 +204,10 @@ class Mapping(Block):
         kin = 2 * m * nj + m + WALL_FLOATS * len(walls) if space != JOINT else 0
         work = m * m + m if m > TASK else 0  # the DLS's Cholesky factor and singular vector
         rotations = 9 * ROTATIONS if space == POSE else 0
-        super().__init__(n, tail=script + kin + work + rotations)
+        if frame is not None and space != PLANE:
+            raise ValueError("a frame map needs channel.space: plane")
+        framing = TASK * TASK + 2 * TASK if frame is not None else 0
+        super().__init__(n, tail=script + kin + work + rotations + framing)
         self.task = m
         self.work_at = self.tail_start + script + kin
         self.rot_at = self.work_at + work
@@ -199,6 +225,12 @@ class Mapping(Block):
             at = wall_at + WALL_FLOATS * k
             self.f[at : at + WALL_FLOATS] = [x, y, nx / norm, ny / norm, stiffness, damping]
         self.space, self.joints = space, nj
+        if frame is not None:
+            rotation, offset = frame
+            self.framed, self.frame_at = 1, wall_at + WALL_FLOATS * len(walls)
+            at = self.frame_at
+            self.f[at : at + TASK * TASK] = np.asarray(rotation, dtype=float).reshape(-1)
+            self.f[at + TASK * TASK : at + TASK * TASK + TASK] = offset
         self.kin_at = self.tail_start + script
         self.side, self.dt = side, dt
         self.motion_scale, self.force_scale = motion_scale, force_scale
@@ -249,6 +281,7 @@ M_TASK, M_WORK_AT, M_ROT_AT, M_ORIENTATION_GAIN, M_DLS_TICKS, M_MIN_SINGULAR = (
     Mapping.task.k, Mapping.work_at.k, Mapping.rot_at.k, Mapping.orientation_gain.k,
     Mapping.dls_ticks.k, Mapping.min_singular.k,
 )  # fmt: skip
+M_FRAMED, M_FRAME_AT = Mapping.framed.k, Mapping.frame_at.k
 N_MAPPING_VECTORS, N_MAPPING_SCALARS = len(Mapping.VECTORS), len(Mapping.SCALARS)
 
 
@@ -514,16 +547,48 @@ def to_plane_output(
     r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
     g = r * alpha
     q_mapped, offset = vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
+    framed, fr = i[M_FRAMED] != 0, i[M_FRAME_AT]
+    w = fr + TASK * TASK + TASK
+    if framed:  # the flow in the TO's frame, R omega_t, into the scratch
+        for a in range(TASK):
+            wa = 0.0
+            for b in range(TASK):
+                wa += f[fr + a * TASK + b] * omega_t[b]
+            f[w + a] = wa
     for j in range(nj):
         v_ref = 0.0
-        for a in range(n):
-            v_ref += f[inv + j * n + a] * omega_t[a]
+        for a in range(n):  # (framed: the plane only, n == TASK)
+            v_ref += f[inv + j * n + a] * (f[w + a] if framed else omega_t[a])
         error[j] = g * v_ref - v[j]
     if i[M_SPACE] == POSE:
         to_orientation_step(f, i, g * dt, omega_t, error)
     for a in range(n):
         offset[a] += (1.0 - r) * alpha * omega_t[a] * dt
-        q_mapped[a] = f[pos + a] + offset[a]
+        if framed:  # R^T (x_t - offset), in the HSI's frame
+            xa = 0.0
+            for b in range(TASK):
+                xa += f[fr + b * TASK + a] * (f[pos + b] - f[fr + TASK * TASK + b])
+            q_mapped[a] = xa + offset[a]
+        else:
+            q_mapped[a] = f[pos + a] + offset[a]
+
+
+@jit
+def to_frame_force(f: np.ndarray, i: np.ndarray, n: int) -> None:
+    """Framed, at the TO, after its force is complete (``to_plane_input``, the virtual walls):
+    tau_mapped = R^T (beta F_e), the force in the HSI's frame (the port's)."""
+    if not i[M_FRAMED]:
+        return
+    fr = i[M_FRAME_AT]
+    w = fr + TASK * TASK + TASK
+    force = vec(f, TAU_MAPPED, n)
+    for a in range(TASK):
+        f[w + a] = force[a]
+    for a in range(TASK):
+        fa = 0.0
+        for b in range(TASK):
+            fa += f[fr + b * TASK + a] * f[w + b]
+        force[a] = fa
 
 
 def mapping_for(cfg: SessionConfig, joints: int, side: int) -> Mapping:
@@ -551,6 +616,7 @@ def mapping_for(cfg: SessionConfig, joints: int, side: int) -> Mapping:
         spec.engage_step_nm, -1 if timeout is None else round(timeout * rate),
         space, joints, speed, force, walls, live_inputs(cfg) if side == HSI else 0,
         side == TO and live_inputs(cfg) != 0, spec.orientation_gain_per_s,
+        frame_for(cfg) if side == TO and spec.framed else None,
     )  # fmt: skip
 
 
@@ -572,6 +638,21 @@ def dls_figures(mapping: Mapping) -> dict | None:
         "active_below": DLS_ACTIVE_SINGULAR,
         "damping": DLS_DAMPING_M,
     }
+
+
+def frame_rotation(rpy_deg: tuple[float, float, float]) -> np.ndarray:
+    """The 3 x 3 rotation of roll, pitch, yaw (deg) about the fixed x, y, z axes,
+    R = Rz(yaw) Ry(pitch) Rx(roll): URDF's rpy, as Pinocchio's ``rpy.rpyToMatrix`` takes it."""
+    import pinocchio as pin
+
+    return np.asarray(pin.rpy.rpyToMatrix(*np.radians(rpy_deg)), dtype=float)
+
+
+def frame_for(cfg: SessionConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The TO's (R, offset) of the task space from ``mapping``: in the plane, R's x-y block
+    (the config holds it to a yaw) and the offset's x, y."""
+    spec = cfg.mapping
+    return frame_rotation(spec.rotation_rpy_deg)[:TASK, :TASK], np.array(spec.offset_m[:TASK])
 
 
 def live_inputs(cfg: SessionConfig) -> int:

@@ -55,6 +55,7 @@ from teleop_rt.mapping import (
     hsi_plane_input,
     hsi_plane_render,
     mapping_engage,
+    to_frame_force,
     to_map_gain,
     to_map_input,
     to_map_output,
@@ -131,6 +132,7 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
                     code = to_tool_sense(mf, mi, n, v)
                     if code:
                         return code
+                to_frame_force(mf, mi, n)  # (framed: R^T, into the HSI's frame)
             else:
                 to_map_input(mf, n, tau)
             mapping_engage(mf, mi, n, i[si + S_TICK], vec(mf, TAU_MAPPED, n), 0)

@@ -68,12 +68,12 @@ def test_the_dls_inverse_is_the_closed_form(m: int, n: int) -> None:
         u, s, vt = np.linalg.svd(jac, full_matrices=False)
         s[-1] *= scale
         jac = (u * s) @ vt
-        l = 1e-3
-        inverse, _, _ = dls(jac, l)
+        lam = 1e-3
+        inverse, _, _ = dls(jac, lam)
         u, s, vt = np.linalg.svd(jac, full_matrices=False)
-        closed = (vt.T * (s / (s**2 + l**2))) @ u.T  # V diag(s / (s^2 + l^2)) U^T
+        closed = (vt.T * (s / (s**2 + lam**2))) @ u.T  # V diag(s / (s^2 + l^2)) U^T
         # a Cholesky solve errs by ~ cond(A) eps (A = J J^T + l^2 I)
-        cond = (s[0] ** 2 + l**2) / (s[-1] ** 2 + l**2)
+        cond = (s[0] ** 2 + lam**2) / (s[-1] ** 2 + lam**2)
         tol = 10 * cond * np.finfo(float).eps * np.abs(closed).max()
         np.testing.assert_allclose(inverse, closed, rtol=0, atol=tol)
 
@@ -84,8 +84,8 @@ def test_the_smallest_singular_value_converges_from_above(m: int, n: int) -> Non
     sigma_min^2 + l^2 and reaches it (to 1e-12 relative) within a few calls on one J."""
     jac = RNG.normal(size=(m, n))
     true = np.linalg.svd(jac, compute_uv=False)[-1]
-    l = 1e-3
-    f = dls(jac, l)[2]
-    estimates = [dls_inverse(f, jac, n, m, l**2, 0, n * m) for _ in range(30)]
+    lam = 1e-3
+    f = dls(jac, lam)[2]
+    estimates = [dls_inverse(f, jac, n, m, lam**2, 0, n * m) for _ in range(30)]
     assert min(estimates) >= true**2 * (1 - 1e-12)
     assert np.sqrt(estimates[-1]) == pytest.approx(true, rel=1e-12)

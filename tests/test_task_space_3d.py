@@ -71,7 +71,9 @@ class Arm:
 
     def map_at(self, mapping: Mapping, q: np.ndarray) -> None:
         """``mapping``'s kinematics at q, as the site computes them."""
-        jac = pin.computeFrameJacobian(self.model, self.data, q, self.frame, pin.LOCAL_WORLD_ALIGNED)
+        jac = pin.computeFrameJacobian(
+            self.model, self.data, q, self.frame, pin.LOCAL_WORLD_ALIGNED
+        )
         placement = self.data.oMf[self.frame]
         map_kinematics(mapping.f, mapping.i, jac, placement.translation)
         if mapping.space == POSE:
@@ -164,7 +166,8 @@ def test_the_scaled_two_port_s_energy_is_the_channel_s(name: str) -> None:
     cfg = pair(name, "channel.delay_ms=20", f"mapping.motion_scale={ALPHA}",
                f"mapping.force_scale={BETA}", "mapping.orientation_gain_per_s=0",
                "environment.0.point_m=[0.0, 0.0, 0.585]",
-               "operator.clutch=[{start_s: 1.2, end_s: 1.4}, {start_s: 3.0, end_s: 3.3}]")  # fmt: skip
+               "operator.clutch=[{start_s: 1.2, end_s: 1.4},"
+               " {start_s: 3.0, end_s: 3.3}]")  # fmt: skip
     session = Session(cfg)
     trace = Trace(session)
     summary = session.run(observer=trace)
@@ -215,7 +218,8 @@ def displayed_gain(delay_ms: int, channel_mass: bool = True) -> float:
 
     def observe(s: Session) -> None:
         q, v = s.hsi.feedback.q, s.hsi.feedback.v
-        jac = pin.computeFrameJacobian(m.model, m.data, q, m.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)[:3]
+        world = pin.LOCAL_WORLD_ALIGNED
+        jac = pin.computeFrameJacobian(m.model, m.data, q, m.ee_frame_id, world)[:3]
         rows.append(np.concatenate([jac @ v, m.tool_position(q), s.hsi.mapping.tau_mapped,
                                     jac.ravel()]))  # fmt: skip
 
