@@ -123,11 +123,18 @@ def test_a_pair_stays_passive_under_every_impairment(
     """The study's impairment classes and traces (tests/test_passive_channels.py) on each pair's
     own script, bounded wave channel: both ports' balances and the channel's energy >= -1e-9 J,
     motion bounded, no stop; the network did reach the ports."""
-    spec = CLASSES.get(impairment) or {"trace": str(write_traces(tmp_path)[impairment])}
     # bounded named: the default (reflected) brakes the TO through a loss, and the Panda's finger
     # then overruns its speed limit under reordering (a safety stop: docs/task_space.md, open)
-    session = run(TASK_SPACE / f"{name}.yaml", spec, ["channel.wave_reconstruction=bounded"],
-                  seconds=6.0, sweep=False)  # fmt: skip
+    assert_passive_under(TASK_SPACE / f"{name}.yaml", impairment, tmp_path, 6.0)
+
+
+def assert_passive_under(path: Path, impairment: str, tmp_path: Path, seconds: float) -> None:
+    """A task-space pair's own script under one of the study's impairment classes or traces,
+    bounded wave channel: passive and bounded (tests/test_passive_channels.py), no stop, and
+    the network did reach the ports."""
+    spec = CLASSES.get(impairment) or {"trace": str(write_traces(tmp_path)[impairment])}
+    session = run(path, spec, ["channel.wave_reconstruction=bounded"], seconds=seconds,
+                  sweep=False)  # fmt: skip
     assert_passive_and_bounded(session)
     link = session.summary.link["to"]
     assert link["lost"] + link["skipped"] > 0

@@ -44,9 +44,8 @@ from teleop_rt.mapping import (
 )
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
-from tests.test_heterogeneous_pairs import IMPAIRMENTS
+from tests.test_heterogeneous_pairs import IMPAIRMENTS, assert_passive_under
 from tests.test_mapping import ALPHA, BETA, Trace
-from tests.test_passive_channels import CLASSES, assert_passive_and_bounded, run, write_traces
 
 PASSIVE_J = -1e-9
 TASK_SPACE = CONFIGS / "task_space"
@@ -187,12 +186,7 @@ def test_a_3d_pair_stays_passive_under_every_impairment(
     """The study's impairment classes and traces (tests/test_passive_channels.py) on each pair's
     own script, bounded wave channel (as the plane pairs: tests/test_heterogeneous_pairs.py):
     both ports' balances and the channel's energy >= -1e-9 J, motion bounded, no stop."""
-    spec = CLASSES.get(impairment) or {"trace": str(write_traces(tmp_path)[impairment])}
-    session = run(TASK_SPACE / f"{name}.yaml", spec, ["channel.wave_reconstruction=bounded"],
-                  seconds=6.5, sweep=False)  # fmt: skip
-    assert_passive_and_bounded(session)
-    link = session.summary.link["to"]
-    assert link["lost"] + link["skipped"] > 0
+    assert_passive_under(TASK_SPACE / f"{name}.yaml", impairment, tmp_path, 6.5)
 
 
 # --- the displayed mass in 3-D -----------------------------------------------------------------
