@@ -145,8 +145,8 @@ class Mapping(Block):
     peer_engaged = Int("TO: the HSI's coupling state as of its newest packet (1: none yet)")
     coupled = Int("1: clutch released and operator present")
     engagements = Int("re-engagements so far")
-    space = Int("JOINT or PLANE", param=True)
-    kin_at = Int("PLANE: where J (2 x joints), J# (joints x 2) and the tool's x, y start",
+    space = Int("JOINT, PLANE, POSITION or POSE", param=True)
+    kin_at = Int("task space: where J (m x joints), J# (joints x m), the tool's m coordinates",
                  param=True)
     joints = Int("the robot's joints (the block's vectors: the port's size)", param=True)
     # the TO's task-space limits (safety.tool, teleop_rt.task_limits; PLANE only)
@@ -177,8 +177,9 @@ class Mapping(Block):
     frame_at = Int(
         "where R (TASK x TASK, row major), the offset and a TASK scratch start", param=True
     )
-    # the script: starts then ends of the clutch, then of the absences; then (PLANE) the
-    # kinematics, refreshed by ``map_kinematics`` after every tick
+    # the script: starts then ends of the clutch, then of the absences; then (task space) the
+    # kinematics, refreshed by ``map_kinematics`` after every tick, the virtual walls, the
+    # DLS's work (m > 2), the pose's rotations and the frame map
     TAIL_IS_STATE = False
 
     def __init__(
@@ -190,7 +191,7 @@ class Mapping(Block):
         live: int = 0, follow: bool = False, orientation_gain: float = 0.0,
         frame: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> None:  # fmt: skip
-        """``n``: the port's size (the joints, or TASK in the plane); ``joints``: the robot's
+        """``n``: the port's size (the joints, or the task's dimension); ``joints``: the robot's
         (default n). ``speed_limit``, ``force_limit``, ``walls`` (x, y, nx, ny, k, d each):
         the TO's tool limits in the plane (``teleop_rt.task_limits``). ``live``: the
         backend's inputs (``Feedback.inputs``) read besides the script, INPUT_* bits;
