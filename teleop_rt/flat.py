@@ -121,8 +121,8 @@ class _Declared:
 
 class Vector(_Declared):
     """A block's n-vector field (declared once, as a class attribute): its index ``k`` among the
-    block's vectors is derived from the declaration order, for the compiled kernels to use
-    (``K = MyBlock.name.k``); instances see a float64 view."""
+    block's vectors is derived from the declaration order (the compiled kernels read it as
+    ``MyBlock.idx.NAME``); instances see a float64 view."""
 
     @overload
     def __get__(self, obj: None, owner: type | None = None) -> Vector: ...
@@ -181,7 +181,7 @@ class Block(metaclass=BlockMeta):
     Fields are declared once, as class attributes: ``Vector()`` (n-vectors), ``Scalar()``
     (floats) and ``Int()`` (ints), each optionally ``param=True`` (set at construction and
     never written by a tick: gains, impedances, limits; the rest is state). Their order in the
-    class gives the layout and the indices the kernels use (``MyBlock.name.k``); the names are
+    class gives the layout and the indices (``MyBlock.name.k``, ``MyBlock.idx``); the names are
     also listed in ``VECTORS``, ``SCALARS`` and ``INTS`` (derived; older blocks may still
     declare these tuples directly). ``tail`` extra floats follow the scalars (``tail_view``).
 
@@ -194,8 +194,9 @@ class Block(metaclass=BlockMeta):
     ``tau``'s k) and the counts ``N_VECTORS``, ``N_SCALARS``, ``N_INTS`` (a scalar sits at
     ``idx.N_VECTORS * n + idx.NAME``). It is a named tuple of a type of the block's own
     (``MyBlock.Idx``), which numba lowers into a kernel as a compile-time constant (as it does
-    a module's int, at no cost; a class attribute it cannot type); a kernel module binds it
-    once, ``PS = PlantState.idx``, so each index names its block where it is used."""
+    a module's int: no cost). ``BlockClass`` lets a kernel reach it through the block's class,
+    so that each index names its block where it is used: ``f[s + PlantState.idx.TAU * n]``, or
+    ``Ps = PlantState.idx`` at the top of a kernel of many."""
 
     VECTORS: tuple[str, ...] = ()
     SCALARS: tuple[str, ...] = ()
@@ -316,7 +317,9 @@ def _index_namespace(cls: type[Block]) -> tuple[type, Any]:
     if len(indices) != fields or clash:
         raise TypeError(f"{cls.__name__}: field names that differ only in case, or {COUNTS}")
     counts = (len(cls.VECTORS), len(cls.SCALARS), len(cls.INTS))
-    idx_type = namedtuple(f"{cls.__name__}Idx", [*indices, *COUNTS], module=cls.__module__)  # type: ignore[misc]
+    # (a type made at run time, which mypy's namedtuple support cannot follow)
+    make: Callable[..., Any] = namedtuple
+    idx_type = make(f"{cls.__name__}Idx", [*indices, *COUNTS], module=cls.__module__)
     # (pickled by reference, as numba's cache may: ``module.Block.Idx``)
     idx_type.__qualname__ = f"{cls.__qualname__}.Idx"
     return idx_type, idx_type(*indices.values(), *counts)

@@ -12,8 +12,9 @@ kernel a run of consecutive stages of ``teleop_rt.tick_stages``):
 
 All take the site's blocks (``SITE_ORDER``) in packed buffers through their offsets ``o``: the
 site's own buffers when it runs alone, or its part of a one-process session's
-(``teleop_rt.lockstep``). The HSI and the TO differ only in the port's side and in the
-controller's error: ``tau_h - tau_c`` on the HSI, ``omega_t - v_t`` on the TO.
+(``teleop_rt.lockstep``); within a block, by the block's own index namespace (``Port.idx``).
+The HSI and the TO differ only in the port's side and in the controller's error: ``tau_h -
+tau_c`` on the HSI, ``omega_t - v_t`` on the TO.
 """
 
 from __future__ import annotations
