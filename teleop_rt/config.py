@@ -79,12 +79,24 @@ class RobotSpec(Strict):
     example_robot: str | None = None
     ee_frame: str | None = None  # default: the last frame of the model
     q0_rad: list[FiniteFloat] | None = None  # default: zeros
+    # joints taken out of the model (pinocchio.buildReducedModel), held rigid at the model's
+    # neutral position, e.g. a gripper's fingers: the per-joint parameters and q0_rad are then
+    # the other joints', and neither the tool Jacobian nor the guard sees them
+    locked_joints: list[str] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _one_source(self) -> RobotSpec:
         if (self.urdf is None) == (self.example_robot is None):
             raise ValueError("give exactly one of 'urdf' or 'example_robot'")
         return self
+
+    @field_validator("locked_joints")
+    @classmethod
+    def _locked_once(cls, v: list[str]) -> list[str]:
+        twice = sorted({name for name in v if v.count(name) > 1})
+        if twice:
+            raise ValueError(f"names a joint more than once: {', '.join(twice)}")
+        return v
 
 
 class ControllerSpec(Strict):
