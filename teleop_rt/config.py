@@ -79,12 +79,24 @@ class RobotSpec(Strict):
     example_robot: str | None = None
     ee_frame: str | None = None  # default: the last frame of the model
     q0_rad: list[FiniteFloat] | None = None  # default: zeros
+    # joints taken out of the model (pinocchio.buildReducedModel), held rigid at the model's
+    # neutral position, e.g. a gripper's fingers: the per-joint parameters and q0_rad are then
+    # the other joints', and neither the tool Jacobian nor the guard sees them
+    locked_joints: list[str] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _one_source(self) -> RobotSpec:
         if (self.urdf is None) == (self.example_robot is None):
             raise ValueError("give exactly one of 'urdf' or 'example_robot'")
         return self
+
+    @field_validator("locked_joints")
+    @classmethod
+    def _locked_once(cls, v: list[str]) -> list[str]:
+        twice = sorted({name for name in v if v.count(name) > 1})
+        if twice:
+            raise ValueError(f"names a joint more than once: {', '.join(twice)}")
+        return v
 
 
 class ControllerSpec(Strict):
@@ -591,7 +603,8 @@ class MappingSpec(Strict):
     orientation_gain_per_s: NonNegFloat = 5.0
     # the TO's frame against the HSI's (task space only; teleop_rt.mapping): the TO's tool is
     # to be at R (alpha x_hsi) + offset_m, R from roll, pitch, yaw about the fixed x, y, z
-    # axes (URDF's rpy); in the plane only a yaw and an x, y offset
+    # axes (URDF's rpy), in the pose its orientation at R R_hsi; in the plane only a yaw and
+    # an x, y offset
     offset_m: tuple[FiniteFloat, FiniteFloat, FiniteFloat] = (0.0, 0.0, 0.0)
     rotation_rpy_deg: tuple[FiniteFloat, FiniteFloat, FiniteFloat] = (0.0, 0.0, 0.0)
 
@@ -687,10 +700,10 @@ class SessionConfig(Strict):
     @model_validator(mode="after")
     def _frames_in_task_space(self) -> SessionConfig:
         m = self.mapping
-        if m.framed and self.channel.space != "plane":
+        if m.framed and self.channel.space == "joint":
             raise ValueError(
                 "mapping.offset_m, mapping.rotation_rpy_deg: frames are mapped in task space; "
-                "they need channel.space: plane"
+                "they need channel.space: plane, position or pose"
             )
         if self.channel.space == "plane" and (m.offset_m[2] or any(m.rotation_rpy_deg[:2])):
             raise ValueError(
