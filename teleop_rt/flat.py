@@ -330,7 +330,11 @@ class Packed:
 
     def index_of(self, block: Block, name: str) -> int:
         """Position in the packed float buffer of a block's scalar, or of the first entry of
-        any of its named views (vectors and tail views alike)."""
+        any of its named views (vectors and tail views alike); of an int, ``int_position``'s
+        code for its place in the int buffer (< 0: a log row's gather reads ints too)."""
+        if name in block.INTS:
+            return int_position(int(self.offsets[2 * self.blocks.index(block) + 1])
+                                + block.INTS.index(name))  # fmt: skip
         if name in block.SCALARS:
             start = int(self.offsets[2 * self.blocks.index(block)])
             return start + block.scalar_index(name, block.n)
@@ -338,6 +342,12 @@ class Packed:
         if not np.shares_memory(view, self.f):
             raise ValueError(f"{name} of {type(block).__name__} is not in these buffers")
         return (view.ctypes.data - self.f.ctypes.data) // self.f.itemsize
+
+
+def int_position(k: int) -> int:
+    """The gather code of entry k of a packed int buffer: -1 - k (a float's is its position,
+    >= 0), so one gather array reads both buffers (``teleop_rt.recording.recorder.fill_row``)."""
+    return -1 - k
 
 
 def as_floats(x: Sequence[float] | np.ndarray) -> np.ndarray:

@@ -51,7 +51,10 @@ from dataclasses import dataclass
 import numpy as np
 
 CDR_HEADER = b"\x00\x01\x00\x00"  # CDR, little endian, no options
-SCHEMA_VERSION = 2  # 2: /channel has the ports' balances and the energy the protection removed
+# 2: /channel has the ports' balances and the energy the protection removed; 3: a mapped
+# layout's robots have MAPPED_STATE, a site's /link the packet's engaged (older logs read as
+# they were written: LogLayout.version)
+SCHEMA_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -120,6 +123,15 @@ MAPPED_FIELDS = (
     ("tau_mapped", "what T_tau compares: tau_h or beta tau_e, or the tool's force (N m, N)"),
 )
 
+# a mapped site's coupling per tick (schema 3): what a replay needs to reproduce a live
+# clutch, and what says when the sites were coupled (name, type, doc)
+MAPPED_STATE = (
+    ("gain", "float64", "r, the coupling gain: 1 coupled, 0 decoupled, ramping between"),
+    ("coupled", "uint8", "1: the clutch released and the operator present (at the TO: as the "
+     "HSI's packets say, when it follows them)"),
+    ("inputs", "uint8", "the live inputs this tick's map read: 1 clutch pressed, 2 present"),
+)
+
 ROBOT_FIELDS = (
     ("q", "joint angles, rad"),
     ("v", "joint velocities, rad/s"),
@@ -142,7 +154,8 @@ SITES = ("hsi", "to")
 class LogLayout:
     """Row layout and topics of a session with n joints and E environment elements, or of one
     site's log (``site``: "hsi" or "to"; "" for a session's). ``n_hsi``, ``n_to``: the robots'
-    joints when they are not n (0: n); ``mapped``: the robots' topics hold ``MAPPED_FIELDS``."""
+    joints when they are not n (0: n); ``mapped``: the robots' topics hold ``MAPPED_FIELDS``
+    (and from schema 3 ``MAPPED_STATE``); ``version``: the schema of the log."""
 
     n: int
     n_env: int
@@ -150,6 +163,7 @@ class LogLayout:
     n_hsi: int = 0
     n_to: int = 0
     mapped: bool = False
+    version: int = SCHEMA_VERSION  # the fields a log of an older schema holds
 
     @property
     def joints_hsi(self) -> int:
@@ -222,7 +236,9 @@ class LogLayout:
         """A robot's fields: per joint, then (a mapped layout) of the channel's size."""
         robot = [Field(name, "float64", joints, doc) for name, doc in ROBOT_FIELDS]
         mapped = [Field(name, "float64", self.n, doc) for name, doc in MAPPED_FIELDS]
-        return robot + (mapped if self.mapped else [])
+        state = [Field(name, kind, None, doc) for name, kind, doc in MAPPED_STATE]
+        state = state if self.version >= 3 else []
+        return robot + (mapped + state if self.mapped else [])
 
     def _site_topics(self) -> tuple[Topic, Topic]:
         n, side = self.n, self.site
@@ -259,6 +275,8 @@ class LogLayout:
                 ),  # fmt: skip
                 Field("peer_energy", "float64", None, "energy through the peer's port, J"),
                 Field("valid", "uint8", None, "1: the peer's packet due was there; 0: zeros"),
+                *([Field("engaged", "uint8", None, "the packet's engaged: the HSI's coupling")]
+                  if self.version >= 3 else []),  # fmt: skip
             ),
         )
         return port, link
