@@ -147,3 +147,49 @@ def test_without_a_terminal_the_reader_does_nothing(tmp_path) -> None:
         reader.press(ord("p"))
         reader.press(ord("x"))
         assert fb.inputs == INPUT_CLUTCH and reader.presses == 2
+
+
+def test_two_sites_with_the_keys_replay_the_tos_log_bit_for_bit(tmp_path) -> None:
+    """``run --link zenoh --keys``: the HSI site reads the keys (its terminal goes to cbreak
+    mode), the TO site follows its packets; the clutch pressed for about a second shows in both
+    site logs, and the TO's site log replays bit for bit against the HSI's logged packets (their
+    ``engaged`` included). The terminal's mode is restored."""
+    pytest.importorskip("zenoh")
+    from test_zenoh_sites import endpoints, free_port
+
+    from teleop_rt.recording.site_replay import replay_site
+
+    master, slave = pty.openpty()
+    before = termios.tcgetattr(slave)
+    base = tmp_path / "pair.mcap"
+    cmd = [sys.executable, "-m", "teleop_rt", "run", str(FOAM), "--link", "zenoh", "--realtime",
+           "--keys", "--duration", "8", "--log", str(base), "--set", "channel.delay_ms=20",
+           *endpoints(free_port())]  # fmt: skip
+    proc = subprocess.Popen(cmd, stdin=slave, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        end = time.monotonic() + STARTED_S
+        while termios.tcgetattr(slave)[3] & termios.ICANON:  # until the HSI site reads keys
+            assert proc.poll() is None and time.monotonic() < end, proc.communicate()
+            time.sleep(0.05)
+        time.sleep(2.5)
+        os.write(master, b"c")
+        time.sleep(1.0)
+        os.write(master, b"c")
+        out, err = proc.communicate(timeout=120)
+        assert proc.returncode == 0, err.decode(errors="replace")[-3000:]
+        assert termios.tcgetattr(slave) == before
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        os.close(master)
+        os.close(slave)
+    hsi, to = (read_log(tmp_path / f"pair.{s}.mcap") for s in ("hsi", "to"))
+    pressed = np.flatnonzero(hsi.topics["/hsi"]["inputs"] & INPUT_CLUTCH)
+    assert len(pressed) > 300, len(pressed)
+    assert np.array_equal(np.flatnonzero(hsi.topics["/hsi"]["gain"] == 0), pressed)
+    engaged, valid = to.topics["/link"]["engaged"], to.topics["/link"]["valid"] == 1
+    assert (valid & (engaged == 0)).sum() > 300  # the HSI's packets said so
+    assert (to.topics["/to"]["gain"] == 0).sum() > 300 and to.topics["/to"]["gain"][-1] == 1.0
+    done = replay_site(to, [], None, False, str(tmp_path / "pair.to.mcap"))
+    assert done.figures["identical"] is True, done.figures
