@@ -62,7 +62,9 @@ damper absorbs what is left of the waves in the channel: none of it is replayed 
 and the same ramp on re-engaging. The TO reads the state of the packet of the tick before
 (its port input goes out before this tick's packet arrives): it decouples D + 1 ticks after
 the HSI, where the script shifted by D (kept for a scripted operator: the reference figures
-bit for bit) does it after D.
+bit for bit) does it after D. ``mapping.keys`` gives the HSI both inputs from the terminal's
+keys instead (``teleop_rt.keys``); the map notes what it read (``inputs``), which the log
+records with the gain, so that a replay feeds it back.
 
 Frames (``mapping.offset_m``, ``mapping.rotation_rpy_deg``; task space only). The TO's tool is
 to be at ``x_t = R (alpha x_h) + offset``, R a rotation (orthogonal, det 1). The channel's

@@ -10,7 +10,9 @@ robots have their own joint counts (a heterogeneous pair, coupled in the plane) 
 with its own (``joints_hsi``, ``joints_to``) and the channel with its size n (the task's
 dimension); one whose sites map their ports (``mapped``: a task-space channel, motion or force
 scaling, a clutch) also logs per robot what T_p and T_tau compare (``q_mapped``, ``tau_mapped``,
-of size n; ``teleop_rt.mapping``), so that its metrics are the live ones:
+of size n; ``teleop_rt.mapping``), so that its metrics are the live ones, and each site's
+coupling per tick (``MAPPED_STATE``: the gain r, coupled or not, the live inputs read), so that
+a live clutch is in the log and replays:
 
 * ``/hsi``       teleop_rt/msg/HsiTick: the HSI robot and the operator
 * ``/to``        teleop_rt/msg/ToTick: the TO robot and the environment
@@ -22,7 +24,8 @@ A site's own log (``teleop-rt site``, ``LogLayout(site="hsi" | "to")``) holds it
 (``/hsi`` or ``/to``, as above), ``/port`` (teleop_rt/msg/HsiPortTick or ToPortTick: its port's
 variables, waves, power and energy under the paper's names, its balance and the energy its
 protection removed), ``/link``
-(teleop_rt/msg/LinkTick: the peer's packet used at the tick, or none) and ``/timing``.
+(teleop_rt/msg/LinkTick: the peer's packet used at the tick, or none, with the HSI's coupling
+state it carried, ``engaged``) and ``/timing``.
 
 A message's log time is wall-clock: UTC at the session start plus the tick's time, in ns since
 the epoch (``start_time_ns + k * period_ns``); the field ``t`` is the tick's time from the start.
@@ -34,7 +37,8 @@ Besides the messages a log holds (so that it describes itself):
   start_time_utc (ISO 8601), and from the command line config (its path) and overrides (a JSON
   list of the --set values), for a replay replay_of (the replayed log); a mapped session's
   also joints_hsi, joints_to and mapped ("1"), which logs of one joint count without a map
-  leave out;
+  leave out, and mapping (JSON: the map's constants, and how its sites took the operator's
+  live inputs: ``teleop_rt.recording.recorder.mapping_metadata``);
 * attachments ``config.yaml`` (the resolved session config) and ``urdf/hsi.urdf``,
   ``urdf/to.urdf`` when the robots came from URDF files;
 * in a site's log also log_kind ("site"), site ("hsi" or "to"), session_id (hex, from the

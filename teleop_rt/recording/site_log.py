@@ -5,7 +5,8 @@ a dead or failing writer is noticed, closing is bounded, an incomplete log is ex
 
 Topics (``LogLayout(site=...)``): the site's robot as in a session's log (``/hsi`` or
 ``/to``), ``/port`` (its port under the paper's names), ``/link`` (per tick: the peer's packet
-used, or none, with its sender tick, the tick it arrived at and its one-way delay), ``/timing``,
+used, or none, with its sender tick, the tick it arrived at, its one-way delay and the coupling
+state it carried), ``/timing``,
 and the 3D topics of its robot alone, placed where a session's log places it (two site logs
 opened together show both robots as one session's log does). Metadata beyond a session's:
 log_kind "site", site, config_hash (what both sites share) and, once the handshake is done
