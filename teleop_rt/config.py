@@ -607,6 +607,9 @@ class MappingSpec(Strict):
     # an x, y offset
     offset_m: tuple[FiniteFloat, FiniteFloat, FiniteFloat] = (0.0, 0.0, 0.0)
     rotation_rpy_deg: tuple[FiniteFloat, FiniteFloat, FiniteFloat] = (0.0, 0.0, 0.0)
+    # the HSI's clutch and presence from the terminal's keys (teleop-rt run --keys, site
+    # --keys: teleop_rt.keys); the TO then follows the HSI's packets' coupling state
+    keys: bool = False
 
     @property
     def framed(self) -> bool:
@@ -685,6 +688,15 @@ class SessionConfig(Strict):
                 "channel.codec: the deadband codec holds a wave channel's waves within the "
                 f"energy bound; channel.wave_reconstruction must be {CODEC_RECONSTRUCTION}, not "
                 f"{ch.wave_reconstruction}"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _keys_on_a_backend_without_inputs(self) -> SessionConfig:
+        if self.mapping.keys and self.backend_for("hsi") == "can":
+            raise ValueError(
+                "mapping.keys: the CAN backend sets the HSI's operator inputs from its drives' "
+                "0x60FD (can.hsi.clutch_input, presence_input); the keys need another backend"
             )
         return self
 

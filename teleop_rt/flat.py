@@ -379,7 +379,11 @@ class Packed:
 
     def index_of(self, block: Block, name: str) -> int:
         """Position in the packed float buffer of a block's scalar, or of the first entry of
-        any of its named views (vectors and tail views alike)."""
+        any of its named views (vectors and tail views alike); of an int, ``int_position``'s
+        code for its place in the int buffer (< 0: a log row's gather reads ints too)."""
+        if name in block.INTS:
+            return int_position(int(self.offsets[2 * self.blocks.index(block) + 1])
+                                + block.INTS.index(name))  # fmt: skip
         if name in block.SCALARS:
             start = int(self.offsets[2 * self.blocks.index(block)])
             return start + block.scalar_index(name, block.n)
@@ -428,6 +432,12 @@ class _BlockClassAttributes(AttributeTemplate):
 @lower_getattr(BlockClass, "idx")
 def _lower_idx(context: Any, builder: Any, ty: BlockClass, val: object) -> Any:
     return context.get_constant_generic(builder, numba.typeof(ty.cls.idx), ty.cls.idx)
+
+
+def int_position(k: int) -> int:
+    """The gather code of entry k of a packed int buffer: -1 - k (a float's is its position,
+    >= 0), so one gather array reads both buffers (``teleop_rt.recording.recorder.fill_row``)."""
+    return -1 - k
 
 
 def as_floats(x: Sequence[float] | np.ndarray) -> np.ndarray:

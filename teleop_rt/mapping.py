@@ -62,7 +62,9 @@ damper absorbs what is left of the waves in the channel: none of it is replayed 
 and the same ramp on re-engaging. The TO reads the state of the packet of the tick before
 (its port input goes out before this tick's packet arrives): it decouples D + 1 ticks after
 the HSI, where the script shifted by D (kept for a scripted operator: the reference figures
-bit for bit) does it after D.
+bit for bit) does it after D. ``mapping.keys`` gives the HSI both inputs from the terminal's
+keys instead (``teleop_rt.keys``); the map notes what it read (``inputs``), which the log
+records with the gain, so that a replay feeds it back.
 
 Frames (``mapping.offset_m``, ``mapping.rotation_rpy_deg``; task space only). The TO's tool is
 to be at ``x_t = R (alpha x_h) + offset``, R a rotation (orthogonal, det 1). The channel's
@@ -155,6 +157,7 @@ class Mapping(Block):
     live = Int("the live inputs read (INPUT_CLUTCH | INPUT_PRESENT bits; 0: script only)",
                param=True)
     live_away = Int("ticks the live presence input has been off, in a row")
+    inputs = Int("the live inputs this tick's map read (of those ``live`` names; logged)")
     follow = Int("TO: 1: decoupled while the HSI's packets say so (it has live inputs)",
                  param=True)
     peer_engaged = Int("TO: the HSI's coupling state as of its newest packet (1: none yet)")
@@ -269,6 +272,12 @@ class Mapping(Block):
         )  # fmt: skip
         self.gain, self.coupled = 1.0, 1
 
+    def take_live(self, live: int, follow: bool) -> None:
+        """Read ``live`` inputs (the HSI) or follow the HSI's packets (the TO) as a logged run's
+        site did, whatever this config's backend delivers (a replay: the logged ones)."""
+        self.live, self.follow = live, int(follow)
+        self.active = int(self.active or live != 0 or follow)
+
 
 X, Q_MAPPED, TAU_MAPPED, INDEX_OFFSET = (
     Mapping.x.k, Mapping.q_mapped.k, Mapping.tau_mapped.k, Mapping.index_offset.k
@@ -285,7 +294,7 @@ M_CLUTCH_AT, M_ABSENT_AT, M_COUPLED, M_ENGAGEMENTS = (
     Mapping.clutch_at.k, Mapping.absent_at.k, Mapping.coupled.k, Mapping.engagements.k
 )  # fmt: skip
 M_SPACE, M_KIN_AT, M_JOINTS = Mapping.space.k, Mapping.kin_at.k, Mapping.joints.k
-M_LIVE, M_LIVE_AWAY = Mapping.live.k, Mapping.live_away.k
+M_LIVE, M_LIVE_AWAY, M_INPUTS = Mapping.live.k, Mapping.live_away.k, Mapping.inputs.k
 M_FOLLOW, M_PEER_ENGAGED = Mapping.follow.k, Mapping.peer_engaged.k
 M_LIMITS, M_WALLS, M_SPEED_LIMIT, M_FORCE_LIMIT, M_SPEED_CAP, M_MIN_SPEED_CAP = (
     Mapping.limits.k, Mapping.walls.k, Mapping.speed_limit.k, Mapping.force_limit.k,
@@ -331,6 +340,7 @@ def mapping_engage(
     clutched = _inside(f, i, tail, clutches, M_CLUTCH_AT, tick) > 0
     away = _inside(f, i, tail + 2 * clutches, absences, M_ABSENT_AT, tick)
     live = i[M_LIVE]
+    i[M_INPUTS] = inputs & live
     if live & INPUT_CLUTCH and inputs & INPUT_CLUTCH:
         clutched = True
     if i[M_FOLLOW] and not i[M_PEER_ENGAGED]:  # the HSI decoupled, as its packet said
@@ -695,8 +705,11 @@ def frame_for(cfg: SessionConfig) -> tuple[np.ndarray, np.ndarray]:
 
 
 def live_inputs(cfg: SessionConfig) -> int:
-    """The INPUT_* bits the HSI's backend delivers: the CAN backend's ``can.hsi``
-    ``clutch_input`` / ``presence_input`` (off unless given)."""
+    """The INPUT_* bits the HSI's feedback delivers: both with ``mapping.keys`` (the terminal's
+    keys, ``teleop_rt.keys``), else the CAN backend's ``can.hsi`` ``clutch_input`` /
+    ``presence_input`` (off unless given)."""
+    if cfg.mapping.keys:
+        return INPUT_CLUTCH | INPUT_PRESENT
     if cfg.backend_for("hsi") != "can" or cfg.can is None:
         return 0
     side = cfg.can.hsi

@@ -26,6 +26,7 @@ from teleop_rt.config import SessionConfig
 from teleop_rt.declarations import OVERRUN_DEFAULT
 from teleop_rt.errors import ConfigError
 from teleop_rt.exit_signals import Terminated
+from teleop_rt.keys import key_reader
 from teleop_rt.loop import TickClock
 from teleop_rt.runner import LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
@@ -217,11 +218,13 @@ def run_site(
         return summary[0].to_dict()
 
     try:
-        run_loop(
-            step, cfg.n_ticks, period_s, [site.backend], stop_safely, realtime=realtime,
-            overrun=overrun, max_missed=max_missed, before_start=handshake, at_start=at_start,
-            finish=finish, recorder=recorder, spin_ns=SITE_SPIN_NS, cpu=cpu_index,
-        )  # fmt: skip
+        with key_reader(site):  # (mapping.keys: the HSI's operator inputs from the terminal)
+            run_loop(
+                step, cfg.n_ticks, period_s, [site.backend], stop_safely, realtime=realtime,
+                overrun=overrun, max_missed=max_missed, before_start=handshake,
+                at_start=at_start, finish=finish, recorder=recorder, spin_ns=SITE_SPIN_NS,
+                cpu=cpu_index,
+            )  # fmt: skip
     except (HandshakeError, KeyboardInterrupt, Terminated):
         if recorder is not None and not shaken[0]:  # no session: no log of one
             recorder.discard()

@@ -36,7 +36,12 @@ from teleop_rt.com.zenoh_link import Arrival, shared_parts
 from teleop_rt.errors import ConfigError
 from teleop_rt.recording.reader import LogData, read_log, require_ticks
 from teleop_rt.recording.recorder import default_log_path
-from teleop_rt.recording.replay import replay_config, replay_operator
+from teleop_rt.recording.replay import (
+    logged_inputs,
+    replay_config,
+    replay_operator,
+    take_logged_inputs,
+)
 from teleop_rt.recording.schema import PACKET_EXTRAS, PORT_NAMES
 from teleop_rt.recording.site_log import site_log_path, site_recorder
 from teleop_rt.runner import run_loop
@@ -50,6 +55,9 @@ class LoggedLink(Link):
 
     def __init__(self, link: np.ndarray, site: Site, arrival: Arrival | None) -> None:
         self.rows, self.site, self.arrival = link, site, arrival
+        # the HSI's coupling state each packet carried (schema 3): a TO that followed a live
+        # clutch follows it again (an older log's packets said nothing of it: coupled)
+        self.engaged = "engaged" in (link.dtype.names or ())
 
     def send(self, side: int, packet: Packet) -> None:
         pass  # the partner does not listen: its packets are the logged ones
@@ -64,6 +72,7 @@ class LoggedLink(Link):
             into.energy = float(row["peer_energy"])
             into.tick = into.seq = int(row["sender_tick"])
             into.valid = 1
+            into.engaged = int(row["engaged"]) if self.engaged else 1
         else:  # as the playout hands out a packet that is not there: zeros
             into.f[:] = 0.0
             into.i[:] = 0
@@ -83,6 +92,7 @@ def build_site_replay(data: LogData, overrides: list[str]) -> Site:
     cfg = replay_config(data, overrides)
     cls = HsiSite if data.site == "hsi" else ToSite
     site = cls(cfg, "sim", replay_operator(cfg, data) if data.site == "hsi" else None)
+    take_logged_inputs(site, data)
     shared = shared_parts(cfg, site.n)
     if shared["config_hash"] != data.meta.get("config_hash"):
         original = replay_config(data, [])
@@ -102,7 +112,11 @@ def run_site_replay(site: Site, data: LogData, recorder) -> dict:
     link = LoggedLink(data.topics["/link"], site, recorder.session.arrival if recorder else None)
     summary: list[dict] = []
 
+    inputs = logged_inputs(data)
+
     def step() -> None:
+        if inputs is not None:  # the operator's live inputs as the log has them
+            site.feedback.inputs = int(inputs[site.tick])
         site.sense(link)
         site.update(link)
 
