@@ -20,7 +20,14 @@ Receiver (``codec_receive``, before the port): a tick with no packet within the 
 interval is the codec's silence, not a loss: the peer's last packet is used again, with the
 energy it declared. What keeps that passive is the port's own rule, unchanged:
 
-- wave channel: the held wave goes through the energy bound (``reconstruction: bounded``):
+- wave channel on ``reflected`` (the codec's default): the held wave goes through that
+  reconstruction's bound: beyond what the peer declared a port emits only what it reflects
+  back, taken off what it declares in turn (``teleop_rt.com.port``). Its sender then needs no
+  reserve and no model of the peer's room (below): it sends at the latest every
+  ``REFLECT_HOLD_TICKS`` ticks (A + 1 with a look-ahead A); a real packet after held ticks is
+  handed to the port as the next in line (no one-tick catch-up of the hold's integral error:
+  under jitter that jolt was a velocity command the TO could not follow; docs/codec.md).
+- wave channel on ``bounded``: the held wave goes through the energy bound:
   the wave energy this port emits never exceeds what the peer has declared sent, and the
   peer declares its TRUE wave energy, dt/2 sum u^2 over every tick, sent or not. Why not the
   energy of the held wave it knows the receiver uses (the tempting choice: the receiver's
