@@ -26,6 +26,7 @@ from pydantic import (
 from teleop_rt.com.impairment_spec import ImpairmentSpec
 from teleop_rt.declarations import (
     CODEC_RECONSTRUCTION,
+    CODEC_RECONSTRUCTIONS,
     DEFAULT_RECONSTRUCTION,
     MAX_DELAY_MS,
     ChannelMode,
@@ -191,7 +192,7 @@ class ChannelSpec(Strict):
     # taken off the energy it declares to the peer: a push is held through a loss), zero (a
     # zero wave: passive), and, unprotected, for comparison: hold (the last wave held) or
     # integral (the wave integral without the bound). With no loss all six compute the same.
-    # With the deadband codec the default is bounded (the codec holds waves within its bound).
+    # With the deadband codec: reflected (the default) or bounded, the two it keeps passive.
     wave_reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
@@ -205,9 +206,9 @@ class ChannelSpec(Strict):
 
     @model_validator(mode="before")
     @classmethod
-    def _codec_default_bounded(cls, data: Any) -> Any:
-        """The deadband codec's wave reconstruction, unless given: bounded (the one it keeps
-        passive; teleop_rt.com.codec)."""
+    def _codec_default_reconstruction(cls, data: Any) -> Any:
+        """The deadband codec's wave reconstruction, unless given: CODEC_RECONSTRUCTION (one it
+        keeps passive; teleop_rt.com.codec)."""
         if isinstance(data, dict) and data.get("codec", "none") != "none":
             data = {"wave_reconstruction": CODEC_RECONSTRUCTION, **data}
         return data
@@ -683,11 +684,11 @@ class SessionConfig(Strict):
                 "channel.codec: the deadband codec needs channel.delay_ms of at least one tick "
                 "(with no delay the ports couple directly, every tick)"
             )
-        if ch.mode == "wave" and ch.wave_reconstruction != CODEC_RECONSTRUCTION:
+        if ch.mode == "wave" and ch.wave_reconstruction not in CODEC_RECONSTRUCTIONS:
             raise ValueError(
-                "channel.codec: the deadband codec holds a wave channel's waves within the "
-                f"energy bound; channel.wave_reconstruction must be {CODEC_RECONSTRUCTION}, not "
-                f"{ch.wave_reconstruction}"
+                "channel.codec: the deadband codec holds a wave channel's waves within an "
+                "energy bound; channel.wave_reconstruction must be "
+                f"{' or '.join(CODEC_RECONSTRUCTIONS)}, not {ch.wave_reconstruction}"
             )
         return self
 
