@@ -200,7 +200,9 @@ class Port(Block):
     codec_min = Int("the fewest ticks between two packets sent", param=True)
     codec_max = Int("the most ticks between two packets sent", param=True)
     codec_ahead_ticks = Int("the look-ahead the link gives the peer: a packet reaches it this "
-                            "many ticks before it is due (0: none known)", param=True)
+                            "many ticks before it is due (0: none known); on ``reflected`` "
+                            "also the hold cap (codec.REFLECT_HOLD_TICKS - 1 where none is "
+                            "known)", param=True)
     codec_rx_seq = Int("sequence number of the peer's last packet (-1: none)")
     codec_since = Int("ticks since this port last sent")
     codec_age = Int("ticks since the peer's last packet")
