@@ -1,6 +1,8 @@
 """The fixed-step loop around a tick, shared by a one-process session and a site that runs
 alone: the deadline clock, timing statistics, the real-time grant, signals at tick boundaries,
-recording, the staged stop after a safety finding, and stopping every backend together.
+recording, the staged stop after a safety finding, and the backends' lifecycle
+(``teleop_rt.hal.base``: configured and activated before the first tick; whatever ends the
+run, deactivated together and released, ``teleop_rt.hal.stopping``).
 """
 
 from __future__ import annotations
@@ -101,9 +103,9 @@ def run_loop(
     recorder: Recorder | None = None,
 ) -> LoopOutcome:
     """Run ``hooks.step`` ``total`` times, one per period ``dt`` in real time (else back to
-    back), calling the hooks at their points. Whatever ends the run, every backend is stopped
-    together and ``recorder`` (if any) records every tick and is closed with the summary
-    ``hooks.finish(outcome)`` gives."""
+    back), calling the hooks at their points. Whatever ends the run, every backend is
+    deactivated together and released, and ``recorder`` (if any), which records every tick,
+    is closed with the summary ``hooks.finish(outcome)`` gives."""
     realtime = options.realtime
     period_ns = int(round(dt * 1e9))
     stats = TimingStats(total, period_ns)
@@ -119,8 +121,11 @@ def run_loop(
     try:
         stop.install()
         hooks.before_start()
+        # one robot configured and activated after the other: a configured CAN robot's drives
+        # are NMT operational, and its keepalive (SYNC, heartbeat) starts with activation
         for backend in backends:
-            backend.start()
+            backend.configure()
+            backend.activate()
         hooks.at_start()
         clock.start()
         for k in range(total):
