@@ -79,6 +79,7 @@ def _build_parser() -> argparse.ArgumentParser:
         "processes over Zenoh (teleop-rt site hsi / to as children; needs --realtime)",
     )
     run.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    add_keys_arg(run)
     add_log_args(run)
     run.add_argument(
         "--live",
@@ -104,6 +105,7 @@ def _build_parser() -> argparse.ArgumentParser:
                       help="a safety stop (exit 3) at the (N+1)th missed deadline")  # fmt: skip
     add_backend_arg(site, one_robot=True)
     site.add_argument("--json", action="store_true", help="print the summary as JSON on stdout")
+    add_keys_arg(site)
     add_log_args(site, "logs/<name>-<UTC time>.<site>.mcap")
     site.add_argument(
         "--live", nargs="?", const="127.0.0.1:8765", metavar="[HOST:]PORT",
@@ -215,6 +217,21 @@ def add_set_arg(p: argparse.ArgumentParser, help_text: str) -> None:
     )
 
 
+def add_keys_arg(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--keys", action="store_true",
+        help="the terminal's keys are the operator's inputs: space or c toggles the clutch, p "
+        "the presence (mapping.keys; give it to both sites: the TO follows the HSI's)",
+    )  # fmt: skip
+
+
+def keys_override(args: argparse.Namespace) -> None:
+    """--keys as the config's ``mapping.keys``: in the log's config and overrides, and passed on
+    to the sites of ``run --link zenoh``."""
+    if getattr(args, "keys", False):
+        args.overrides = [*args.overrides, "mapping.keys=true"]
+
+
 def add_force_arg(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument("--force", action="store_true", help=f"overwrite {what} if it exists")
 
@@ -322,6 +339,7 @@ def _print_warnings(session) -> None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from teleop_rt.keys import key_reader
     from teleop_rt.report import progress_bar
     from teleop_rt.session import Session
 
@@ -330,6 +348,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
         extra.append(f"duration_s={args.duration}")
     if args.max_missed is not None and not args.realtime:
         raise ConfigError("--max-missed counts missed deadlines: it needs --realtime")
+    if args.keys and not args.realtime:
+        raise ConfigError("--keys reads the operator's keys as the robots move: add --realtime")
+    keys_override(args)
     live = live_arg(args)
     can_path = None
     if args.can_log is not None:
@@ -382,10 +403,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
             _closed_on_error(recorder),
             progress_bar(cfg.n_ticks, enabled=not (args.json or args.realtime)) as progress,
         ):
-            summary = session.run(
-                realtime=args.realtime, overrun=args.overrun, progress=progress,
-                recorder=recorder, max_missed=args.max_missed,
-            )  # fmt: skip
+            with key_reader(session.hsi):
+                summary = session.run(
+                    realtime=args.realtime, overrun=args.overrun, progress=progress,
+                    recorder=recorder, max_missed=args.max_missed,
+                )  # fmt: skip
     finally:
         can_status = can_log.close() if can_log is not None else None
     _print_summary(summary, args.json, recorder, can_status)
@@ -398,6 +420,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_site(args: argparse.Namespace) -> int:
     from teleop_rt.cli_sites import cmd_site
 
+    keys_override(args)
     return cmd_site(args, _load_config, live_arg(args))
 
 

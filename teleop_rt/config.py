@@ -26,6 +26,7 @@ from pydantic import (
 from teleop_rt.com.impairment_spec import ImpairmentSpec
 from teleop_rt.declarations import (
     CODEC_RECONSTRUCTION,
+    CODEC_RECONSTRUCTIONS,
     DEFAULT_RECONSTRUCTION,
     MAX_DELAY_MS,
     ChannelMode,
@@ -79,12 +80,24 @@ class RobotSpec(Strict):
     example_robot: str | None = None
     ee_frame: str | None = None  # default: the last frame of the model
     q0_rad: list[FiniteFloat] | None = None  # default: zeros
+    # joints taken out of the model (pinocchio.buildReducedModel), held rigid at the model's
+    # neutral position, e.g. a gripper's fingers: the per-joint parameters and q0_rad are then
+    # the other joints', and neither the tool Jacobian nor the guard sees them
+    locked_joints: list[str] = Field(default_factory=list)
 
     @model_validator(mode="after")
     def _one_source(self) -> RobotSpec:
         if (self.urdf is None) == (self.example_robot is None):
             raise ValueError("give exactly one of 'urdf' or 'example_robot'")
         return self
+
+    @field_validator("locked_joints")
+    @classmethod
+    def _locked_once(cls, v: list[str]) -> list[str]:
+        twice = sorted({name for name in v if v.count(name) > 1})
+        if twice:
+            raise ValueError(f"names a joint more than once: {', '.join(twice)}")
+        return v
 
 
 class ControllerSpec(Strict):
@@ -179,7 +192,7 @@ class ChannelSpec(Strict):
     # taken off the energy it declares to the peer: a push is held through a loss), zero (a
     # zero wave: passive), and, unprotected, for comparison: hold (the last wave held) or
     # integral (the wave integral without the bound). With no loss all six compute the same.
-    # With the deadband codec the default is bounded (the codec holds waves within its bound).
+    # With the deadband codec: reflected (the default) or bounded, the two it keeps passive.
     wave_reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
@@ -193,9 +206,9 @@ class ChannelSpec(Strict):
 
     @model_validator(mode="before")
     @classmethod
-    def _codec_default_bounded(cls, data: Any) -> Any:
-        """The deadband codec's wave reconstruction, unless given: bounded (the one it keeps
-        passive; teleop_rt.com.codec)."""
+    def _codec_default_reconstruction(cls, data: Any) -> Any:
+        """The deadband codec's wave reconstruction, unless given: CODEC_RECONSTRUCTION (one it
+        keeps passive; teleop_rt.com.codec)."""
         if isinstance(data, dict) and data.get("codec", "none") != "none":
             data = {"wave_reconstruction": CODEC_RECONSTRUCTION, **data}
         return data
@@ -591,9 +604,13 @@ class MappingSpec(Strict):
     orientation_gain_per_s: NonNegFloat = 5.0
     # the TO's frame against the HSI's (task space only; teleop_rt.mapping): the TO's tool is
     # to be at R (alpha x_hsi) + offset_m, R from roll, pitch, yaw about the fixed x, y, z
-    # axes (URDF's rpy); in the plane only a yaw and an x, y offset
+    # axes (URDF's rpy), in the pose its orientation at R R_hsi; in the plane only a yaw and
+    # an x, y offset
     offset_m: tuple[FiniteFloat, FiniteFloat, FiniteFloat] = (0.0, 0.0, 0.0)
     rotation_rpy_deg: tuple[FiniteFloat, FiniteFloat, FiniteFloat] = (0.0, 0.0, 0.0)
+    # the HSI's clutch and presence from the terminal's keys (teleop-rt run --keys, site
+    # --keys: teleop_rt.keys); the TO then follows the HSI's packets' coupling state
+    keys: bool = False
 
     @property
     def framed(self) -> bool:
@@ -667,11 +684,20 @@ class SessionConfig(Strict):
                 "channel.codec: the deadband codec needs channel.delay_ms of at least one tick "
                 "(with no delay the ports couple directly, every tick)"
             )
-        if ch.mode == "wave" and ch.wave_reconstruction != CODEC_RECONSTRUCTION:
+        if ch.mode == "wave" and ch.wave_reconstruction not in CODEC_RECONSTRUCTIONS:
             raise ValueError(
-                "channel.codec: the deadband codec holds a wave channel's waves within the "
-                f"energy bound; channel.wave_reconstruction must be {CODEC_RECONSTRUCTION}, not "
-                f"{ch.wave_reconstruction}"
+                "channel.codec: the deadband codec holds a wave channel's waves within an "
+                "energy bound; channel.wave_reconstruction must be "
+                f"{' or '.join(CODEC_RECONSTRUCTIONS)}, not {ch.wave_reconstruction}"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _keys_on_a_backend_without_inputs(self) -> SessionConfig:
+        if self.mapping.keys and self.backend_for("hsi") == "can":
+            raise ValueError(
+                "mapping.keys: the CAN backend sets the HSI's operator inputs from its drives' "
+                "0x60FD (can.hsi.clutch_input, presence_input); the keys need another backend"
             )
         return self
 
@@ -687,10 +713,10 @@ class SessionConfig(Strict):
     @model_validator(mode="after")
     def _frames_in_task_space(self) -> SessionConfig:
         m = self.mapping
-        if m.framed and self.channel.space != "plane":
+        if m.framed and self.channel.space == "joint":
             raise ValueError(
                 "mapping.offset_m, mapping.rotation_rpy_deg: frames are mapped in task space; "
-                "they need channel.space: plane"
+                "they need channel.space: plane, position or pose"
             )
         if self.channel.space == "plane" and (m.offset_m[2] or any(m.rotation_rpy_deg[:2])):
             raise ValueError(

@@ -69,16 +69,11 @@ class ComputedTorque(Block):
         return self.tau
 
 
-INV_MASS, A_DES, TAU = ComputedTorque.inv_mass.k, ComputedTorque.a_des.k, ComputedTorque.tau.k
-DAMPING, COULOMB = ComputedTorque.damping.k, ComputedTorque.coulomb.k
-CT_INV_V_S, CT_COMPENSATE = ComputedTorque.inv_v_s.k, ComputedTorque.compensate_friction.k
-N_CT_VECTORS = len(ComputedTorque.VECTORS)
-
-
 @jit
 def ct_prepare(f: np.ndarray, n: int, a_ref: np.ndarray) -> None:
     """a_des = M_v^-1 a_ref: the acceleration RNEA is evaluated at."""
-    inv_m, a_des = vec(f, INV_MASS, n), vec(f, A_DES, n)
+    Ct = ComputedTorque.idx
+    inv_m, a_des = vec(f, Ct.INV_MASS, n), vec(f, Ct.A_DES, n)
     for j in range(n):
         a_des[j] = a_ref[j] * inv_m[j]
 
@@ -88,12 +83,13 @@ def ct_finish(
     f: np.ndarray, i: np.ndarray, n: int, rnea: np.ndarray, tau_ext: np.ndarray, v: np.ndarray
 ) -> None:
     """tau = RNEA(q, v, a_des) - tau_ext (+ the model's friction at v)."""
-    tau = vec(f, TAU, n)
+    Ct = ComputedTorque.idx
+    tau = vec(f, Ct.TAU, n)
     for j in range(n):
         tau[j] = rnea[j] - tau_ext[j]
-    if i[CT_COMPENSATE]:
-        damping, coulomb = vec(f, DAMPING, n), vec(f, COULOMB, n)
-        inv_v_s = f[N_CT_VECTORS * n + CT_INV_V_S]
+    if i[Ct.COMPENSATE_FRICTION]:
+        damping, coulomb = vec(f, Ct.DAMPING, n), vec(f, Ct.COULOMB, n)
+        inv_v_s = f[Ct.N_VECTORS * n + Ct.INV_V_S]
         for j in range(n):
             tau[j] += friction_torque(damping[j], coulomb[j], inv_v_s, v[j])
 
@@ -153,36 +149,24 @@ class Pid(Block):
         return self.out
 
 
-OUT, KP, KI, KD = Pid.out.k, Pid.kp.k, Pid.ki.k, Pid.kd.k
-INTEGRAL_LIMIT, OUTPUT_LIMIT, INTEGRAL = Pid.integral_limit.k, Pid.output_limit.k, Pid.integral.k
-DERIV, PREV_ERROR, SATURATED = Pid.deriv.k, Pid.prev_error.k, Pid.saturated.k
-PID_DT, D_ALPHA = Pid.dt.k, Pid.d_alpha.k
-PROPORTIONAL_ONLY, HAS_I, HAS_D, STARTED = (
-    Pid.proportional_only.k,
-    Pid.has_i.k,
-    Pid.has_d.k,
-    Pid.started.k,
-)
-N_PID_VECTORS = len(Pid.VECTORS)
-
-
 @jit
 def pid_step(f: np.ndarray, i: np.ndarray, n: int, error: np.ndarray) -> None:
-    out, kp = vec(f, OUT, n), vec(f, KP, n)
-    if i[PROPORTIONAL_ONLY]:
+    Pd = Pid.idx
+    out, kp = vec(f, Pd.OUT, n), vec(f, Pd.KP, n)
+    if i[Pd.PROPORTIONAL_ONLY]:
         for j in range(n):
             out[j] = kp[j] * error[j]
         return
-    ki, kd = vec(f, KI, n), vec(f, KD, n)
-    i_lim, o_lim = vec(f, INTEGRAL_LIMIT, n), vec(f, OUTPUT_LIMIT, n)
-    integral, deriv, prev = vec(f, INTEGRAL, n), vec(f, DERIV, n), vec(f, PREV_ERROR, n)
-    sat = vec(f, SATURATED, n)
-    dt, d_alpha = f[N_PID_VECTORS * n + PID_DT], f[N_PID_VECTORS * n + D_ALPHA]
-    has_i, has_d = i[HAS_I] != 0, i[HAS_D] != 0
-    if not i[STARTED]:
+    ki, kd = vec(f, Pd.KI, n), vec(f, Pd.KD, n)
+    i_lim, o_lim = vec(f, Pd.INTEGRAL_LIMIT, n), vec(f, Pd.OUTPUT_LIMIT, n)
+    integral, deriv, prev = vec(f, Pd.INTEGRAL, n), vec(f, Pd.DERIV, n), vec(f, Pd.PREV_ERROR, n)
+    sat = vec(f, Pd.SATURATED, n)
+    dt, d_alpha = f[Pd.N_VECTORS * n + Pd.DT], f[Pd.N_VECTORS * n + Pd.D_ALPHA]
+    has_i, has_d = i[Pd.HAS_I] != 0, i[Pd.HAS_D] != 0
+    if not i[Pd.STARTED]:
         for j in range(n):
             prev[j] = error[j]
-        i[STARTED] = 1
+        i[Pd.STARTED] = 1
     for j in range(n):
         e = error[j]
         u = kp[j] * e + integral[j]

@@ -21,8 +21,11 @@ RECONSTRUCTIONS: dict[Reconstruction, int] = {
 }  # fmt: skip
 # the default: the wall is still felt under burst loss (docs/transparency_under_loss.md)
 DEFAULT_RECONSTRUCTION: Reconstruction = "reflected"
-# the deadband codec holds waves within the honest bound (teleop_rt.com.codec): the one it takes
-CODEC_RECONSTRUCTION: Reconstruction = "bounded"
+# the wave reconstructions the deadband codec keeps passive (teleop_rt.com.codec), its default
+# first: reflected (a held wave beyond the peer's declaration paid by the energy it reflects:
+# the stiff wall at D = 1 ms within 5 %, docs/codec.md); bounded (the honest bound alone)
+CODEC_RECONSTRUCTIONS: tuple[Reconstruction, ...] = ("reflected", "bounded")
+CODEC_RECONSTRUCTION: Reconstruction = CODEC_RECONSTRUCTIONS[0]
 
 # what the channel couples (channel.space; teleop_rt.mapping): joint j to joint j, or the tools
 # in task space, each robot through its own Jacobian: the plane (x, y), 3-D position (x, y, z),

@@ -9,19 +9,25 @@ reach everything through three arguments instead of dozens.
 Layout convention, shared by a block's Python views and its compiled functions: the float
 buffer holds ``len(VECTORS)`` vectors of ``n`` entries (vector k at ``k * n``), then the
 ``SCALARS`` (scalar k at ``len(VECTORS) * n + k``), then any variable-sized tail the block
-declares (delay lines). The int buffer holds the block's ``INTS``. The compiled functions use
-module constants with the same indices, listed next to the names.
+declares (delay lines). The int buffer holds the block's ``INTS``. The compiled functions take
+the indices from the block's own namespace, ``MyBlock.idx`` (``Block``), derived from the same
+declaration.
 """
 
 from __future__ import annotations
 
 import hashlib
+from abc import ABCMeta
+from collections import namedtuple
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, cast, overload
+from typing import Any, ClassVar, cast, overload
 
 import numba
 import numpy as np
+from numba.core.imputils import lower_constant
+from numba.core.typing.templates import AttributeTemplate
+from numba.extending import infer_getattr, lower_getattr, models, register_model, typeof_impl
 
 from teleop_rt.kernel_lock import CompileLock, locked
 
@@ -115,8 +121,8 @@ class _Declared:
 
 class Vector(_Declared):
     """A block's n-vector field (declared once, as a class attribute): its index ``k`` among the
-    block's vectors is derived from the declaration order, for the compiled kernels to use
-    (``K = MyBlock.name.k``); instances see a float64 view."""
+    block's vectors is derived from the declaration order (the compiled kernels read it as
+    ``MyBlock.idx.NAME``); instances see a float64 view."""
 
     @overload
     def __get__(self, obj: None, owner: type | None = None) -> Vector: ...
@@ -164,23 +170,41 @@ class Int(_Declared):
 Field = Vector | Scalar | Int
 
 
-class Block:
+class BlockMeta(ABCMeta):
+    """The type of every block class: what numba recognises a block class by (``BlockClass``).
+    (An ``ABCMeta``, so that a block can also implement an abstract interface: ``Link``.)"""
+
+
+class Block(metaclass=BlockMeta):
     """One block's state: float buffer ``f`` and int buffer ``i`` with named views.
 
     Fields are declared once, as class attributes: ``Vector()`` (n-vectors), ``Scalar()``
     (floats) and ``Int()`` (ints), each optionally ``param=True`` (set at construction and
     never written by a tick: gains, impedances, limits; the rest is state). Their order in the
-    class gives the layout and the indices the kernels use (``MyBlock.name.k``); the names are
+    class gives the layout and the indices (``MyBlock.name.k``, ``MyBlock.idx``); the names are
     also listed in ``VECTORS``, ``SCALARS`` and ``INTS`` (derived; older blocks may still
     declare these tuples directly). ``tail`` extra floats follow the scalars (``tail_view``).
 
     Layout, shared by a block's Python views and its compiled functions: the float buffer
     holds the vectors (vector k at ``k * n``), then the scalars (scalar k at
-    ``len(VECTORS) * n + k``), then the tail; the int buffer holds the ints."""
+    ``len(VECTORS) * n + k``), then the tail; the int buffer holds the ints.
+
+    ``idx``: the block's index namespace for the compiled kernels, derived from the same
+    declaration: each field's index under its upper-case name (``PlantState.idx.TAU``: vector
+    ``tau``'s k) and the counts ``N_VECTORS``, ``N_SCALARS``, ``N_INTS`` (a scalar sits at
+    ``idx.N_VECTORS * n + idx.NAME``). It is a named tuple of a type of the block's own
+    (``MyBlock.Idx``), which numba lowers into a kernel as a compile-time constant (as it does
+    a module's int: no cost). ``BlockClass`` lets a kernel reach it through the block's class,
+    so that each index names its block where it is used: ``f[s + PlantState.idx.TAU * n]``, or
+    ``Ps = PlantState.idx`` at the top of a kernel of many."""
 
     VECTORS: tuple[str, ...] = ()
     SCALARS: tuple[str, ...] = ()
     INTS: tuple[str, ...] = ()
+    # (generated per block: typed Any, as mypy cannot see generated names; test_index_namespaces
+    # checks every use against the declaration)
+    idx: ClassVar[Any]
+    Idx: ClassVar[type]
     PARAMS: frozenset[str] = frozenset()  # fields that are parameters, not state
     TAIL_IS_STATE = True  # a tail (delay lines, contacts) is state unless a block says not
 
@@ -274,6 +298,31 @@ class Block:
                 existing.k = k
             else:
                 setattr(cls, name, _int_property(k))
+        cls.Idx, cls.idx = _index_namespace(cls)
+
+
+COUNTS = ("N_VECTORS", "N_SCALARS", "N_INTS")  # the counts in every block's ``idx``
+
+
+def _index_namespace(cls: type[Block]) -> tuple[type, Any]:
+    """A block's ``Idx`` type and ``idx`` namespace (``Block``): its fields' indices by their
+    upper-case names, then ``COUNTS``."""
+    indices = {
+        **{name.upper(): k for k, name in enumerate(cls.VECTORS)},
+        **{name.upper(): k for k, name in enumerate(cls.SCALARS)},
+        **{name.upper(): k for k, name in enumerate(cls.INTS)},
+    }
+    fields = len(cls.VECTORS) + len(cls.SCALARS) + len(cls.INTS)
+    clash = set(indices) & set(COUNTS)
+    if len(indices) != fields or clash:
+        raise TypeError(f"{cls.__name__}: field names that differ only in case, or {COUNTS}")
+    counts = (len(cls.VECTORS), len(cls.SCALARS), len(cls.INTS))
+    # (a type made at run time, which mypy's namedtuple support cannot follow)
+    make: Callable[..., Any] = namedtuple
+    idx_type = make(f"{cls.__name__}Idx", [*indices, *COUNTS], module=cls.__module__)
+    # (pickled by reference, as numba's cache may: ``module.Block.Idx``)
+    idx_type.__qualname__ = f"{cls.__qualname__}.Idx"
+    return idx_type, idx_type(*indices.values(), *counts)
 
 
 def _scalar_property(base: int, k: int) -> property:
@@ -330,7 +379,11 @@ class Packed:
 
     def index_of(self, block: Block, name: str) -> int:
         """Position in the packed float buffer of a block's scalar, or of the first entry of
-        any of its named views (vectors and tail views alike)."""
+        any of its named views (vectors and tail views alike); of an int, ``int_position``'s
+        code for its place in the int buffer (< 0: a log row's gather reads ints too)."""
+        if name in block.INTS:
+            return int_position(int(self.offsets[2 * self.blocks.index(block) + 1])
+                                + block.INTS.index(name))  # fmt: skip
         if name in block.SCALARS:
             start = int(self.offsets[2 * self.blocks.index(block)])
             return start + block.scalar_index(name, block.n)
@@ -338,6 +391,53 @@ class Packed:
         if not np.shares_memory(view, self.f):
             raise ValueError(f"{name} of {type(block).__name__} is not in these buffers")
         return (view.ctypes.data - self.f.ctypes.data) // self.f.itemsize
+
+
+class BlockClass(numba.types.Dummy):
+    """numba's type of a block class used in a kernel (``PlantState`` in ``PlantState.idx.TAU``):
+    nothing at run time, its ``idx`` a constant. numba cannot type a class otherwise; a
+    module-level alias of the namespace would compile as well, but would name its block only
+    where it is bound."""
+
+    def __init__(self, cls: type[Block]) -> None:
+        self.cls = cls
+        super().__init__(f"BlockClass({cls.__module__}.{cls.__qualname__})")
+
+    @property
+    def key(self) -> type[Block]:
+        return self.cls
+
+
+register_model(BlockClass)(models.OpaqueModel)
+
+
+@typeof_impl.register(BlockMeta)
+def _typeof_block_class(val: type[Block], c: object) -> BlockClass:
+    return BlockClass(val)
+
+
+@lower_constant(BlockClass)
+def _lower_block_class(context: Any, builder: Any, ty: BlockClass, pyval: object) -> Any:
+    return context.get_dummy_value()
+
+
+@infer_getattr
+class _BlockClassAttributes(AttributeTemplate):
+    key = BlockClass
+
+    def resolve_idx(self, ty: BlockClass) -> Any:
+        return numba.typeof(ty.cls.idx)
+
+
+@lower_getattr(BlockClass, "idx")
+def _lower_idx(context: Any, builder: Any, ty: BlockClass, val: object) -> Any:
+    return context.get_constant_generic(builder, numba.typeof(ty.cls.idx), ty.cls.idx)
+
+
+def int_position(k: int) -> int:
+    """The gather code of entry k of a packed int buffer: -1 - k (a float's is its position,
+    >= 0), so one gather array reads both buffers (``teleop_rt.recording.recorder.fill_row``)."""
+    return -1 - k
 
 
 def as_floats(x: Sequence[float] | np.ndarray) -> np.ndarray:

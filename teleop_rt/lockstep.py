@@ -20,7 +20,7 @@ from teleop_rt.com.channel import monitor_step
 from teleop_rt.com.exchange import link_exchange
 from teleop_rt.com.link import link_offsets, link_push
 from teleop_rt.flat import Block, Int, floats_of, ints_of, jit
-from teleop_rt.safety import SATURATED
+from teleop_rt.safety import RobotGuard
 from teleop_rt.site_tick import (
     GUARD,
     PORT,
@@ -47,9 +47,6 @@ class PairState(Block):
     saturated_ticks = Int("ticks in which either robot's torque was saturated")
 
 
-FINDING_SITE, SATURATED_TICKS = PairState.finding_site.k, PairState.saturated_ticks.k
-
-
 def link_at(offsets: np.ndarray) -> np.ndarray:
     """Where the link kernels find the link and the four packets in a session's buffers."""
     return link_offsets(offsets, LINK, HSI_SITE + TX, HSI_SITE + RX, TO_SITE + TX, TO_SITE + RX)
@@ -60,7 +57,7 @@ def lockstep_before(f: np.ndarray, i: np.ndarray, o: np.ndarray, at: np.ndarray,
     """Both sites from their fresh feedback to their models' accelerations; a finding (the
     pair's ``finding_site`` says whose) before anything is exchanged. ``at``: ``link_at``."""
     oh, ot = o[: 2 * SITE_BLOCKS], o[2 * SITE_BLOCKS : 4 * SITE_BLOCKS]
-    finding = o[2 * PAIR + 1] + FINDING_SITE  # (ints by offset: a slice costs more)
+    finding = o[2 * PAIR + 1] + PairState.idx.FINDING_SITE  # (ints by offset: cheaper than a slice)
     code = site_sense(f, i, oh, n)
     if code:
         i[finding] = 0
@@ -92,8 +89,9 @@ def pair_account(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> None:
     """What the pair counts once both sites' torques are checked: the ticks either robot
     saturated, and T_p, T_tau (eq 18) of the sites' positions and torques."""
     oh, ot = o[: 2 * SITE_BLOCKS], o[2 * SITE_BLOCKS : 4 * SITE_BLOCKS]
-    if i[oh[2 * GUARD + 1] + SATURATED] or i[ot[2 * GUARD + 1] + SATURATED]:
-        i[o[2 * PAIR + 1] + SATURATED_TICKS] += 1
+    saturated = RobotGuard.idx.SATURATED
+    if i[oh[2 * GUARD + 1] + saturated] or i[ot[2 * GUARD + 1] + saturated]:
+        i[o[2 * PAIR + 1] + PairState.idx.SATURATED_TICKS] += 1
     accumulate(
         floats_of(f, o, METRICS), ints_of(i, o, METRICS), n,
         site_position(f, i, oh, n), site_position(f, i, ot, n),
@@ -107,14 +105,14 @@ def lockstep_after(
 ) -> int:
     """Both sites from their models' RNEA to checked motor torques; the finding (0: none)."""
     oh, ot = o[: 2 * SITE_BLOCKS], o[2 * SITE_BLOCKS : 4 * SITE_BLOCKS]
-    pair = o[2 * PAIR + 1]
+    finding = o[2 * PAIR + 1] + PairState.idx.FINDING_SITE
     code = site_after_models(f, i, oh, n, rnea_h)
     if code:
-        i[pair + FINDING_SITE] = 0
+        i[finding] = 0
         return code
     code = site_after_models(f, i, ot, n, rnea_t)
     if code:
-        i[pair + FINDING_SITE] = 1
+        i[finding] = 1
         return code
     pair_account(f, i, o, n)
     return 0

@@ -27,7 +27,7 @@ from functools import partial
 import numpy as np
 import pinocchio as pin
 
-from teleop_rt.control import TAU
+from teleop_rt.control import ComputedTorque
 from teleop_rt.flat import Block, floats_of, ints_of, jit, vec
 from teleop_rt.hal.base import Backend
 from teleop_rt.hal.sim import SimBackend, command, euler_step, next_tick, sense
@@ -109,8 +109,9 @@ def finish_and_command(
     code = lockstep_after(f, i, o, n, rnea_h, rnea_t)
     if code:
         return code
-    command(f, o[2 * SESSION_BLOCKS : 2 * split], nj, vec(floats_of(f, o, CT_H), TAU, nj))
-    command(f, o[2 * split :], nj, vec(floats_of(f, o, CT_T), TAU, nj))
+    tau = ComputedTorque.idx.TAU
+    command(f, o[2 * SESSION_BLOCKS : 2 * split], nj, vec(floats_of(f, o, CT_H), tau, nj))
+    command(f, o[2 * split :], nj, vec(floats_of(f, o, CT_T), tau, nj))
     return 0
 
 

@@ -62,7 +62,9 @@ damper absorbs what is left of the waves in the channel: none of it is replayed 
 and the same ramp on re-engaging. The TO reads the state of the packet of the tick before
 (its port input goes out before this tick's packet arrives): it decouples D + 1 ticks after
 the HSI, where the script shifted by D (kept for a scripted operator: the reference figures
-bit for bit) does it after D.
+bit for bit) does it after D. ``mapping.keys`` gives the HSI both inputs from the terminal's
+keys instead (``teleop_rt.keys``); the map notes what it read (``inputs``), which the log
+records with the gain, so that a replay feeds it back.
 
 Frames (``mapping.offset_m``, ``mapping.rotation_rpy_deg``; task space only). The TO's tool is
 to be at ``x_t = R (alpha x_h) + offset``, R a rotation (orthogonal, det 1). The channel's
@@ -78,7 +80,15 @@ map stays passive for any R because R^T R = I. R on the force instead of R^T wou
 (by the skew part of R^2) and is what the test's power identity catches. The offset moves no
 robot: the channel carries motion, not positions, and T_p takes the motion since the first
 tick; it places the positions logged (``q_mapped``) in one frame, so the two agree, within
-the tracking error, when it is the offset between the robots' starting poses.
+the tracking error, when it is the offset between the robots' starting poses. An offset the
+start does not meet therefore moves no robot (no jump): the TO starts where it stands.
+
+In 3-D R is the full 3 x 3 rotation and the offset x, y, z. In the pose the twist's linear
+and angular halves are each turned by R and the wrench's force and torque each by R^T
+(the block-diagonal diag(R, R), again orthogonal: the same power identity), so the angular
+velocity the TO's orientation reference integrates is R omega: R_t = R R_h C, C the constant
+rotation between the tools at the start; the orientation T_p compares at the TO is
+R^T log(R_t R_t0^T), which is log(R_h R_h0^T) when it follows. The offset has no angular part.
 
 With the identity (alpha = beta = 1, no script) the block is inactive and the sites compute
 exactly what they computed before it existed.
@@ -115,6 +125,13 @@ ROTATIONS = 5  # POSE: R, R0 (at the start), R_ref (the TO's reference), 2 scrat
 WALL_FLOATS = 6  # a virtual wall in the tail: x, y, unit normal x, y, stiffness, damping
 
 
+@jit
+def frame_dim(m: int) -> int:
+    """The frames' dimension d for a task of m: the plane's 2, else 3 (position: x, y, z; the
+    pose: its twist's linear and angular halves, each turned by the same 3 x 3 R)."""
+    return m if m < 3 else 3
+
+
 class Mapping(Block):
     """One site's map between its robot and its port (see the module's docstring)."""
 
@@ -140,6 +157,7 @@ class Mapping(Block):
     live = Int("the live inputs read (INPUT_CLUTCH | INPUT_PRESENT bits; 0: script only)",
                param=True)
     live_away = Int("ticks the live presence input has been off, in a row")
+    inputs = Int("the live inputs this tick's map read (of those ``live`` names; logged)")
     follow = Int("TO: 1: decoupled while the HSI's packets say so (it has live inputs)",
                  param=True)
     peer_engaged = Int("TO: the HSI's coupling state as of its newest packet (1: none yet)")
@@ -175,7 +193,8 @@ class Mapping(Block):
     # the frames (task space): x_t = R (alpha x_h) + offset, the TO's map only
     framed = Int("1: the TO's frame is rotated or offset against the HSI's", param=True)
     frame_at = Int(
-        "where R (TASK x TASK, row major), the offset and a TASK scratch start", param=True
+        "where R (d x d, row major; d: frame_dim), the offset (d) and a task-sized scratch "
+        "start", param=True,
     )
     # the script: starts then ends of the clutch, then of the absences; then (task space) the
     # kinematics, refreshed by ``map_kinematics`` after every tick, the virtual walls, the
@@ -197,7 +216,8 @@ class Mapping(Block):
         backend's inputs (``Feedback.inputs``) read besides the script, INPUT_* bits;
         ``follow``: the TO decouples while the HSI's packets say it is decoupled.
         ``orientation_gain``: POSE at the TO, K of its orientation's correction (1/s). ``frame``:
-        the TO's (R, offset) in the plane, R TASK x TASK (None: the frames agree)."""
+        the TO's (R, offset), R d x d and the offset d (``frame_dim``; None: the frames
+        agree)."""
         clutch, absent, walls = clutch or [], absent or [], walls or []
         script = 2 * (len(clutch) + len(absent))
         nj = n if joints is None else joints
@@ -205,9 +225,10 @@ class Mapping(Block):
         kin = 2 * m * nj + m + WALL_FLOATS * len(walls) if space != JOINT else 0
         work = m * m + m if m > TASK else 0  # the DLS's Cholesky factor and singular vector
         rotations = 9 * ROTATIONS if space == POSE else 0
-        if frame is not None and space != PLANE:
-            raise ValueError("a frame map needs channel.space: plane")
-        framing = TASK * TASK + 2 * TASK if frame is not None else 0
+        if frame is not None and space == JOINT:
+            raise ValueError("a frame map needs a task space")
+        d = frame_dim(m)  # (R: d x d, the offset d, then an m-float scratch)
+        framing = d * d + d + m if frame is not None else 0
         super().__init__(n, tail=script + kin + work + rotations + framing)
         self.task = m
         self.work_at = self.tail_start + script + kin
@@ -228,10 +249,10 @@ class Mapping(Block):
         self.space, self.joints = space, nj
         if frame is not None:
             rotation, offset = frame
-            self.framed, self.frame_at = 1, wall_at + WALL_FLOATS * len(walls)
+            self.framed, self.frame_at = 1, self.rot_at + rotations  # (the tail's last)
             at = self.frame_at
-            self.f[at : at + TASK * TASK] = np.asarray(rotation, dtype=float).reshape(-1)
-            self.f[at + TASK * TASK : at + TASK * TASK + TASK] = offset
+            self.f[at : at + d * d] = np.asarray(rotation, dtype=float).reshape(-1)
+            self.f[at + d * d : at + d * d + d] = offset
         self.kin_at = self.tail_start + script
         self.side, self.dt = side, dt
         self.motion_scale, self.force_scale = motion_scale, force_scale
@@ -251,6 +272,12 @@ class Mapping(Block):
         )  # fmt: skip
         self.gain, self.coupled = 1.0, 1
 
+    def take_live(self, live: int, follow: bool) -> None:
+        """Read ``live`` inputs (the HSI) or follow the HSI's packets (the TO) as a logged run's
+        site did, whatever this config's backend delivers (a replay: the logged ones)."""
+        self.live, self.follow = live, int(follow)
+        self.active = int(self.active or live != 0 or follow)
+
 
 X, Q_MAPPED, TAU_MAPPED, INDEX_OFFSET = (
     Mapping.x.k, Mapping.q_mapped.k, Mapping.tau_mapped.k, Mapping.index_offset.k
@@ -267,7 +294,7 @@ M_CLUTCH_AT, M_ABSENT_AT, M_COUPLED, M_ENGAGEMENTS = (
     Mapping.clutch_at.k, Mapping.absent_at.k, Mapping.coupled.k, Mapping.engagements.k
 )  # fmt: skip
 M_SPACE, M_KIN_AT, M_JOINTS = Mapping.space.k, Mapping.kin_at.k, Mapping.joints.k
-M_LIVE, M_LIVE_AWAY = Mapping.live.k, Mapping.live_away.k
+M_LIVE, M_LIVE_AWAY, M_INPUTS = Mapping.live.k, Mapping.live_away.k, Mapping.inputs.k
 M_FOLLOW, M_PEER_ENGAGED = Mapping.follow.k, Mapping.peer_engaged.k
 M_LIMITS, M_WALLS, M_SPEED_LIMIT, M_FORCE_LIMIT, M_SPEED_CAP, M_MIN_SPEED_CAP = (
     Mapping.limits.k, Mapping.walls.k, Mapping.speed_limit.k, Mapping.force_limit.k,
@@ -313,6 +340,7 @@ def mapping_engage(
     clutched = _inside(f, i, tail, clutches, M_CLUTCH_AT, tick) > 0
     away = _inside(f, i, tail + 2 * clutches, absences, M_ABSENT_AT, tick)
     live = i[M_LIVE]
+    i[M_INPUTS] = inputs & live
     if live & INPUT_CLUTCH and inputs & INPUT_CLUTCH:
         clutched = True
     if i[M_FOLLOW] and not i[M_PEER_ENGAGED]:  # the HSI decoupled, as its packet said
@@ -542,54 +570,72 @@ def to_plane_output(
 ) -> None:  # fmt: skip
     """Task space at the TO: C2's error r alpha J# omega_t - v_t (in the pose, with the
     orientation's correction: ``to_orientation_step``); the indexing offset and the indexed
-    tool position x_t + offset."""
+    tool position x_t + offset. Framed: the flow turned into the TO's frame first (R omega_t,
+    each 3-vector of a twist by R), and the position T_p compares R^T (x_t - offset) (the
+    pose's orientation coordinates R^T log(R_t R_t0^T)) + index offset, the HSI's frame."""
     s, k, nj = N_MAPPING_VECTORS * n, i[M_KIN_AT], i[M_JOINTS]
     inv, pos = k + n * nj, k + 2 * n * nj
     r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
     g = r * alpha
     q_mapped, offset = vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
-    framed, fr = i[M_FRAMED] != 0, i[M_FRAME_AT]
-    w = fr + TASK * TASK + TASK
+    framed, fr, d = i[M_FRAMED] != 0, i[M_FRAME_AT], frame_dim(n)
+    w = fr + d * d + d
+    flow = omega_t
     if framed:  # the flow in the TO's frame, R omega_t, into the scratch
-        for a in range(TASK):
-            wa = 0.0
-            for b in range(TASK):
-                wa += f[fr + a * TASK + b] * omega_t[b]
-            f[w + a] = wa
+        frame_turn(f, fr, d, n, omega_t, w, False)
+        flow = f[w : w + n]
     for j in range(nj):
         v_ref = 0.0
-        for a in range(n):  # (framed: the plane only, n == TASK)
-            v_ref += f[inv + j * n + a] * (f[w + a] if framed else omega_t[a])
+        for a in range(n):
+            v_ref += f[inv + j * n + a] * flow[a]
         error[j] = g * v_ref - v[j]
     if i[M_SPACE] == POSE:
-        to_orientation_step(f, i, g * dt, omega_t, error)
+        to_orientation_step(f, i, g * dt, flow, error)
     for a in range(n):
         offset[a] += (1.0 - r) * alpha * omega_t[a] * dt
-        if framed:  # R^T (x_t - offset), in the HSI's frame
-            xa = 0.0
-            for b in range(TASK):
-                xa += f[fr + b * TASK + a] * (f[pos + b] - f[fr + TASK * TASK + b])
-            q_mapped[a] = xa + offset[a]
-        else:
+    if framed:  # R^T (x_t - offset), in the HSI's frame (the scratch's flow is used up)
+        for a in range(n):
+            f[w + a] = f[pos + a] - (f[fr + d * d + a] if a < d else 0.0)
+        frame_turn(f, fr, d, n, f[w : w + n], w, True)
+        for a in range(n):
+            q_mapped[a] = f[w + a] + offset[a]
+    else:
+        for a in range(n):
             q_mapped[a] = f[pos + a] + offset[a]
+
+
+@jit
+def frame_turn(
+    f: np.ndarray, fr: int, d: int, n: int, x: np.ndarray, out: int, transposed: bool
+) -> None:  # fmt: skip
+    """f[out : out + n] = R x (R^T x if ``transposed``), R (d x d) at f[fr:] applied to each
+    d-vector of x (the pose's twist or wrench: its linear, then its angular half). ``x`` may
+    be the output's own floats: each d-vector is read whole before it is written."""
+    for c in range(0, n, d):
+        x0 = x[c]
+        x1 = x[c + 1]
+        x2 = x[c + 2] if d == 3 else 0.0
+        for a in range(d):
+            if transposed:  # (row a of R^T: column a of R)
+                ya = f[fr + a] * x0 + f[fr + d + a] * x1
+                if d == 3:
+                    ya += f[fr + 2 * d + a] * x2
+            else:
+                ya = f[fr + a * d] * x0 + f[fr + a * d + 1] * x1
+                if d == 3:
+                    ya += f[fr + a * d + 2] * x2
+            f[out + c + a] = ya
 
 
 @jit
 def to_frame_force(f: np.ndarray, i: np.ndarray, n: int) -> None:
     """Framed, at the TO, after its force is complete (``to_plane_input``, the virtual walls):
-    tau_mapped = R^T (beta F_e), the force in the HSI's frame (the port's)."""
+    tau_mapped = R^T (beta F_e), the force in the HSI's frame (the port's; the pose: both the
+    wrench's force and its torque turned by R^T)."""
     if not i[M_FRAMED]:
         return
-    fr = i[M_FRAME_AT]
-    w = fr + TASK * TASK + TASK
     force = vec(f, TAU_MAPPED, n)
-    for a in range(TASK):
-        f[w + a] = force[a]
-    for a in range(TASK):
-        fa = 0.0
-        for b in range(TASK):
-            fa += f[fr + b * TASK + a] * f[w + b]
-        force[a] = fa
+    frame_turn(f, i[M_FRAME_AT], frame_dim(n), n, force, TAU_MAPPED * n, True)
 
 
 def mapping_for(cfg: SessionConfig, joints: int, side: int) -> Mapping:
@@ -651,14 +697,19 @@ def frame_rotation(rpy_deg: tuple[float, float, float]) -> np.ndarray:
 
 def frame_for(cfg: SessionConfig) -> tuple[np.ndarray, np.ndarray]:
     """The TO's (R, offset) of the task space from ``mapping``: in the plane, R's x-y block
-    (the config holds it to a yaw) and the offset's x, y."""
+    (the config holds it to a yaw) and the offset's x, y; in 3-D and in the pose, all of
+    both (``frame_dim``)."""
     spec = cfg.mapping
-    return frame_rotation(spec.rotation_rpy_deg)[:TASK, :TASK], np.array(spec.offset_m[:TASK])
+    d = frame_dim(TASK_DIMS[cfg.channel.space])
+    return frame_rotation(spec.rotation_rpy_deg)[:d, :d], np.array(spec.offset_m[:d])
 
 
 def live_inputs(cfg: SessionConfig) -> int:
-    """The INPUT_* bits the HSI's backend delivers: the CAN backend's ``can.hsi``
-    ``clutch_input`` / ``presence_input`` (off unless given)."""
+    """The INPUT_* bits the HSI's feedback delivers: both with ``mapping.keys`` (the terminal's
+    keys, ``teleop_rt.keys``), else the CAN backend's ``can.hsi`` ``clutch_input`` /
+    ``presence_input`` (off unless given)."""
+    if cfg.mapping.keys:
+        return INPUT_CLUTCH | INPUT_PRESENT
     if cfg.backend_for("hsi") != "can" or cfg.can is None:
         return 0
     side = cfg.can.hsi

@@ -145,7 +145,30 @@ class RobotModel:
 
 
 def load_pinocchio_model(spec: RobotSpec, name: str) -> pin.Model:
-    """Build a Pinocchio model from a URDF file or an example-robot-data robot name."""
+    """Build a Pinocchio model from a URDF file or an example-robot-data robot name, with the
+    joints ``spec.locked_joints`` names locked (``locked_model``)."""
+    model = _loaded_model(spec, name)
+    return locked_model(model, spec.locked_joints, name) if spec.locked_joints else model
+
+
+def locked_model(model: pin.Model, joints: list[str], name: str) -> pin.Model:
+    """``model`` with ``joints`` locked at its neutral configuration: Pinocchio's
+    ``buildReducedModel`` (the locked joints become fixed joints, their bodies' inertia merged
+    into their parents', the other joints' limits kept)."""
+    names = list(model.names)[1:]  # (0: the universe, no joint to lock)
+    unknown = [joint for joint in joints if joint not in names]
+    if unknown:
+        raise ModelError(
+            f"{name}.robot.locked_joints: no joint {unknown[0]!r} in the model "
+            f"(its joints: {', '.join(names)})"
+        )
+    if len(joints) == len(names):
+        raise ModelError(f"{name}.robot.locked_joints: locks every joint of the model")
+    ids = [model.getJointId(joint) for joint in joints]
+    return pin.buildReducedModel(model, ids, pin.neutral(model))
+
+
+def _loaded_model(spec: RobotSpec, name: str) -> pin.Model:
     if spec.urdf is not None:
         path = Path(spec.urdf)
         problem = file_problem(path)  # before Pinocchio opens it (a FIFO would block it)

@@ -241,32 +241,11 @@ class RobotGuard(Block):
         )
 
 
-G = RobotGuard
-LO, HI, VMAX, EMAX, PREV_V, PREV_A, RUN = (
-    x.k for x in (G.lo, G.hi, G.vmax, G.emax, G.prev_v, G.prev_a, G.run)
-)
-URDF_EMAX = G.urdf_emax.k
-TAU_EXT_MAX, V_MEASURED_MAX = G.tau_ext_max.k, G.v_measured_max.k
-TOLERANCE, INV_DT, VALUE = G.tolerance.k, G.inv_dt.k, G.value.k
-ENABLED, STALE_TICKS, TRACKING_TICKS, STOP_ON_TORQUE = (
-    G.enabled.k,
-    G.stale_ticks.k,
-    G.tracking_ticks.k,
-    G.stop_on_torque.k,
-)
-TRACKING_VALID, JOINT, SATURATED = G.tracking_valid.k, G.joint.k, G.saturated.k
-SATURATION_STOP_TICKS, SATURATED_RUN, SATURATED_TICKS = (
-    G.saturation_stop_ticks.k,
-    G.saturated_run.k,
-    G.saturated_ticks.k,
-)
-N_GUARD_VECTORS = len(RobotGuard.VECTORS)
-
-
 @jit
 def _found(f: np.ndarray, i: np.ndarray, n: int, code: int, j: int, x: float) -> int:
-    i[JOINT] = j
-    f[N_GUARD_VECTORS * n + VALUE] = x
+    Rg = RobotGuard.idx
+    i[Rg.JOINT] = j
+    f[Rg.N_VECTORS * n + Rg.VALUE] = x
     return code
 
 
@@ -277,7 +256,8 @@ def measured_fault(
     """The first non-finite measurement (angle, speed, torque), then the first implausible one
     (torque, speed beyond the plausibility bounds), or OK. One pass without slices in the
     common case (every tick of every site runs it); the finding's wording only on a fault."""
-    t0, v0 = TAU_EXT_MAX * n, V_MEASURED_MAX * n
+    Rg = RobotGuard.idx
+    t0, v0 = Rg.TAU_EXT_MAX * n, Rg.V_MEASURED_MAX * n
     for j in range(n):
         tj, vj = tau_ext[j], v[j]
         if not (
@@ -291,6 +271,7 @@ def measured_fault(
 def _measured_finding(
     f: np.ndarray, i: np.ndarray, n: int, q: np.ndarray, v: np.ndarray, tau_ext: np.ndarray
 ) -> int:
+    Rg = RobotGuard.idx
     j = _first_non_finite(q, n)
     if j >= 0:
         return _found(f, i, n, MEASURED_ANGLE, j, q[j])
@@ -300,7 +281,7 @@ def _measured_finding(
     j = _first_non_finite(tau_ext, n)
     if j >= 0:
         return _found(f, i, n, MEASURED_TORQUE, j, tau_ext[j])
-    tmax, vmax = vec(f, TAU_EXT_MAX, n), vec(f, V_MEASURED_MAX, n)
+    tmax, vmax = vec(f, Rg.TAU_EXT_MAX, n), vec(f, Rg.V_MEASURED_MAX, n)
     for j in range(n):
         if not -tmax[j] <= tau_ext[j] <= tmax[j]:
             return _found(f, i, n, IMPLAUSIBLE_TORQUE, j, tau_ext[j])
@@ -320,7 +301,8 @@ def _first_non_finite(values: np.ndarray, n: int) -> int:
 @jit
 def motion_plausible(f: np.ndarray, n: int, q: np.ndarray, v: np.ndarray) -> bool:
     """Every angle finite, every speed finite and within its plausibility bound."""
-    v0 = V_MEASURED_MAX * n
+    Rg = RobotGuard.idx
+    v0 = Rg.V_MEASURED_MAX * n
     for j in range(n):
         if not (math.isfinite(q[j]) and -f[v0 + j] <= v[j] <= f[v0 + j]):  # (NaN fails)
             return False
@@ -330,7 +312,8 @@ def motion_plausible(f: np.ndarray, n: int, q: np.ndarray, v: np.ndarray) -> boo
 @jit
 def force_plausible(f: np.ndarray, n: int, tau_ext: np.ndarray) -> bool:
     """Every measured external torque within its plausibility bound (NaN fails)."""
-    t0 = TAU_EXT_MAX * n
+    Rg = RobotGuard.idx
+    t0 = Rg.TAU_EXT_MAX * n
     for j in range(n):
         if not -f[t0 + j] <= tau_ext[j] <= f[t0 + j]:
             return False
@@ -342,8 +325,9 @@ def follows_command(
     f: np.ndarray, n: int, v: np.ndarray, prev_v: np.ndarray, prev_a: np.ndarray
 ) -> bool:
     """(v - prev_v) / dt within the tracking tolerance of prev_a on every joint."""
-    s = N_GUARD_VECTORS * n
-    tol, inv_dt = f[s + TOLERANCE], f[s + INV_DT]
+    Rg = RobotGuard.idx
+    s = Rg.N_VECTORS * n
+    tol, inv_dt = f[s + Rg.TOLERANCE], f[s + Rg.INV_DT]
     for j in range(n):
         error = (v[j] - prev_v[j]) * inv_dt - prev_a[j]
         if not -tol <= error <= tol:
@@ -354,10 +338,11 @@ def follows_command(
 @jit
 def clamp_to_effort(f: np.ndarray, n: int, tau: np.ndarray) -> bool:
     """False if a torque is not finite (tau untouched), else tau clamped to the URDF limits."""
+    Rg = RobotGuard.idx
     for j in range(n):
         if not math.isfinite(tau[j]):
             return False
-    emax = vec(f, URDF_EMAX, n)
+    emax = vec(f, Rg.URDF_EMAX, n)
     for j in range(n):
         tau[j] = min(max(tau[j], -emax[j]), emax[j])
     return True
@@ -374,20 +359,21 @@ def guard_check(
     tau_cmd: np.ndarray,
     a_cmd: np.ndarray,
 ) -> int:
-    """One robot's checks; saturates tau_cmd in place (i[SATURATED]: whether it did). Returns
+    """One robot's checks; saturates tau_cmd in place (int ``saturated``: whether it did). Returns
     the finding (joint and value in the block) or OK."""
-    track = i[TRACKING_TICKS] > 0
-    i[SATURATED] = 0
+    Rg = RobotGuard.idx
+    track = i[Rg.TRACKING_TICKS] > 0
+    i[Rg.SATURATED] = 0
     if age_ticks:
-        i[TRACKING_VALID] = 0  # no fresh velocity: nothing to compare
+        i[Rg.TRACKING_VALID] = 0  # no fresh velocity: nothing to compare
         track = False
-        if age_ticks >= i[STALE_TICKS]:
+        if age_ticks >= i[Rg.STALE_TICKS]:
             return STALE
-    lo, hi, vmax, emax = vec(f, LO, n), vec(f, HI, n), vec(f, VMAX, n), vec(f, EMAX, n)
-    prev_v, prev_a, run = vec(f, PREV_V, n), vec(f, PREV_A, n), vec(f, RUN, n)
-    compare = track and i[TRACKING_VALID] != 0
-    s = N_GUARD_VECTORS * n
-    tol, inv_dt = f[s + TOLERANCE], f[s + INV_DT]
+    lo, hi, vmax, emax = vec(f, Rg.LO, n), vec(f, Rg.HI, n), vec(f, Rg.VMAX, n), vec(f, Rg.EMAX, n)
+    prev_v, prev_a, run = vec(f, Rg.PREV_V, n), vec(f, Rg.PREV_A, n), vec(f, Rg.RUN, n)
+    compare = track and i[Rg.TRACKING_VALID] != 0
+    s = Rg.N_VECTORS * n
+    tol, inv_dt = f[s + Rg.TOLERANCE], f[s + Rg.INV_DT]
     for j in range(n):
         qj, vj = q[j], v[j]
         if not lo[j] <= qj <= hi[j]:
@@ -398,7 +384,7 @@ def guard_check(
             error = (vj - prev_v[j]) * inv_dt - prev_a[j]
             if error > tol or error < -tol:
                 run[j] += 1.0
-                if run[j] >= i[TRACKING_TICKS]:
+                if run[j] >= i[Rg.TRACKING_TICKS]:
                     return _found(f, i, n, TRACKING, j, error)
             else:
                 run[j] = 0.0
@@ -406,15 +392,15 @@ def guard_check(
         if not math.isfinite(c):  # first: an inf passes torque_limits: off's infinite limit
             return _found(f, i, n, TORQUE_NAN, j, c)
         if not -emax[j] <= c <= emax[j]:
-            if i[STOP_ON_TORQUE]:
+            if i[Rg.STOP_ON_TORQUE]:
                 return _found(f, i, n, TORQUE_LIMIT, j, c)
             tau_cmd[j] = emax[j] if c > 0 else -emax[j]
-            i[SATURATED] = 1
+            i[Rg.SATURATED] = 1
     if track:
         for j in range(n):
             prev_v[j] = v[j]
             prev_a[j] = a_cmd[j]
-        i[TRACKING_VALID] = 1
+        i[Rg.TRACKING_VALID] = 1
     return OK
 
 
@@ -426,7 +412,8 @@ def guard_site(
     """A site's checks of its commands, after its measurements passed ``measured_fault``: with
     safety on, ``guard_check`` and the saturation run; with it off, still no non-finite torque
     reaches the motors (whatever the config)."""
-    if not i[ENABLED]:
+    Rg = RobotGuard.idx
+    if not i[Rg.ENABLED]:
         for j in range(n):
             if not math.isfinite(tau_cmd[j]):
                 return _found(f, i, n, TORQUE_NAN, j, tau_cmd[j])
@@ -434,14 +421,14 @@ def guard_site(
     code = guard_check(f, i, n, q, v, age_ticks, tau_cmd, a_cmd)
     if code != OK:
         return code
-    if i[SATURATED]:
-        i[SATURATED_TICKS] += 1
-        i[SATURATED_RUN] += 1
-        limit = i[SATURATION_STOP_TICKS]
-        if limit and i[SATURATED_RUN] >= limit:
+    if i[Rg.SATURATED]:
+        i[Rg.SATURATED_TICKS] += 1
+        i[Rg.SATURATED_RUN] += 1
+        limit = i[Rg.SATURATION_STOP_TICKS]
+        if limit and i[Rg.SATURATED_RUN] >= limit:
             return SATURATION
     else:
-        i[SATURATED_RUN] = 0
+        i[Rg.SATURATED_RUN] = 0
     return OK
 
 

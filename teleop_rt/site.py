@@ -30,6 +30,7 @@ from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
 from teleop_rt.hal.base import Backend
 from teleop_rt.hal.registry import create_backend
+from teleop_rt.keys import AT_START as KEYS_AT_START
 from teleop_rt.mapping import (
     JOINT,
     POSE,
@@ -114,6 +115,8 @@ class Site:
             mapping_for(cfg, n, SIDES[name]),
         )
         self.stop_damping = cfg.safety.stop_damping_nm_s_per_rad
+        if cfg.mapping.keys and name == "hsi":  # (until a key says otherwise: teleop_rt.keys)
+            self.feedback.inputs = KEYS_AT_START
         if self.mapping.space != JOINT:
             require_task_span(model, cfg.channel.space, self.m, name)
         self.map_kinematics(np.array(spec.robot.q0_rad or [0.0] * n, dtype=float))

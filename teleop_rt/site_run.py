@@ -26,6 +26,7 @@ from teleop_rt.config import SessionConfig
 from teleop_rt.declarations import OVERRUN_DEFAULT
 from teleop_rt.errors import ConfigError
 from teleop_rt.exit_signals import Terminated
+from teleop_rt.keys import key_reader
 from teleop_rt.loop import TickClock
 from teleop_rt.runner import LoopHooks, LoopOptions, LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
@@ -151,8 +152,10 @@ def run_site(
         cpu=cpu_index,
     )  # fmt: skip
     try:
-        # the site's own clock: off by clock_ppm in a drift test
-        run_loop(run, cfg.n_ticks, link.period_ns / 1e9, [site.backend], options, recorder)
+        with key_reader(site):  # (mapping.keys: the HSI's operator inputs from the terminal)
+            # the site's own clock: off by clock_ppm in a drift test
+            period_s = link.period_ns / 1e9
+            run_loop(run, cfg.n_ticks, period_s, [site.backend], options, recorder)
     except (HandshakeError, KeyboardInterrupt, Terminated):
         if recorder is not None and not run.shaken:  # no session: no log of one
             recorder.discard()

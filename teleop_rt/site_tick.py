@@ -12,8 +12,9 @@ kernel a run of consecutive stages of ``teleop_rt.tick_stages``):
 
 All take the site's blocks (``SITE_ORDER``) in packed buffers through their offsets ``o``: the
 site's own buffers when it runs alone, or its part of a one-process session's
-(``teleop_rt.lockstep``). The HSI and the TO differ only in the port's side and in the
-controller's error: ``tau_h - tau_c`` on the HSI, ``omega_t - v_t`` on the TO.
+(``teleop_rt.lockstep``); within a block, by the block's own index namespace (``Port.idx``).
+The HSI and the TO differ only in the port's side and in the controller's error: ``tau_h -
+tau_c`` on the HSI, ``omega_t - v_t`` on the TO.
 """
 
 from __future__ import annotations
@@ -21,36 +22,13 @@ from __future__ import annotations
 import numpy as np
 
 from teleop_rt.com.exchange import port_stage
-from teleop_rt.com.port import (
-    EFFORT,
-    FLOW,
-    HSI,
-    LAST_SEQ,
-    P_ENGAGED,
-    P_SEQ,
-    P_TICK,
-    P_VALID,
-    TERMINATED,
-    port_input,
-)
-from teleop_rt.control import A_DES, OUT, TAU, ct_finish, ct_prepare, pid_step
+from teleop_rt.com.port import HSI, Packet, Port, port_input
+from teleop_rt.control import ComputedTorque, Pid, ct_finish, ct_prepare, pid_step
 from teleop_rt.flat import Block, Int, Vector, floats_of, ints_of, jit, vec
-from teleop_rt.hal.signals import FB_AGE_TICKS, FB_INPUTS, FB_Q, FB_TAU_EXT, FB_V
+from teleop_rt.hal.signals import Feedback
 from teleop_rt.mapping import (
     JOINT,
-    M_ACTIVE,
-    M_ALPHA,
-    M_COUPLED,
-    M_FOLLOW,
-    M_GAIN,
-    M_JOINTS,
-    M_LIMITS,
-    M_PEER_ENGAGED,
-    M_SPACE,
-    N_MAPPING_VECTORS,
-    Q_MAPPED,
-    TAU_MAPPED,
-    X,
+    Mapping,
     hsi_map_input,
     hsi_plane_input,
     hsi_plane_render,
@@ -84,49 +62,45 @@ class SiteSignals(Block):
         self.side = side
 
 
-S_TAU, S_ERROR, S_TICK, S_SIDE = (
-    SiteSignals.tau.k, SiteSignals.error.k, SiteSignals.tick.k, SiteSignals.side.k
-)  # fmt: skip
-
-
 @jit
 def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
     """From the fresh feedback to the outgoing packet's port input; a non-finite measurement
     is a finding (returned) before anything is computed or sent from it. ``n``: the port's
     size (the robot's joints, or the task's dimension: the mapping's ``joints`` says)."""
-    nj = i[o[2 * MAP + 1] + M_JOINTS]
+    Fb, Ss, Pt, Pk, Mp = Feedback.idx, SiteSignals.idx, Port.idx, Packet.idx, Mapping.idx
+    nj = i[o[2 * MAP + 1] + Mp.JOINTS]
     fb = floats_of(f, o, FB)
-    q, v, tau_ext = vec(fb, FB_Q, nj), vec(fb, FB_V, nj), vec(fb, FB_TAU_EXT, nj)
+    q, v, tau_ext = vec(fb, Fb.Q, nj), vec(fb, Fb.V, nj), vec(fb, Fb.TAU_EXT, nj)
     code = measured_fault(floats_of(f, o, GUARD), ints_of(i, o, GUARD), nj, q, v, tau_ext)
     if code:
         return code
     sig, si = floats_of(f, o, SIG), o[2 * SIG + 1]  # (ints by offset: a slice costs more)
     port, port_i, tx = floats_of(f, o, PORT), ints_of(i, o, PORT), floats_of(f, o, TX)
-    tau = vec(sig, S_TAU, nj)
-    mapped = i[o[2 * MAP + 1] + M_ACTIVE] != 0  # (the identity: the ports take v_h, tau_e)
+    tau = vec(sig, Ss.TAU, nj)
+    mapped = i[o[2 * MAP + 1] + Mp.ACTIVE] != 0  # (the identity: the ports take v_h, tau_e)
     mf, mi = floats_of(f, o, MAP), ints_of(i, o, MAP)
-    if i[si + S_SIDE] == HSI:  # tau_h = tau_ext; the port's flow omega_c = v_h
+    if i[si + Ss.SIDE] == HSI:  # tau_h = tau_ext; the port's flow omega_c = v_h
         for j in range(nj):
             tau[j] = tau_ext[j]
         if mapped:  # omega_c = r v_h (teleop_rt.mapping)
             code = mapping_engage(
-                mf, mi, n, i[si + S_TICK], vec(port, EFFORT, n), i[o[2 * FB + 1] + FB_INPUTS]
+                mf, mi, n, i[si + Ss.TICK], vec(port, Pt.EFFORT, n), i[o[2 * FB + 1] + Fb.INPUTS]
             )
             if code:
                 return code
-            if mi[M_SPACE] != JOINT:  # (task space: the plane, position or pose)
+            if mi[Mp.SPACE] != JOINT:  # (task space: the plane, position or pose)
                 hsi_plane_input(mf, mi, n, v, tau)
             else:
                 hsi_map_input(mf, n, q, v)
-            port_input(port, port_i, n, vec(mf, X, n), tx)
+            port_input(port, port_i, n, vec(mf, Mp.X, n), tx)
         else:
             port_input(port, port_i, n, v, tx)
     else:  # tau_e = -tau_ext; the port's effort tau_t = tau_e
         for j in range(nj):
             tau[j] = -tau_ext[j]
         if mapped:  # tau_t = r beta tau_e
-            limited = mi[M_LIMITS] != 0  # (the tool's limits in the plane: task_limits)
-            if mi[M_SPACE] != JOINT:
+            limited = mi[Mp.LIMITS] != 0  # (the tool's limits in the plane: task_limits)
+            if mi[Mp.SPACE] != JOINT:
                 to_plane_input(mf, mi, n, tau)
                 if limited:
                     code = to_tool_sense(mf, mi, n, v)
@@ -135,82 +109,86 @@ def site_sense(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> int:
                 to_frame_force(mf, mi, n)  # (framed: R^T, into the HSI's frame)
             else:
                 to_map_input(mf, n, tau)
-            mapping_engage(mf, mi, n, i[si + S_TICK], vec(mf, TAU_MAPPED, n), 0)
+            mapping_engage(mf, mi, n, i[si + Ss.TICK], vec(mf, Mp.TAU_MAPPED, n), 0)
             if limited:
                 to_speed_ceiling(mf, n)
             to_map_gain(mf, n)
-            port_i[TERMINATED] = mf[N_MAPPING_VECTORS * n + M_GAIN] == 0.0
-            port_input(port, port_i, n, vec(mf, X, n), tx)
+            port_i[Pt.TERMINATED] = mf[Mp.N_VECTORS * n + Mp.GAIN] == 0.0
+            port_input(port, port_i, n, vec(mf, Mp.X, n), tx)
         else:
             port_input(port, port_i, n, tau, tx)
     ti = o[2 * TX + 1]
-    i[ti + P_TICK] = i[si + S_TICK]
-    i[ti + P_SEQ] = i[si + S_TICK]
-    i[ti + P_VALID] = 1
-    i[ti + P_ENGAGED] = i[o[2 * MAP + 1] + M_COUPLED] if mapped else 1  # (the peer follows it)
+    i[ti + Pk.TICK] = i[si + Ss.TICK]
+    i[ti + Pk.SEQ] = i[si + Ss.TICK]
+    i[ti + Pk.VALID] = 1
+    i[ti + Pk.ENGAGED] = i[o[2 * MAP + 1] + Mp.COUPLED] if mapped else 1  # (the peer follows it)
     return 0
 
 
 @jit
 def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> None:
     """From the received packet to the acceleration the model is evaluated at."""
+    Fb, Ss, Pt, Pk, Pd, Mp = (
+        Feedback.idx, SiteSignals.idx, Port.idx, Packet.idx, Pid.idx, Mapping.idx
+    )  # fmt: skip
     port, port_i = floats_of(f, o, PORT), ints_of(i, o, PORT)
     rx, rx_i, tx = floats_of(f, o, RX), ints_of(i, o, RX), floats_of(f, o, TX)
     mi = o[2 * MAP + 1]
-    if i[mi + M_FOLLOW] and rx_i[P_VALID] and rx_i[P_SEQ] > port_i[LAST_SEQ]:
+    if i[mi + Mp.FOLLOW] and rx_i[Pk.VALID] and rx_i[Pk.SEQ] > port_i[Pt.LAST_SEQ]:
         # the HSI's coupling state, from a packet that arrived (not the codec's hold): the
         # next tick's map decouples on it
-        i[mi + M_PEER_ENGAGED] = rx_i[P_ENGAGED]
+        i[mi + Mp.PEER_ENGAGED] = rx_i[Pk.ENGAGED]
     port_stage(port, port_i, n, rx, rx_i, tx, ints_of(i, o, TX))
-    nj = i[o[2 * MAP + 1] + M_JOINTS]  # (n: the port's size)
+    nj = i[o[2 * MAP + 1] + Mp.JOINTS]  # (n: the port's size)
     sig = floats_of(f, o, SIG)
-    error, tau = vec(sig, S_ERROR, nj), vec(sig, S_TAU, nj)
-    mapped = i[o[2 * MAP + 1] + M_ACTIVE] != 0
-    ms = N_MAPPING_VECTORS * n
-    if i[o[2 * SIG + 1] + S_SIDE] == HSI:  # M1 a_h = C1(tau_h - tau_c)
-        tau_c = vec(port, EFFORT, n)
-        if mapped and ints_of(i, o, MAP)[M_SPACE] != JOINT:  # r J^T F_c
+    error, tau = vec(sig, Ss.ERROR, nj), vec(sig, Ss.TAU, nj)
+    mapped = i[o[2 * MAP + 1] + Mp.ACTIVE] != 0
+    ms = Mp.N_VECTORS * n
+    if i[o[2 * SIG + 1] + Ss.SIDE] == HSI:  # M1 a_h = C1(tau_h - tau_c)
+        tau_c = vec(port, Pt.EFFORT, n)
+        if mapped and ints_of(i, o, MAP)[Mp.SPACE] != JOINT:  # r J^T F_c
             hsi_plane_render(floats_of(f, o, MAP), ints_of(i, o, MAP), n, tau, tau_c, error)
         elif mapped:  # the rendered torque r tau_c
-            r = floats_of(f, o, MAP)[ms + M_GAIN]
+            r = floats_of(f, o, MAP)[ms + Mp.GAIN]
             for j in range(n):
                 error[j] = tau[j] - r * tau_c[j]
         else:
             for j in range(n):
                 error[j] = tau[j] - tau_c[j]
     else:  # M2 a_t = C2(omega_t - v_t)
-        omega_t, v = vec(port, FLOW, n), vec(floats_of(f, o, FB), FB_V, nj)
-        if mapped and ints_of(i, o, MAP)[M_SPACE] != JOINT:  # r alpha J# omega_t
+        omega_t, v = vec(port, Pt.FLOW, n), vec(floats_of(f, o, FB), Fb.V, nj)
+        if mapped and ints_of(i, o, MAP)[Mp.SPACE] != JOINT:  # r alpha J# omega_t
             mf, mi = floats_of(f, o, MAP), ints_of(i, o, MAP)
             to_plane_output(mf, mi, n, omega_t, v, error)
-            if mi[M_LIMITS]:
+            if mi[Mp.LIMITS]:
                 to_speed_limit(mf, mi, n, omega_t, v)
         elif mapped:  # the velocity reference r alpha omega_t
             mf = floats_of(f, o, MAP)
-            g = mf[ms + M_GAIN] * mf[ms + M_ALPHA]
+            g = mf[ms + Mp.GAIN] * mf[ms + Mp.MOTION_SCALE]
             for j in range(n):
                 error[j] = g * omega_t[j] - v[j]
-            to_map_output(mf, n, vec(floats_of(f, o, FB), FB_Q, n), omega_t)
+            to_map_output(mf, n, vec(floats_of(f, o, FB), Fb.Q, n), omega_t)
         else:
             for j in range(n):
                 error[j] = omega_t[j] - v[j]
     pid = floats_of(f, o, PID)
     pid_step(pid, ints_of(i, o, PID), nj, error)
-    ct_prepare(floats_of(f, o, CT), nj, vec(pid, OUT, nj))
+    ct_prepare(floats_of(f, o, CT), nj, vec(pid, Pd.OUT, nj))
 
 
 @jit
 def site_after_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, rnea: np.ndarray) -> int:
     """From the model's RNEA to the checked motor torque; the safety finding (0: none)."""
-    n = i[o[2 * MAP + 1] + M_JOINTS]  # (all joint-sized here)
+    Fb, Ss, Ct, Mp = Feedback.idx, SiteSignals.idx, ComputedTorque.idx, Mapping.idx
+    n = i[o[2 * MAP + 1] + Mp.JOINTS]  # (all joint-sized here)
     fb, ct = floats_of(f, o, FB), floats_of(f, o, CT)
-    q, v, tau_ext = vec(fb, FB_Q, n), vec(fb, FB_V, n), vec(fb, FB_TAU_EXT, n)
+    q, v, tau_ext = vec(fb, Fb.Q, n), vec(fb, Fb.V, n), vec(fb, Fb.TAU_EXT, n)
     ct_finish(ct, ints_of(i, o, CT), n, rnea, tau_ext, v)
-    i[o[2 * SIG + 1] + S_TICK] += 1
+    i[o[2 * SIG + 1] + Ss.TICK] += 1
     # nothing unchecked reaches a motor (may saturate the torque in place)
     return guard_site(
-        floats_of(f, o, GUARD), ints_of(i, o, GUARD), n, q, v, i[o[2 * FB + 1] + FB_AGE_TICKS],
-        vec(ct, TAU, n), vec(ct, A_DES, n),
+        floats_of(f, o, GUARD), ints_of(i, o, GUARD), n, q, v, i[o[2 * FB + 1] + Fb.AGE_TICKS],
+        vec(ct, Ct.TAU, n), vec(ct, Ct.A_DES, n),
     )  # fmt: skip
 
 
@@ -218,16 +196,18 @@ def site_after_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, rnea:
 def site_position(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> np.ndarray:
     """The position this site adds to T_p: q, or the mapped, indexed one (the HSI's
     alpha (q_h - offset), the TO's q_t + offset: ``teleop_rt.mapping``)."""
-    if i[o[2 * MAP + 1] + M_ACTIVE]:
-        return vec(floats_of(f, o, MAP), Q_MAPPED, n)
-    return vec(floats_of(f, o, FB), FB_Q, n)
+    Fb, Mp = Feedback.idx, Mapping.idx
+    if i[o[2 * MAP + 1] + Mp.ACTIVE]:
+        return vec(floats_of(f, o, MAP), Mp.Q_MAPPED, n)
+    return vec(floats_of(f, o, FB), Fb.Q, n)
 
 
 @jit
 def site_torque(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> np.ndarray:
     """The torque this site adds to T_tau: tau_h or tau_e, or the mapped one (the TO's
     beta tau_e; in task space the tools' forces)."""
+    Ss, Mp = SiteSignals.idx, Mapping.idx
     mi = o[2 * MAP + 1]
-    if i[mi + M_ACTIVE] and (i[o[2 * SIG + 1] + S_SIDE] != HSI or i[mi + M_SPACE] != JOINT):
-        return vec(floats_of(f, o, MAP), TAU_MAPPED, n)
-    return vec(floats_of(f, o, SIG), S_TAU, n)
+    if i[mi + Mp.ACTIVE] and (i[o[2 * SIG + 1] + Ss.SIDE] != HSI or i[mi + Mp.SPACE] != JOINT):
+        return vec(floats_of(f, o, MAP), Mp.TAU_MAPPED, n)
+    return vec(floats_of(f, o, SIG), Ss.TAU, n)

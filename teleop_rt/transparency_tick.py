@@ -40,15 +40,6 @@ class TransparencyAccumulator(Block):
         )  # fmt: skip
 
 
-T_P, T_TAU, OFFSET = (
-    TransparencyAccumulator.t_p.k,
-    TransparencyAccumulator.t_tau.k,
-    TransparencyAccumulator.offset.k,
-)
-HAS_OFFSET, DT = TransparencyAccumulator.has_offset.k, TransparencyAccumulator.dt.k
-N_VECTORS = len(TransparencyAccumulator.VECTORS)
-
-
 @jit
 def accumulate(
     f: np.ndarray,
@@ -60,12 +51,13 @@ def accumulate(
     tau_e: np.ndarray,
 ) -> None:
     """Add one tick's rectangle to T_p and T_tau (eq 18)."""
-    t_p, t_tau, offset = vec(f, T_P, n), vec(f, T_TAU, n), vec(f, OFFSET, n)
-    dt = f[N_VECTORS * n + DT]
-    if not i[HAS_OFFSET]:
+    Ta = TransparencyAccumulator.idx
+    t_p, t_tau, offset = vec(f, Ta.T_P, n), vec(f, Ta.T_TAU, n), vec(f, Ta.OFFSET, n)
+    dt = f[Ta.N_VECTORS * n + Ta.DT]
+    if not i[Ta.HAS_OFFSET]:
         for j in range(n):
             offset[j] = q_h[j] - q_t[j]
-        i[HAS_OFFSET] = 1
+        i[Ta.HAS_OFFSET] = 1
     for j in range(n):
         e = q_h[j] - q_t[j] - offset[j]
         t_p[j] += e * e * dt

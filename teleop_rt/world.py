@@ -32,16 +32,12 @@ from teleop_rt.config import (
     per_joint,
 )
 from teleop_rt.flat import Block, Int, Scalar, Vector, jit
-from teleop_rt.hal.signals import W_CONTACTS as SNAP_CONTACTS
-from teleop_rt.hal.signals import W_FORCE as SNAP_FORCE
-from teleop_rt.hal.signals import W_REFERENCE as SNAP_REFERENCE
-from teleop_rt.hal.signals import W_REFERENCE_VELOCITY as SNAP_REFERENCE_VELOCITY
+from teleop_rt.hal.signals import WorldSnapshot
 from teleop_rt.model import RobotModel
 
 # load_kind codes; a hand's trajectory is the block right after the hand
 JOINT_DAMPER, JOINT_SPRING_DAMPER, JOINT_MASS, HAND, HALF_SPACE = range(5)
 MIN_JERK, LOGGED = range(2)  # trajectory_kind codes
-KIND = 0  # every load's and trajectory's int 0
 
 
 class Load(Block):
@@ -151,17 +147,21 @@ def joint_load_torque(
     """f[out:out+n] -= the torque of the joint load at f[fo:], i[io:] at time t and joint state
     f[q:q+n], f[v:v+n] (one buffer holds them all: index arithmetic, no slices, is what keeps
     a compiled call of this size in tens of ns)."""
-    kind = i[io + KIND]
+    kind = i[io + Load.idx.LOAD_KIND]
     if kind == JOINT_DAMPER:
+        damping = fo + JointDamperOperator.idx.DAMPING * n
         for j in range(n):
-            f[out + j] -= f[fo + j] * f[v + j]
+            f[out + j] -= f[damping + j] * f[v + j]
     elif kind == JOINT_SPRING_DAMPER:
-        k, c, q_rest = fo, fo + n, fo + 2 * n
+        Jsd = JointSpringDamper.idx
+        k, c, q_rest = fo + Jsd.K * n, fo + Jsd.C * n, fo + Jsd.Q_REST * n
         for j in range(n):
             f[out + j] -= f[k + j] * (f[q + j] - f[q_rest + j]) + f[c + j] * f[v + j]
     elif kind == JOINT_MASS:
-        mass, v_now, v_before, dt, t_last = fo, fo + n, fo + 2 * n, fo + 3 * n, fo + 3 * n + 1
-        started = io + 1
+        Jm = JointMass.idx
+        mass, v_now, v_before = fo + Jm.MASS * n, fo + Jm.V_NOW * n, fo + Jm.V_BEFORE * n
+        dt, t_last = fo + Jm.N_VECTORS * n + Jm.DT, fo + Jm.N_VECTORS * n + Jm.T_LAST
+        started = io + Jm.STARTED
         if i[started] == 0 or t != f[t_last]:  # a new time: the velocity a tick ago moves back
             for j in range(n):
                 f[v_before + j] = f[v_now + j] if i[started] else f[v + j]
@@ -179,13 +179,11 @@ class Trajectory(Block):
 
     pos = Vector("the reference, m")
     vel = Vector("its velocity, m/s")
+    trajectory_kind = Int("which trajectory function applies (MIN_JERK, LOGGED)", param=True)
 
     def evaluate(self, t: float) -> None:
         """Fill pos and vel at time t (s)."""
         evaluate_trajectory(self.f, self.i, 0, 0, t)
-
-
-POS, VEL = (3 * Trajectory.VECTORS.index(name) for name in ("pos", "vel"))
 
 
 class HandTrajectory(Trajectory):
@@ -194,7 +192,6 @@ class HandTrajectory(Trajectory):
     Tail: the segment start times, then the points (3 each), with a sentinel segment at
     t = inf that holds the last point."""
 
-    trajectory_kind = Int(param=True)
     segment = Int()
     count = Int(param=True)
     TAIL_IS_STATE = False  # the waypoints
@@ -218,7 +215,6 @@ class LoggedTrajectory(Trajectory):
     position at rest. Tail: the positions, then the velocities (3 per sample)."""
 
     dt = Scalar(param=True)
-    trajectory_kind = Int(param=True)
     last = Int(param=True)
     TAIL_IS_STATE = False  # the logged samples
 
@@ -234,8 +230,8 @@ class LoggedTrajectory(Trajectory):
 
 @jit
 def evaluate_trajectory(f: np.ndarray, i: np.ndarray, fo: int, io: int, t: float) -> None:
-    """pos, vel (the trajectory block's first six floats, at f[fo:]) at time t."""
-    if i[io + KIND] == MIN_JERK:
+    """pos, vel (the trajectory block's vectors of 3, at f[fo:]) at time t."""
+    if i[io + Trajectory.idx.TRAJECTORY_KIND] == MIN_JERK:
         _min_jerk(f, i, fo, io, t)
     else:
         _logged(f, i, fo, io, t)
@@ -243,17 +239,20 @@ def evaluate_trajectory(f: np.ndarray, i: np.ndarray, fo: int, io: int, t: float
 
 @jit
 def _min_jerk(f: np.ndarray, i: np.ndarray, fo: int, io: int, t: float) -> None:
-    count = i[io + 2]
-    times, points = fo + 6, fo + 6 + count
-    s = i[io + 1]  # the segment of the last evaluation, followed forward tick by tick
+    Ht = HandTrajectory.idx
+    pos, vel = fo + 3 * Ht.POS, fo + 3 * Ht.VEL
+    count = i[io + Ht.COUNT]
+    times = fo + 3 * Ht.N_VECTORS + Ht.N_SCALARS  # the tail
+    points = times + count
+    s = i[io + Ht.SEGMENT]  # the segment of the last evaluation, followed forward tick by tick
     if not f[times + s] <= t < f[times + s + 1]:  # time moved to another segment (rarely)
         s = np.searchsorted(f[times : times + count], t, side="right") - 1
         if s >= count - 1:  # t = inf
             for a in range(3):
-                f[fo + a] = f[points + 3 * (count - 1) + a]
-                f[fo + 3 + a] = 0.0
+                f[pos + a] = f[points + 3 * (count - 1) + a]
+                f[vel + a] = 0.0
             return
-        i[io + 1] = s
+        i[io + Ht.SEGMENT] = s
     t0 = f[times + s]
     duration = f[times + s + 1] - t0
     u = (t - t0) / duration
@@ -262,28 +261,30 @@ def _min_jerk(f: np.ndarray, i: np.ndarray, fo: int, io: int, t: float) -> None:
     for a in range(3):
         p0 = f[points + 3 * s + a]
         d = f[points + 3 * s + 3 + a] - p0
-        f[fo + a] = p0 + d * shape
-        f[fo + 3 + a] = d * rate
+        f[pos + a] = p0 + d * shape
+        f[vel + a] = d * rate
 
 
 @jit
 def _logged(f: np.ndarray, i: np.ndarray, fo: int, io: int, t: float) -> None:
-    last = i[io + 1]
-    pos = fo + 7
+    Lt = LoggedTrajectory.idx
+    out_pos, out_vel = fo + 3 * Lt.POS, fo + 3 * Lt.VEL
+    last = i[io + Lt.LAST]
+    pos = fo + 3 * Lt.N_VECTORS + Lt.N_SCALARS  # the tail: the positions, then the velocities
     vel = pos + 3 * (last + 1)
-    x = t / f[fo + 6]
+    x = t / f[fo + 3 * Lt.N_VECTORS + Lt.DT]
     k = int(np.rint(x))
     if abs(x - k) < 1e-9:  # on a tick: the logged sample itself
         for a in range(3):
-            f[fo + a] = f[pos + 3 * min(k, last) + a]
-            f[fo + 3 + a] = f[vel + 3 * k + a] if k <= last else 0.0
+            f[out_pos + a] = f[pos + 3 * min(k, last) + a]
+            f[out_vel + a] = f[vel + 3 * k + a] if k <= last else 0.0
         return
     k0 = min(int(x), last)
     k1 = min(k0 + 1, last)
     w = x - int(x)
     for a in range(3):
-        f[fo + a] = (1 - w) * f[pos + 3 * k0 + a] + w * f[pos + 3 * k1 + a]
-        f[fo + 3 + a] = (1 - w) * f[vel + 3 * k0 + a] + w * f[vel + 3 * k1 + a]
+        f[out_pos + a] = (1 - w) * f[pos + 3 * k0 + a] + w * f[pos + 3 * k1 + a]
+        f[out_vel + a] = (1 - w) * f[vel + 3 * k0 + a] + w * f[vel + 3 * k1 + a]
 
 
 # --- Cartesian loads --------------------------------------------------------------------------
@@ -319,10 +320,6 @@ class ScriptedHand(CartesianLoad):
         return tuple(self.last_force.tolist())
 
 
-_HAND_K, _HAND_D = (ScriptedHand.scalar_index(s, 3) for s in ScriptedHand.SCALARS)
-HAND_FORCE = 3 * ScriptedHand.VECTORS.index("last_force")  # where the plant reads it
-
-
 @jit
 def hand_force(
     f: np.ndarray, fo: int, tf: np.ndarray, ti: np.ndarray, to: int, tio: int, t: float,
@@ -331,8 +328,10 @@ def hand_force(
     """The hand's force (block at f[fo:]) into its ``last_force``, its trajectory (at tf[to:],
     ti[tio:]) evaluated at t first; the tool at (x, y, z) moving at (vx, vy, vz)."""
     evaluate_trajectory(tf, ti, to, tio, t)
-    k, d = f[fo + _HAND_K], f[fo + _HAND_D]
-    pos, vel, out = to + POS, to + VEL, fo + HAND_FORCE
+    Sh, Tr = ScriptedHand.idx, Trajectory.idx
+    scalars = fo + 3 * Sh.N_VECTORS
+    k, d = f[scalars + Sh.K], f[scalars + Sh.D]
+    pos, vel, out = to + 3 * Tr.POS, to + 3 * Tr.VEL, fo + 3 * Sh.LAST_FORCE
     f[out] = k * (tf[pos] - x) + d * (tf[vel] - vx)
     f[out + 1] = k * (tf[pos + 1] - y) + d * (tf[vel + 1] - vy)
     f[out + 2] = k * (tf[pos + 2] - z) + d * (tf[vel + 2] - vz)
@@ -408,13 +407,6 @@ class PushedMass(HalfSpaceLoad):
         return (self.s_dot, self.normal_force / self.mass)
 
 
-_K, _C, _UNILATERAL, _S, _S_DOT, _F, _MASS = (
-    HalfSpaceLoad.scalar_index(s, 3) for s in HalfSpaceLoad.SCALARS
-)
-_P0, _NORMAL, HALF_SPACE_FORCE = (3 * k for k in range(len(HalfSpaceLoad.VECTORS)))
-CONTACT = HalfSpaceLoad.INTS.index("contact")  # the contact flag's int
-
-
 @jit
 def half_space_force(
     f: np.ndarray, i: np.ndarray, fo: int, io: int,
@@ -422,26 +414,29 @@ def half_space_force(
 ) -> None:  # fmt: skip
     """The plane's (block at f[fo:], i[io:]) force on the tool at (x, y, z) moving at
     (vx, vy, vz) into ``last_force``; the contact flag into its int ``contact``."""
-    p0, normal = fo + _P0, fo + _NORMAL
+    Hs = HalfSpaceLoad.idx
+    p0, normal, sc = fo + 3 * Hs.P0, fo + 3 * Hs.NORMAL, fo + 3 * Hs.N_VECTORS
     nx, ny, nz = f[normal], f[normal + 1], f[normal + 2]
-    depth = (f[p0] - x) * nx + (f[p0 + 1] - y) * ny + (f[p0 + 2] - z) * nz - f[fo + _S]
-    rate = -(vx * nx + vy * ny + vz * nz) - f[fo + _S_DOT]
-    force = f[fo + _K] * depth + f[fo + _C] * rate
-    if f[fo + _UNILATERAL]:
-        i[io + CONTACT] = depth > 0.0
-        if not i[io + CONTACT] or force < 0.0:
+    depth = (f[p0] - x) * nx + (f[p0 + 1] - y) * ny + (f[p0 + 2] - z) * nz - f[sc + Hs.S]
+    rate = -(vx * nx + vy * ny + vz * nz) - f[sc + Hs.S_DOT]
+    force = f[sc + Hs.K] * depth + f[sc + Hs.C] * rate
+    if f[sc + Hs.UNILATERAL]:
+        i[io + Hs.CONTACT] = depth > 0.0
+        if not i[io + Hs.CONTACT] or force < 0.0:
             force = 0.0
-    f[fo + _F] = force
-    out = fo + HALF_SPACE_FORCE
+    f[sc + Hs.NORMAL_FORCE] = force
+    out = fo + 3 * Hs.LAST_FORCE
     f[out], f[out + 1], f[out + 2] = force * nx, force * ny, force * nz
 
 
 @jit
 def push_mass(f: np.ndarray, fo: int, dt: float) -> None:
     """The mass behind the plane (block at f[fo:]) feels the contact force's reaction along -n."""
-    if f[fo + _MASS] > 0.0:
-        f[fo + _S_DOT] += dt * f[fo + _F] / f[fo + _MASS]
-        f[fo + _S] += dt * f[fo + _S_DOT]
+    Hs = HalfSpaceLoad.idx
+    sc = fo + 3 * Hs.N_VECTORS
+    if f[sc + Hs.MASS] > 0.0:
+        f[sc + Hs.S_DOT] += dt * f[sc + Hs.NORMAL_FORCE] / f[sc + Hs.MASS]
+        f[sc + Hs.S] += dt * f[sc + Hs.S_DOT]
 
 
 # --- the one place that dispatches on a load's kind ----------------------------------------------
@@ -453,13 +448,13 @@ def push_mass(f: np.ndarray, fo: int, dt: float) -> None:
 @jit
 def load_width(i: np.ndarray, o: np.ndarray, b: int) -> int:
     """Blocks the load at block b takes: a hand is followed by its trajectory."""
-    return 2 if i[o[2 * b + 1] + KIND] == HAND else 1
+    return 2 if i[o[2 * b + 1] + Load.idx.LOAD_KIND] == HAND else 1
 
 
 @jit
 def advance_load(f: np.ndarray, i: np.ndarray, o: np.ndarray, b: int, h: float) -> None:
     """A stateful load's own integration step of h (a mass pushed behind a plane)."""
-    if i[o[2 * b + 1] + KIND] == HALF_SPACE:
+    if i[o[2 * b + 1] + Load.idx.LOAD_KIND] == HALF_SPACE:
         push_mass(f, o[2 * b], h)
 
 
@@ -471,13 +466,13 @@ def cartesian_load(
     """A Cartesian load's force on the tool at (x, y, z) moving at (vx, vy, vz), at time t, into
     its block; the float index of that force (-1: not a Cartesian load)."""
     fo, io = o[2 * b], o[2 * b + 1]
-    kind = i[io + KIND]
+    kind = i[io + Load.idx.LOAD_KIND]
     if kind == HAND:
         hand_force(f, fo, f, i, o[2 * b + 2], o[2 * b + 3], t, x, y, z, vx, vy, vz)
-        return fo + HAND_FORCE
+        return fo + 3 * ScriptedHand.idx.LAST_FORCE
     if kind == HALF_SPACE:
         half_space_force(f, i, fo, io, x, y, z, vx, vy, vz)
-        return fo + HALF_SPACE_FORCE
+        return fo + 3 * HalfSpaceLoad.idx.LAST_FORCE
     return -1
 
 
@@ -488,7 +483,7 @@ def joint_load(
 ) -> None:  # fmt: skip
     """A joint load's torque at time t, joint state at f[q:], f[v:], added to f[out:]."""
     fo, io = o[2 * b], o[2 * b + 1]
-    kind = i[io + KIND]
+    kind = i[io + Load.idx.LOAD_KIND]
     if kind != HAND and kind != HALF_SPACE:
         joint_load_torque(f, i, fo, io, n, t, q, v, out)
 
@@ -501,17 +496,20 @@ def snapshot_load(
     an environment plane's contact flag at contact slot ``contact`` (returns its force's float
     index, to be summed), nothing of a joint load (returns -2)."""
     fo, io = o[2 * b], o[2 * b + 1]
-    kind = i[io + KIND]
+    Ws, Hs = WorldSnapshot.idx, HalfSpaceLoad.idx  # (vectors of 3: vector k at 3 k)
+    kind = i[io + Load.idx.LOAD_KIND]
     if kind == HAND:
         trajectory = o[2 * b + 2]
+        pos, vel = trajectory + 3 * Trajectory.idx.POS, trajectory + 3 * Trajectory.idx.VEL
+        force = fo + 3 * ScriptedHand.idx.LAST_FORCE
         for a in range(3):
-            world[SNAP_REFERENCE + a] = f[trajectory + POS + a]
-            world[SNAP_REFERENCE_VELOCITY + a] = f[trajectory + VEL + a]
-            world[SNAP_FORCE + a] = f[fo + HAND_FORCE + a]
+            world[3 * Ws.REFERENCE + a] = f[pos + a]
+            world[3 * Ws.REFERENCE_VELOCITY + a] = f[vel + a]
+            world[3 * Ws.FORCE + a] = f[force + a]
         return -1
     if kind == HALF_SPACE:
-        world[SNAP_CONTACTS + contact] = 1.0 if i[io + CONTACT] else 0.0
-        return fo + HALF_SPACE_FORCE
+        world[3 * Ws.N_VECTORS + contact] = 1.0 if i[io + Hs.CONTACT] else 0.0
+        return fo + 3 * Hs.LAST_FORCE
     return -2
 
 

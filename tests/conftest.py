@@ -65,6 +65,7 @@ MARKS_BY_TEST = {
     "test_heterogeneous_pairs.py::test_a_pair_stays_passive_under_every_impairment": ("slow",),
     "test_task_space_3d.py::test_a_3d_pair_stays_passive_under_every_impairment": ("slow",),
     "test_frames.py::test_a_turned_scaled_pair_stays_passive_under_every_impairment": ("slow",),
+    "test_frames.py::test_a_turned_offset_3d_pair_stays_passive_under_every_impairment": ("slow",),
     "test_cli.py::test_console_script_check": ("slow",),
     # two processes compile every site kernel from an empty cache: about 75 s here
     "test_kernel_cache.py::test_two_sites_warming_up_at_once_from_an_empty_cache_both_succeed": (

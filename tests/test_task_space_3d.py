@@ -140,7 +140,7 @@ def test_the_panda_follows_the_ur5_and_the_operator_feels_the_table(
     at 50 ms, of a 0.14 rad turn); held on the table the operator's force at the tool equals
     the Panda's on it within 5 % (z); the channel's energy >= -1e-9 J."""
     session = Session(pair(name, f"channel.delay_ms={delay_ms}"))
-    assert (session.hsi.n, session.to.n, session.n) == (6, 9, m) and not session.fused
+    assert (session.hsi.n, session.to.n, session.n) == (6, 7, m) and not session.fused
     summary, a = run_pair(session)
     q_h, q_t = a[:, 2 * m : 3 * m], a[:, 3 * m :]
     off = np.abs((q_h - q_h[0]) - (q_t - q_t[0])).max(axis=0)
@@ -171,7 +171,8 @@ def test_the_scaled_two_port_s_energy_is_the_channel_s(name: str) -> None:
     trace = Trace(session)
     summary = session.run(observer=trace)
     assert summary.min_channel_energy_j >= PASSIVE_J and trace.min_scaled >= PASSIVE_J
-    tau_e = np.array(trace.rows)[:, 32:41]  # (Trace's columns: 6 + 9 + 2 + 6 + 9 before it)
+    n = session.to.n  # (Trace's columns before tau_e: 6 + n + 2 + 6 + n)
+    tau_e = np.array(trace.rows)[:, 14 + 2 * n : 14 + 3 * n]
     assert np.abs(tau_e).max() > 0.5  # the Panda in contact
     expected = session.monitor.total_energy + trace.absorbed
     assert trace.scaled == pytest.approx(expected, abs=1e-9, rel=1e-6)
@@ -184,9 +185,12 @@ def test_a_3d_pair_stays_passive_under_every_impairment(
     name: str, impairment: str, tmp_path: Path
 ) -> None:  # fmt: skip
     """The study's impairment classes and traces (tests/test_passive_channels.py) on each pair's
-    own script, bounded wave channel (as the plane pairs: tests/test_heterogeneous_pairs.py):
-    both ports' balances and the channel's energy >= -1e-9 J, motion bounded, no stop."""
-    assert_passive_under(TASK_SPACE / f"{name}.yaml", impairment, tmp_path, 6.5)
+    own script, bounded wave channel: both ports' balances and the channel's energy >= -1e-9 J,
+    motion bounded, no stop. (bounded named: with the default, reflected, the pose pair ends
+    under jitter and reordering in a safety stop, the UR5 HSI's wrist_1 at 3.22 rad/s against
+    its 3.2: docs/task_space.md, left to do.)"""
+    assert_passive_under(TASK_SPACE / f"{name}.yaml", impairment, tmp_path, 6.5,
+                         ("channel.wave_reconstruction=bounded",))  # fmt: skip
 
 
 # --- the displayed mass in 3-D -----------------------------------------------------------------

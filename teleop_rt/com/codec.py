@@ -20,7 +20,14 @@ Receiver (``codec_receive``, before the port): a tick with no packet within the 
 interval is the codec's silence, not a loss: the peer's last packet is used again, with the
 energy it declared. What keeps that passive is the port's own rule, unchanged:
 
-- wave channel: the held wave goes through the energy bound (``reconstruction: bounded``):
+- wave channel on ``reflected`` (the codec's default): the held wave goes through that
+  reconstruction's bound: beyond what the peer declared a port emits only what it reflects
+  back, taken off what it declares in turn (``teleop_rt.com.port``). Its sender then needs no
+  reserve and no model of the peer's room (below): it sends at the latest every
+  ``REFLECT_HOLD_TICKS`` ticks (A + 1 with a look-ahead A); a real packet after held ticks is
+  handed to the port as the next in line (no one-tick catch-up of the hold's integral error:
+  under jitter that jolt was a velocity command the TO could not follow; docs/codec.md).
+- wave channel on ``bounded``: the held wave goes through the energy bound:
   the wave energy this port emits never exceeds what the peer has declared sent, and the
   peer declares its TRUE wave energy, dt/2 sum u^2 over every tick, sent or not. Why not the
   energy of the held wave it knows the receiver uses (the tempting choice: the receiver's
@@ -90,10 +97,12 @@ from teleop_rt.com.port import (
     PEER_E_IN,
     PEER_ENERGY,
     PEER_X_SUM,
+    RECONSTRUCTION,
     USED_SUM,
     WAVE,
     Port,
 )
+from teleop_rt.declarations import REFLECTED
 from teleop_rt.flat import jit
 
 NONE, DEADBAND = 0, 1
@@ -108,6 +117,13 @@ AHEAD_ROOM_TICKS = 0.0
 # the hold's error (measured: 8 keeps T_p and T_tau within 10 % at >= 85 % reduction at 20
 # and 50 ms; docs/codec.md)
 AHEAD_FRACTION, AHEAD_TICKS = 0.4, 8
+# ``reflected`` (the wave channel's default with the codec): the peer's port may emit a held
+# wave beyond what was declared as long as it reflects the energy back (taken off what it
+# declares), so a sender needs neither the reserve nor a model of the peer's room; it sends at
+# the latest this many ticks after its last packet where no look-ahead is known (D = 1 tick,
+# the impaired link, Zenoh), which bounds the hold's lag (measured on the stiff wall at
+# D = 1 ms: 7 ticks -5 % felt stiffness at 85.6 % reduction, 8 ticks -10 %; docs/codec.md)
+REFLECT_HOLD_TICKS = 7
 ENERGY_STEP_J = 1e-4  # TDPA: a port whose E_in grew by this since its last packet sends
 CODECS = {"none": NONE, "deadband": DEADBAND}
 # TDPA: the reconstruction pays the peer's integral back (its position, or its torque's
@@ -167,6 +183,11 @@ def configure(
     port.codec_rx_predict = PREDICTIONS[peer_prediction]
     port.codec_sum_rate = 1.0 / SUM_TIME_S
     port.codec_rx_seq = -1
+    look_ahead(port, 0)
+
+
+def _reflects(port: Port) -> bool:
+    return int(port.mode) == WAVE and int(port.reconstruction) == REFLECTED
 
 
 def look_ahead(port: Port, ticks: int) -> None:
@@ -174,6 +195,12 @@ def look_ahead(port: Port, ticks: int) -> None:
     it is due (the in-process link: D - 1; 0: no look-ahead known, the sender assumes none)."""
     if ticks < 0:
         raise ValueError("the codec's look-ahead is >= 0 ticks")
+    if _reflects(port):
+        # no bank to build, no room to model: the sender holds at most A + 1 ticks, A the
+        # look-ahead or, with none, REFLECT_HOLD_TICKS - 1 (codec_send's uncut model)
+        port.codec_ahead_ticks = ticks or REFLECT_HOLD_TICKS - 1
+        port.codec_reserve, port.codec_room_ticks = 0.0, 0.0
+        return
     port.codec_ahead_ticks = ticks
     port.codec_room_ticks = AHEAD_ROOM_TICKS if ticks else ROOM_TICKS
 
@@ -243,6 +270,12 @@ def codec_receive(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np
                 rx[P_WAVE_ENERGY * n + j] = max(e, f[PEER_ENERGY * n + j])
         i[C_RX_SEQ] = rx_i[P_SEQ]
         i[C_AGE] = 0
+        if wave and i[RECONSTRUCTION] == REFLECTED and i[LAST_SEQ] >= 0:
+            # the held ticks were the codec's, not losses: no integral to catch up in one
+            # tick (a jolt of several ticks' worth of the hold's error, beyond what the TO can
+            # follow when packets come late); what the hold missed is the port's debt, paid
+            # back at its drift rate. On time a packet is the next in line: unchanged.
+            rx_i[P_SEQ] = min(rx_i[P_SEQ], i[LAST_SEQ] + 1)
         return
     age = i[C_AGE] + 1
     i[C_AGE] = age
@@ -316,6 +349,8 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
     # energy declared by any packet sent in the next A ticks: this tick's true wave energy,
     # if one goes out within A + 1 ticks of the last
     ahead = wave and i[C_AHEAD_TICKS] > 0
+    # ``reflected``: the peer's room is no bound to model (it reflects what it holds)
+    reflects = wave and i[RECONSTRUCTION] == REFLECTED
     since = i[C_SINCE] + 1
     crossed = short = False
     for j in range(n):
@@ -326,7 +361,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
             crossed = True
         if not wave and step > 0.0 and tx[P_E_IN * n + j] - f[C_E_SENT * n + j] > step:
             short = True  # the peer's controller would dissipate what it has not been told
-        if wave:
+        if wave and not reflects:
             # would the peer's bound cut the held wave this tick (the room declared so far)?
             if ahead:
                 f[C_SIM_DECLARED * n + j] = tx[P_WAVE_ENERGY * n + j]

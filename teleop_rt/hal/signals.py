@@ -1,8 +1,8 @@
 """The signal blocks between a backend and its site: what a backend measures each tick
-(``Feedback``) and what a simulated world knows at the read (``WorldSnapshot``), with the
-indices the compiled kernels read them by. The bottom of the HAL: it imports no backend, no
-interface and no registry, so a kernel module can index these blocks without importing any of
-them."""
+(``Feedback``) and what a simulated world knows at the read (``WorldSnapshot``); the compiled
+kernels index them by their ``idx`` (``teleop_rt.flat``). The bottom of the HAL: it imports no
+backend, no interface and no registry, so a kernel module can index these blocks without
+importing any of them."""
 
 from __future__ import annotations
 
@@ -34,9 +34,6 @@ class Feedback(Block):
         self.v_mv[:] = v
 
 
-# where a kernel finds the feedback's signals (vector k at k * n; age_ticks is int 0)
-FB_Q, FB_V, FB_TAU_EXT = Feedback.q.k, Feedback.v.k, Feedback.tau_ext.k
-FB_AGE_TICKS, FB_INPUTS = Feedback.age_ticks.k, Feedback.inputs.k
 # the bits of ``inputs`` (a backend with digital inputs sets them: teleop_rt.hal.can, 0x60FD)
 INPUT_CLUTCH, INPUT_PRESENT = 1, 2
 
@@ -44,7 +41,8 @@ INPUT_CLUTCH, INPUT_PRESENT = 1, 2
 class WorldSnapshot(Block):
     """What a simulated world knows at the tick's read (zeros for real hardware): the operator's
     hand reference and force (HSI) or the environment force and contacts (TO: 1.0 in contact),
-    for logging and replay. Vectors of 3 in the world frame, SI units."""
+    for logging and replay. Vectors of 3 in the world frame, SI units (a kernel finds vector k
+    at ``3 k``, the contacts at ``3 idx.N_VECTORS``)."""
 
     reference = Vector("the operator's hand reference, m")
     reference_velocity = Vector("its velocity, m/s")
@@ -60,11 +58,3 @@ class WorldSnapshot(Block):
             float_view(x)
             for x in (self.reference, self.reference_velocity, self.force, self.contacts)
         )
-
-
-# where a kernel finds the world snapshot's signals (vectors of 3, then the contacts)
-W_REFERENCE, W_REFERENCE_VELOCITY, W_FORCE = (
-    3 * x.k
-    for x in (WorldSnapshot.reference, WorldSnapshot.reference_velocity, WorldSnapshot.force)
-)
-W_CONTACTS = 3 * len(WorldSnapshot.VECTORS)

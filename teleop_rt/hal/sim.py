@@ -24,7 +24,7 @@ from teleop_rt.config import FaultSpec, SessionConfig
 from teleop_rt.errors import ConfigError
 from teleop_rt.flat import Block, Int, Packed, Scalar, Vector, as_floats, jit
 from teleop_rt.hal.base import Backend
-from teleop_rt.hal.signals import FB_AGE_TICKS, FB_Q, FB_TAU_EXT, FB_V, W_FORCE, Feedback
+from teleop_rt.hal.signals import Feedback, WorldSnapshot
 from teleop_rt.model import RobotModel, friction_torque
 from teleop_rt.world import (
     Load,
@@ -63,37 +63,31 @@ class PlantState(Block):
     tick = Int()
 
 
-P = PlantState
-Q, V, TAU_MOTOR, TAU_LOAD, TAU = P.q.k, P.v.k, P.tau_motor.k, P.tau_load.k, P.tau.k
-DAMPING, COULOMB = P.damping.k, P.coulomb.k
-T, DT, H, INV_V_S, TOOL_V = P.t.k, P.dt.k, P.h.k, P.inv_v_s.k, P.tool_vx.k  # (tool_vy, vz follow)
-N_VECTORS = len(PlantState.VECTORS)
-TICK = PlantState.tick.k
-
-
-# The kernels below index the packed buffers directly: ``o`` holds the plant's offsets (its
-# state block first, then its loads, a hand followed by its trajectory), as a view of whatever
-# buffers hold them (its own, or a session's, see ``SimBackend.rebind``); a slice costs a
-# compiled function tens of ns, more than the arithmetic it serves.
+# The kernels below index the packed buffers directly, by ``PlantState.idx``: ``o`` holds the
+# plant's offsets (its state block first, then its loads, a hand followed by its trajectory),
+# as a view of whatever buffers hold them (its own, or a session's, see ``SimBackend.rebind``);
+# a slice costs a compiled function tens of ns, more than the arithmetic it serves.
 
 
 @jit
 def total_torque(f: np.ndarray, s: int, n: int) -> None:
     """tau = tau_motor + tau_load - friction(v), for the plant state at f[s:]."""
-    inv_v_s = f[s + N_VECTORS * n + INV_V_S]
+    Ps = PlantState.idx
+    inv_v_s = f[s + Ps.N_VECTORS * n + Ps.INV_V_S]
     for j in range(n):
         friction = friction_torque(
-            f[s + DAMPING * n + j], f[s + COULOMB * n + j], inv_v_s, f[s + V * n + j]
+            f[s + Ps.DAMPING * n + j], f[s + Ps.COULOMB * n + j], inv_v_s, f[s + Ps.V * n + j]
         )
-        f[s + TAU * n + j] = f[s + TAU_MOTOR * n + j] + f[s + TAU_LOAD * n + j] - friction
+        f[s + Ps.TAU * n + j] = f[s + Ps.TAU_MOTOR * n + j] + f[s + Ps.TAU_LOAD * n + j] - friction
 
 
 @jit
 def command(f: np.ndarray, o: np.ndarray, n: int, tau_cmd: np.ndarray) -> None:
     """Hold the motor torque tau_cmd for the period; the total torque at the tick's start."""
+    Ps = PlantState.idx
     s = o[0]
     for j in range(n):
-        f[s + TAU_MOTOR * n + j] = tau_cmd[j]
+        f[s + Ps.TAU_MOTOR * n + j] = tau_cmd[j]
     total_torque(f, s, n)
 
 
@@ -101,17 +95,18 @@ def command(f: np.ndarray, o: np.ndarray, n: int, tau_cmd: np.ndarray) -> None:
 def euler_step(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, a: np.ndarray) -> None:
     """One semi-implicit (symplectic) Euler step of h with acceleration a: the stateful loads,
     then v, then q with the new v."""
+    Ps = PlantState.idx
     s = o[0]
-    h = f[s + N_VECTORS * n + H]
+    h = f[s + Ps.N_VECTORS * n + Ps.H]
     b = 1
     while b < o.size // 2:
         advance_load(f, i, o, b, h)
         b += load_width(i, o, b)
     for j in range(n):
-        vj = f[s + V * n + j] + h * a[j]
-        f[s + V * n + j] = vj
-        f[s + Q * n + j] += h * vj
-    f[s + N_VECTORS * n + T] += h
+        vj = f[s + Ps.V * n + j] + h * a[j]
+        f[s + Ps.V * n + j] = vj
+        f[s + Ps.Q * n + j] += h * vj
+    f[s + Ps.N_VECTORS * n + Ps.T] += h
 
 
 @jit
@@ -120,11 +115,12 @@ def evaluate_loads(
 ) -> None:
     """tau_load: the sum of the loads' joint torques at the plant's (t, q, v), with the tool at x
     (world frame) and jac its translational Jacobian (rows 0-2, world-aligned)."""
+    Ps = PlantState.idx
     s = o[0]
-    t, tool_v = f[s + N_VECTORS * n + T], s + N_VECTORS * n + TOOL_V
+    t, tool_v = f[s + Ps.N_VECTORS * n + Ps.T], s + Ps.N_VECTORS * n + Ps.TOOL_VX
     vx = vy = vz = 0.0
     for j in range(n):
-        vj = f[s + V * n + j]
+        vj = f[s + Ps.V * n + j]
         vx += jac[0, j] * vj
         vy += jac[1, j] * vj
         vz += jac[2, j] * vj
@@ -139,12 +135,12 @@ def evaluate_loads(
             cartesian = True
             fx, fy, fz = fx + f[force], fy + f[force + 1], fz + f[force + 2]
         b += load_width(i, o, b)
-    tau_load = s + TAU_LOAD * n
+    tau_load = s + Ps.TAU_LOAD * n
     for j in range(n):  # tau = J^T F
         f[tau_load + j] = jac[0, j] * fx + jac[1, j] * fy + jac[2, j] * fz if cartesian else 0.0
     b = 1
     while b < blocks:
-        joint_load(f, i, o, b, n, t, s + Q * n, s + V * n, tau_load)
+        joint_load(f, i, o, b, n, t, s + Ps.Q * n, s + Ps.V * n, tau_load)
         b += load_width(i, o, b)
 
 
@@ -155,12 +151,13 @@ def sense(
 ) -> None:  # fmt: skip
     """Ideal sensors: the feedback (q, v, tau_ext = tau_load, fresh) and the world snapshot (the
     hand's reference and force, or the environment's force and contacts)."""
+    Ps, Fb = PlantState.idx, Feedback.idx
     s = o[0]
     for j in range(n):
-        fb_f[FB_Q * n + j] = f[s + Q * n + j]
-        fb_f[FB_V * n + j] = f[s + V * n + j]
-        fb_f[FB_TAU_EXT * n + j] = f[s + TAU_LOAD * n + j]
-    fb_i[FB_AGE_TICKS] = 0
+        fb_f[Fb.Q * n + j] = f[s + Ps.Q * n + j]
+        fb_f[Fb.V * n + j] = f[s + Ps.V * n + j]
+        fb_f[Fb.TAU_EXT * n + j] = f[s + Ps.TAU_LOAD * n + j]
+    fb_i[Fb.AGE_TICKS] = 0
     hand = False
     fx = fy = fz = 0.0
     contact = 0
@@ -174,7 +171,8 @@ def sense(
             contact += 1
         b += load_width(i, o, b)
     if not hand and contact:
-        world[W_FORCE], world[W_FORCE + 1], world[W_FORCE + 2] = fx, fy, fz
+        force = 3 * WorldSnapshot.idx.FORCE  # (vectors of 3)
+        world[force], world[force + 1], world[force + 2] = fx, fy, fz
 
 
 @jit
@@ -182,9 +180,11 @@ def next_tick(
     f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, jac: np.ndarray, x: np.ndarray
 ) -> None:
     """The end of a write: the next tick's time and the loads there."""
-    tick = o[1] + TICK
+    Ps = PlantState.idx
+    tick = o[1] + Ps.TICK
     i[tick] += 1
-    f[o[0] + N_VECTORS * n + T] = i[tick] * f[o[0] + N_VECTORS * n + DT]  # no drift from sums
+    scalars = o[0] + Ps.N_VECTORS * n
+    f[scalars + Ps.T] = i[tick] * f[scalars + Ps.DT]  # no drift from sums
     evaluate_loads(f, i, o, n, jac, x)
 
 

@@ -481,7 +481,8 @@ class _Reader:
         if 0 in (ints.get("joints_hsi"), ints.get("joints_to")):
             raise self.fail(f"'{META}' metadata: a robot of 0 joints")
         shape = (ints.get("joints_hsi", 0), ints.get("joints_to", 0), bool(ints.get("mapped")))
-        return LogLayout(ints["joints"], ints["env_elements"], site, *shape), meta
+        version = ints["schema_version"]  # (an older log's fields: as it was written)
+        return LogLayout(ints["joints"], ints["env_elements"], site, *shape, version), meta
 
     def _decode(self, topic: Topic, parts: list[np.ndarray]) -> np.ndarray:
         channels = [c for c in self.channels.values() if c.topic == topic.name]

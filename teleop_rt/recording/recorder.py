@@ -25,6 +25,7 @@ import contextlib
 import dataclasses
 import datetime as _dt
 import errno
+import json
 import math
 import multiprocessing
 import os
@@ -43,7 +44,7 @@ import yaml
 from teleop_rt.errors import RecordingFailure, TeleopError
 from teleop_rt.flat import jit
 from teleop_rt.loop import StopSignals
-from teleop_rt.mapping import JOINT
+from teleop_rt.mapping import JOINT, frame_rotation
 from teleop_rt.recording.scene import scene_spec, shift_sources
 from teleop_rt.recording.schema import MAPPED_FIELDS, SCHEMA_VERSION, LogLayout
 from teleop_rt.recording.writer import (
@@ -61,6 +62,7 @@ from teleop_rt.recording.writer import (
 from teleop_rt.version import software_version
 
 if TYPE_CHECKING:
+    from teleop_rt.config import SessionConfig
     from teleop_rt.recording.live import LiveAddress
     from teleop_rt.recording.scene import SceneSpec
     from teleop_rt.session import Session
@@ -132,7 +134,8 @@ def session_parts(session: Session) -> LogParts:
     layout = session_layout(session)
     return LogParts(
         layout, row_sources(session, layout), shift_sources(session),
-        {**_metadata(session), **_shape(layout)},
+        {**_metadata(session), **_shape(layout), **mapping_metadata(session.cfg, layout,
+                                                                   session.sites)},
         _attachments(session), scene_spec(session),
     )  # fmt: skip
 
@@ -204,7 +207,8 @@ class Recorder:
         self.gather = parts.gather
         self.shifts = parts.shifts  # for the 3D scene only (ring_width)
         fill_row(
-            np.zeros(width), session.packed.f, self.gather, self.shifts, 0, 0.0, 0, 0, False
+            np.zeros(width), session.packed.f, session.packed.i, self.gather, self.shifts, 0, 0.0,
+            0, 0, False,
         )  # load (or compile) the kernel now
         self.published = 0
         self._consumed_known = 0
@@ -326,7 +330,8 @@ class Recorder:
                 raise RecordingFailure(self.failure)
             return
         fill_row(
-            self.ring[i % self.capacity], s.packed.f, self.gather, self.shifts, k, k * s.dt,
+            self.ring[i % self.capacity], s.packed.f, s.packed.i, self.gather, self.shifts, k,
+            k * s.dt,
             compute_ns, lateness_ns, missed,
         )  # fmt: skip
         self.published = i + 1
@@ -500,6 +505,8 @@ def _mapped_source(site, name: str) -> tuple[Any, str]:
 ROBOT_SOURCES = {
     "q": "feedback.q", "v": "feedback.v", "tau_ext": "feedback.tau_ext",
     "tau_cmd": "computed_torque.tau", "a_ref": "controller.out",
+    # MAPPED_STATE (a mapped layout, schema 3)
+    "gain": "mapping.gain", "coupled": "mapping.coupled", "inputs": "mapping.inputs",
 }  # fmt: skip
 WORLD_SOURCES = {
     "operator_reference_m": "reference",
@@ -550,6 +557,7 @@ def robot_columns(packed, site, topic) -> list[int]:
 def fill_row(
     row: np.ndarray,
     f: np.ndarray,
+    i: np.ndarray,
     gather: np.ndarray,
     shifts: np.ndarray,
     tick: int,
@@ -559,12 +567,14 @@ def fill_row(
     missed: bool,
 ) -> None:
     """One ring row (``LogLayout.ring_width``): tick, time, the signals at the packed
-    positions ``gather``, the timing columns, then the environment's shifts at the positions
-    ``shifts`` (0 where the position is -1)."""
+    positions ``gather`` (``Packed.index_of``: >= 0 in ``f``, -1 - k for ``i[k]``), the timing
+    columns, then the environment's shifts at the positions ``shifts`` (0 where the position
+    is -1)."""
     row[0] = tick
     row[1] = t
     for c in range(gather.size):
-        row[2 + c] = f[gather[c]]
+        g = gather[c]
+        row[2 + c] = f[g] if g >= 0 else float(i[-1 - g])
     m = gather.size + 2
     row[m] = compute_ns
     row[m + 1] = lateness_ns
@@ -579,6 +589,29 @@ def _shape(layout: LogLayout) -> dict[str, str]:
         return {}
     return {"joints_hsi": str(layout.joints_hsi), "joints_to": str(layout.joints_to),
             "mapped": str(int(layout.mapped))}  # fmt: skip
+
+
+def mapping_metadata(cfg: SessionConfig, layout: LogLayout, sites) -> dict[str, str]:
+    """A mapped log's ``mapping`` metadata (JSON): the map's constants (the space, alpha, beta,
+    the frames' offset and rotation, R as the TO applies it) and how its sites took the
+    operator's live inputs: the HSI's ``live_inputs`` (INPUT_* bits read from the backend's
+    feedback, logged per tick as ``inputs``), the TO's ``follows_packets`` (it decoupled on the
+    packets' ``engaged``); a replay runs its sites so (``teleop_rt.recording.site_replay``)."""
+    if not layout.mapped:
+        return {}
+    spec = cfg.mapping
+    out: dict[str, Any] = {
+        "space": cfg.channel.space, "motion_scale": spec.motion_scale,
+        "force_scale": spec.force_scale, "offset_m": list(spec.offset_m),
+        "rotation_rpy_deg": list(spec.rotation_rpy_deg),
+        "rotation": frame_rotation(spec.rotation_rpy_deg).tolist(),
+    }  # fmt: skip
+    for site in sites:
+        if site.name == "hsi":
+            out["live_inputs"] = int(site.mapping.live)
+        else:
+            out["follows_packets"] = int(site.mapping.follow)
+    return {"mapping": json.dumps(out)}
 
 
 def _metadata(session: Session) -> dict[str, str]:

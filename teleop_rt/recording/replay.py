@@ -11,13 +11,18 @@ The operator is the logged one:
 * no operator model (a real person on hardware): the logged HSI tool motion becomes the hand's
   reference (forward kinematics of the logged joint angles, velocity by central differences).
 
-A replay always runs on the simulated backend.
+A replay always runs on the simulated backend. The operator's live inputs (a CAN drive's
+clutch and presence bits, the terminal's keys: ``teleop_rt.keys``) are the logged ones: each
+tick's ``inputs`` in /hsi, read by a map set up as the log's ``mapping`` metadata says
+(``take_logged_inputs``), so a session with a live clutch replays bit for bit too.
 """
 
 from __future__ import annotations
 
+import json
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,6 +32,9 @@ from teleop_rt.model import RobotModel
 from teleop_rt.recording.reader import LogData, LogError, read_log, require_ticks
 from teleop_rt.session import Session
 from teleop_rt.world import LoggedTrajectory, ScriptedHand
+
+if TYPE_CHECKING:
+    from teleop_rt.site import Site
 
 # hand used for logs without an operator model (a person's motion imposed through a stiff grip)
 PERSON_HAND_STIFFNESS_N_PER_M = 2000.0
@@ -133,6 +141,30 @@ def before_first_gap(data: LogData) -> tuple[LogData, str | None]:
     return read_log(data.path, t_to=first * log_dt(data)), note
 
 
+def take_logged_inputs(site: Site, data: LogData) -> None:
+    """Run ``site``'s map as the logged one took the operator's live inputs (the log's
+    ``mapping`` metadata: the HSI's ``live_inputs`` bits, the TO's ``follows_packets``), which
+    the replay's simulated backend would not give it (a CAN drive's 0x60FD)."""
+    logged = json.loads(data.meta.get("mapping", "{}"))
+    if site.name == "hsi":
+        live, follow = int(logged.get("live_inputs", 0)), False
+    else:
+        live, follow = 0, bool(logged.get("follows_packets", 0))
+    if live or follow:
+        site.mapping.take_live(live, follow)
+
+
+def logged_inputs(data: LogData) -> np.ndarray | None:
+    """The HSI's live inputs per tick (the log's ``inputs``, schema 3), None where it has
+    none to replay."""
+    robot = data.topics.get("/hsi")
+    if robot is None or "inputs" not in (robot.dtype.names or ()):
+        return None
+    if not json.loads(data.meta.get("mapping", "{}")).get("live_inputs"):
+        return None
+    return robot["inputs"]
+
+
 def log_dt(data: LogData) -> float:
     return 1.0 / float(data.meta["rate_hz"])
 
@@ -155,5 +187,16 @@ def build_replay(data: LogData, overrides: list[str]) -> tuple[Session, int]:
         raise LogError(f"{data.path}: ticks {data.gaps[0][0]}-{data.gaps[0][1]} are missing")
     cfg = replay_config(data, overrides)
     session = Session(cfg, operator=replay_operator(cfg, data))
+    for site in session.sites:
+        take_logged_inputs(site, data)
+    inputs = logged_inputs(data)
+    if inputs is not None:  # each tick's live inputs, as the logged HSI's map read them
+        step, hsi, last = session.step, session.hsi, len(inputs) - 1
+
+        def fed() -> None:
+            hsi.feedback.inputs = int(inputs[min(session.tick, last)])
+            step()
+
+        session.step = fed  # type: ignore[method-assign]  # (run_loop calls session.step)
     # as long as the log, also when --set rate_hz changed the tick
     return session, round(len(data.topics["/hsi"]) * data.dt / cfg.dt)

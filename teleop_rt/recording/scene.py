@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -95,6 +95,8 @@ class SceneSpec:
     every: int  # ticks between two scene messages (recording.scene_hz)
     resend: int  # ticks between two sendings of an unchanged environment (about a second)
     sides: tuple[str, ...] = SIDES  # the robots drawn: both (a session's log) or a site's own
+    # side -> the joints its config locks (robot.locked_joints): drawn as fixed, at neutral
+    locked: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
 
 def scene_spec(session: Session, sides: tuple[str, ...] = SIDES) -> SceneSpec | None:
@@ -130,6 +132,7 @@ def scene_spec(session: Session, sides: tuple[str, ...] = SIDES) -> SceneSpec | 
         every=every,
         resend=every * max(1, round(cfg.rate_hz / every)),
         sides=tuple(sides),
+        locked={side: tuple(getattr(cfg, side).robot.locked_joints) for side in sides},
     )
 
 
@@ -324,7 +327,14 @@ class Scene:
         self.moving = {}
         for side in spec.sides:
             model = pin.buildModelFromXML(spec.urdf[side])
+            locked = spec.locked.get(side, ())
+            if locked:  # (as the session's model has them: teleop_rt.model)
+                from teleop_rt.model import locked_model
+
+                model = locked_model(model, list(locked), side)
             root, joints = robot_tree(spec.urdf[side])
+            joints = [UrdfJoint(j.name, j.parent, j.child, j.fixed or j.name in locked)
+                      for j in joints]  # fmt: skip
             body = {f.name: i for i, f in enumerate(model.frames) if f.type == pin.FrameType.BODY}
             pairs = [
                 (f"{side}/{j.parent}", f"{side}/{j.child}", body[j.parent], body[j.child], j.fixed)
@@ -333,7 +343,7 @@ class Scene:
             ]
             ee = model.getFrameId(spec.ee_frame[side])
             self.robots[side] = (model, model.createData(), pairs, ee, f"{side}/{root}")
-            self.moving[side] = _MovingJoints(model, spec.urdf[side], side, body)
+            self.moving[side] = _MovingJoints(model, spec.urdf[side], side, body, locked)
         self.frames = {side: self.robots[side][4] for side in spec.sides}
         self._environment = [_Slab(el, spec.tool_start["to"]) for el in spec.environment]
         self._hand_size = _vector((0.025, 0.025, 0.025))
@@ -433,14 +443,19 @@ class _MovingJoints:
     so the product is r0 * (a, 0) sin(theta/2) + r0 cos(theta/2); or a slide by theta along a,
     which moves the child by theta R0 a in the parent's frame."""
 
-    def __init__(self, model, urdf: str, side: str, body: dict[str, int]) -> None:
+    def __init__(
+        self, model, urdf: str, side: str, body: dict[str, int], locked: tuple[str, ...] = ()
+    ) -> None:  # fmt: skip
+        """``locked``: joints the model has locked (static transforms, like fixed ones)."""
         self.names: list[tuple[str, str]] = []
         t0, r0, r0_axis, slide, half, cols = [], [], [], [], [], []
         for joint in ET.fromstring(urdf).findall("joint"):
             kind = joint.get("type")
             parent = _attr(_child(joint, "parent"), "link")
             child = _attr(_child(joint, "child"), "link")
-            if kind == "fixed" or parent not in body or child not in body:
+            if kind == "fixed" or joint.get("name") in locked:
+                continue
+            if parent not in body or child not in body:
                 continue
             if kind not in ("revolute", "continuous", "prismatic"):
                 raise ValueError(f"URDF: joint {joint.get('name')!r} of type {kind!r}")

@@ -10,7 +10,9 @@ robots have their own joint counts (a heterogeneous pair, coupled in the plane) 
 with its own (``joints_hsi``, ``joints_to``) and the channel with its size n (the task's
 dimension); one whose sites map their ports (``mapped``: a task-space channel, motion or force
 scaling, a clutch) also logs per robot what T_p and T_tau compare (``q_mapped``, ``tau_mapped``,
-of size n; ``teleop_rt.mapping``), so that its metrics are the live ones:
+of size n; ``teleop_rt.mapping``), so that its metrics are the live ones, and each site's
+coupling per tick (``MAPPED_STATE``: the gain r, coupled or not, the live inputs read), so that
+a live clutch is in the log and replays:
 
 * ``/hsi``       teleop_rt/msg/HsiTick: the HSI robot and the operator
 * ``/to``        teleop_rt/msg/ToTick: the TO robot and the environment
@@ -22,7 +24,8 @@ A site's own log (``teleop-rt site``, ``LogLayout(site="hsi" | "to")``) holds it
 (``/hsi`` or ``/to``, as above), ``/port`` (teleop_rt/msg/HsiPortTick or ToPortTick: its port's
 variables, waves, power and energy under the paper's names, its balance and the energy its
 protection removed), ``/link``
-(teleop_rt/msg/LinkTick: the peer's packet used at the tick, or none) and ``/timing``.
+(teleop_rt/msg/LinkTick: the peer's packet used at the tick, or none, with the HSI's coupling
+state it carried, ``engaged``) and ``/timing``.
 
 A message's log time is wall-clock: UTC at the session start plus the tick's time, in ns since
 the epoch (``start_time_ns + k * period_ns``); the field ``t`` is the tick's time from the start.
@@ -34,7 +37,8 @@ Besides the messages a log holds (so that it describes itself):
   start_time_utc (ISO 8601), and from the command line config (its path) and overrides (a JSON
   list of the --set values), for a replay replay_of (the replayed log); a mapped session's
   also joints_hsi, joints_to and mapped ("1"), which logs of one joint count without a map
-  leave out;
+  leave out, and mapping (JSON: the map's constants, and how its sites took the operator's
+  live inputs: ``teleop_rt.recording.recorder.mapping_metadata``);
 * attachments ``config.yaml`` (the resolved session config) and ``urdf/hsi.urdf``,
   ``urdf/to.urdf`` when the robots came from URDF files;
 * in a site's log also log_kind ("site"), site ("hsi" or "to"), session_id (hex, from the
@@ -51,7 +55,10 @@ from dataclasses import dataclass
 import numpy as np
 
 CDR_HEADER = b"\x00\x01\x00\x00"  # CDR, little endian, no options
-SCHEMA_VERSION = 2  # 2: /channel has the ports' balances and the energy the protection removed
+# 2: /channel has the ports' balances and the energy the protection removed; 3: a mapped
+# layout's robots have MAPPED_STATE, a site's /link the packet's engaged (older logs read as
+# they were written: LogLayout.version)
+SCHEMA_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -120,6 +127,15 @@ MAPPED_FIELDS = (
     ("tau_mapped", "what T_tau compares: tau_h or beta tau_e, or the tool's force (N m, N)"),
 )
 
+# a mapped site's coupling per tick (schema 3): what a replay needs to reproduce a live
+# clutch, and what says when the sites were coupled (name, type, doc)
+MAPPED_STATE = (
+    ("gain", "float64", "r, the coupling gain: 1 coupled, 0 decoupled, ramping between"),
+    ("coupled", "uint8", "1: the clutch released and the operator present (at the TO: as the "
+     "HSI's packets say, when it follows them)"),
+    ("inputs", "uint8", "the live inputs this tick's map read: 1 clutch pressed, 2 present"),
+)
+
 ROBOT_FIELDS = (
     ("q", "joint angles, rad"),
     ("v", "joint velocities, rad/s"),
@@ -142,7 +158,8 @@ SITES = ("hsi", "to")
 class LogLayout:
     """Row layout and topics of a session with n joints and E environment elements, or of one
     site's log (``site``: "hsi" or "to"; "" for a session's). ``n_hsi``, ``n_to``: the robots'
-    joints when they are not n (0: n); ``mapped``: the robots' topics hold ``MAPPED_FIELDS``."""
+    joints when they are not n (0: n); ``mapped``: the robots' topics hold ``MAPPED_FIELDS``
+    (and from schema 3 ``MAPPED_STATE``); ``version``: the schema of the log."""
 
     n: int
     n_env: int
@@ -150,6 +167,7 @@ class LogLayout:
     n_hsi: int = 0
     n_to: int = 0
     mapped: bool = False
+    version: int = SCHEMA_VERSION  # the fields a log of an older schema holds
 
     @property
     def joints_hsi(self) -> int:
@@ -222,7 +240,9 @@ class LogLayout:
         """A robot's fields: per joint, then (a mapped layout) of the channel's size."""
         robot = [Field(name, "float64", joints, doc) for name, doc in ROBOT_FIELDS]
         mapped = [Field(name, "float64", self.n, doc) for name, doc in MAPPED_FIELDS]
-        return robot + (mapped if self.mapped else [])
+        state = [Field(name, kind, None, doc) for name, kind, doc in MAPPED_STATE]
+        state = state if self.version >= 3 else []
+        return robot + (mapped + state if self.mapped else [])
 
     def _site_topics(self) -> tuple[Topic, Topic]:
         n, side = self.n, self.site
@@ -259,6 +279,8 @@ class LogLayout:
                 ),  # fmt: skip
                 Field("peer_energy", "float64", None, "energy through the peer's port, J"),
                 Field("valid", "uint8", None, "1: the peer's packet due was there; 0: zeros"),
+                *([Field("engaged", "uint8", None, "the packet's engaged: the HSI's coupling")]
+                  if self.version >= 3 else []),  # fmt: skip
             ),
         )
         return port, link

@@ -5,7 +5,8 @@ a dead or failing writer is noticed, closing is bounded, an incomplete log is ex
 
 Topics (``LogLayout(site=...)``): the site's robot as in a session's log (``/hsi`` or
 ``/to``), ``/port`` (its port under the paper's names), ``/link`` (per tick: the peer's packet
-used, or none, with its sender tick, the tick it arrived at and its one-way delay), ``/timing``,
+used, or none, with its sender tick, the tick it arrived at, its one-way delay and the coupling
+state it carried), ``/timing``,
 and the 3D topics of its robot alone, placed where a session's log places it (two site logs
 opened together show both robots as one session's log does). Metadata beyond a session's:
 log_kind "site", site, config_hash (what both sites share) and, once the handshake is done
@@ -31,7 +32,9 @@ from teleop_rt.recording.recorder import (
     Recorder,
     _attachments,
     _metadata,
+    _shape,
     default_log_path,
+    mapping_metadata,
     robot_columns,
 )
 from teleop_rt.recording.scene import scene_spec, shift_sources
@@ -48,6 +51,7 @@ LINK_SOURCES = {
     "sender_tick": ("arrival", "sender_tick"), "arrival_tick": ("arrival", "arrival_tick"),
     "one_way_delay_us": ("arrival", "one_way_delay_us"), "x": ("rx", "x"),
     "wave": ("rx", "wave"), "peer_energy": ("rx", "energy"), "valid": ("arrival", "valid"),
+    "engaged": ("rx", "engaged"),
     **{name: ("rx", name) for name in PACKET_EXTRAS},
 }  # fmt: skip
 
@@ -72,7 +76,10 @@ class SiteLogSource:
     def log_parts(self) -> LogParts:
         site, cfg = self.site, self.cfg
         n_env = len(cfg.environment) if self.name == "to" else 0
-        layout = LogLayout(self.n, n_env, self.name)
+        # the port of its size, the robot with its joints; a mapped site's map too
+        joints = {"n_hsi" if self.name == "hsi" else "n_to": site.n}
+        layout = LogLayout(site.port.n, n_env, self.name, **joints,
+                           mapped=bool(site.mapping.active))  # fmt: skip
         robot, port, link = layout.topics[:3]
         out = robot_columns(self.packed, site, robot)
         for field, attr in zip(port.fields[2:], PORT_SOURCES, strict=True):
@@ -86,10 +93,13 @@ class SiteLogSource:
         shifts = shift_sources(as_session) if n_env else np.zeros(0, dtype=np.int64)
         meta = {
             **_metadata(as_session),
+            "joints": str(layout.n),  # (the port's size, as a session's log has it)
             "env_elements": str(n_env),
             "log_kind": "site",
             "site": self.name,
             "config_hash": shared_parts(cfg, self.n)["config_hash"],
+            **_shape(layout),
+            **mapping_metadata(cfg, layout, [site]),
         }
         return LogParts(
             layout, np.array(out, dtype=np.int64), shifts, meta, _attachments(as_session),

@@ -37,7 +37,12 @@ from teleop_rt.errors import ConfigError
 from teleop_rt.loop import TickClock
 from teleop_rt.recording.reader import LogData, read_log, require_ticks
 from teleop_rt.recording.recorder import default_log_path
-from teleop_rt.recording.replay import replay_config, replay_operator
+from teleop_rt.recording.replay import (
+    logged_inputs,
+    replay_config,
+    replay_operator,
+    take_logged_inputs,
+)
 from teleop_rt.recording.schema import PACKET_EXTRAS, PORT_NAMES
 from teleop_rt.recording.site_log import site_log_path, site_recorder
 from teleop_rt.runner import LoopHooks, LoopOutcome, run_loop
@@ -51,6 +56,9 @@ class LoggedLink(Link):
 
     def __init__(self, link: np.ndarray, site: Site, arrival: Arrival | None) -> None:
         self.rows, self.site, self.arrival = link, site, arrival
+        # the HSI's coupling state each packet carried (schema 3): a TO that followed a live
+        # clutch follows it again (an older log's packets said nothing of it: coupled)
+        self.engaged = "engaged" in (link.dtype.names or ())
 
     def send(self, side: int, packet: Packet) -> None:
         pass  # the partner does not listen: its packets are the logged ones
@@ -65,6 +73,7 @@ class LoggedLink(Link):
             into.energy = float(row["peer_energy"])
             into.tick = into.seq = int(row["sender_tick"])
             into.valid = 1
+            into.engaged = int(row["engaged"]) if self.engaged else 1
         else:  # as the playout hands out a packet that is not there: zeros
             into.f[:] = 0.0
             into.i[:] = 0
@@ -84,6 +93,7 @@ def build_site_replay(data: LogData, overrides: list[str]) -> Site:
     cfg = replay_config(data, overrides)
     cls = HsiSite if data.site == "hsi" else ToSite
     site = cls(cfg, "sim", replay_operator(cfg, data) if data.site == "hsi" else None)
+    take_logged_inputs(site, data)
     shared = shared_parts(cfg, site.n)
     if shared["config_hash"] != data.meta.get("config_hash"):
         original = replay_config(data, [])
@@ -101,7 +111,7 @@ def run_site_replay(site: Site, data: LogData, recorder) -> dict:
     """Run the site tick-locked against the logged packets; its summary (a dict)."""
     cfg = site.cfg
     link = LoggedLink(data.topics["/link"], site, recorder.session.arrival if recorder else None)
-    run = _ReplayRun(site, link, data)
+    run = _ReplayRun(site, link, data, logged_inputs(data))
     run_loop(run, data.ticks, cfg.dt, [site.backend], recorder=recorder)
     assert run.summary is not None  # (finish runs however the loop ends)
     return run.summary
@@ -111,11 +121,16 @@ class _ReplayRun(LoopHooks):
     """A site's replay in the loop: its ticks against the logged packets, its staged stop, its
     summary."""
 
-    def __init__(self, site: Site, link: LoggedLink, data: LogData) -> None:
+    def __init__(
+        self, site: Site, link: LoggedLink, data: LogData, inputs: np.ndarray | None
+    ) -> None:
         self.site, self.link, self.data = site, link, data
+        self.inputs = inputs  # the operator's live inputs as the log has them (or None)
         self.summary: dict | None = None
 
     def step(self) -> None:
+        if self.inputs is not None:
+            self.site.feedback.inputs = int(self.inputs[self.site.tick])
         self.site.sense(self.link)
         self.site.update(self.link)
 
