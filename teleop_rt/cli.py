@@ -17,13 +17,12 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
+from teleop_rt.cli_common import EXIT_INTERRUPTED, ending_code, live_arg
 from teleop_rt.declarations import OVERRUN_DEFAULT, OVERRUN_POLICIES
-from teleop_rt.errors import ConfigError, RecordingFailure, SafetyStop, TeleopError
+from teleop_rt.errors import ConfigError, RecordingFailure, TeleopError
 from teleop_rt.exit_signals import Terminated, exit_on_signals
 from teleop_rt.std_streams import guarded
 from teleop_rt.version import software_version
-
-EXIT_INTERRUPTED = 130
 
 
 def _build_parser() -> argparse.ArgumentParser:
@@ -352,7 +351,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     if args.keys and not args.realtime:
         raise ConfigError("--keys reads the operator's keys as the robots move: add --realtime")
     keys_override(args)
-    live = _live_arg(args)
+    live = live_arg(args)
     can_path = None
     if args.can_log is not None:
         from teleop_rt.hal.can.canlog import check_can_log_path
@@ -418,23 +417,11 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return code
 
 
-def _live_arg(args: argparse.Namespace):
-    """--live's address (None without it), checked before any work."""
-    if args.live is None:
-        return None
-    from teleop_rt.recording.live import parse_address
-
-    live = parse_address(args.live)
-    if args.no_log:
-        raise ConfigError("--live is served by the log's writer: it cannot go with --no-log")
-    return live
-
-
 def _cmd_site(args: argparse.Namespace) -> int:
     from teleop_rt.cli_sites import cmd_site
 
     keys_override(args)
-    return cmd_site(args, _load_config, _live_arg(args))
+    return cmd_site(args, _load_config, live_arg(args))
 
 
 @contextlib.contextmanager
@@ -509,21 +496,6 @@ def _say_if_incomplete(recorder) -> None:
 def exit_code(summary, recorder=None) -> int:
     """The exit code of a run or replay that recorded with ``recorder`` (``ending_code``)."""
     return ending_code(summary, recorder.status() if recorder is not None else None)
-
-
-def ending_code(summary, log_status: dict | None) -> int:
-    """How a run (a session's, a site's, a replay's) ended, as its exit code: 4 if its log is
-    incomplete, whatever else happened (the summary and stderr still say a safety stop or a
-    signal: a lost log is what a script must not miss, and it may have lost the record of
-    the rest); else 3 for a safety stop; 128 + the signal number for a run a signal ended
-    (129, 130, 143); 0 for a complete run and log."""
-    if log_status is not None and not log_status["complete"]:
-        return RecordingFailure.exit_code
-    if summary.safety_stop:
-        return SafetyStop.exit_code
-    if summary.stop_signal:
-        return 128 + summary.stop_signal
-    return EXIT_INTERRUPTED if summary.stopped_early else 0
 
 
 def _cmd_metrics(args: argparse.Namespace) -> int:

@@ -20,6 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from teleop_rt.cli_common import live_arg
 from teleop_rt.errors import ConfigError
 from teleop_rt.exit_signals import Terminated
 
@@ -90,10 +91,10 @@ def cmd_site(args, load_config, live=None) -> int:
 
 
 def site_exit_code(summary) -> int:
-    """A run's exit code (``teleop_rt.cli.ending_code``: 4, 3, a signal's), and 5 for a run
+    """A run's exit code (``teleop_rt.cli_common.ending_code``: 4, 3, a signal's), and 5 for a run
     that ended otherwise well with a silent peer (``SiteSummary.peer_silent``: the run did not
     really run with it)."""
-    from teleop_rt.cli import ending_code
+    from teleop_rt.cli_common import ending_code
 
     code = ending_code(summary, summary.recording)
     return 5 if code == 0 and summary.peer_silent else code
@@ -247,10 +248,9 @@ def _site_logs(args, cfg) -> dict[str, Path] | None:
 
 def _live_addresses(args) -> dict:
     """--live HOST:PORT: the HSI site at PORT, the TO at PORT + 1; port 0: two free ones."""
-    from teleop_rt.cli import _live_arg
     from teleop_rt.recording.live import LiveAddress
 
-    live = _live_arg(args)
+    live = live_arg(args)
     if live is None:
         return {}
     if live.port == 0:

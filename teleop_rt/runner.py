@@ -1,12 +1,15 @@
 """The fixed-step loop around a tick, shared by a one-process session and a site that runs
 alone: the deadline clock, timing statistics, the real-time grant, signals at tick boundaries,
-recording, the staged stop after a safety finding, and stopping every backend together.
+recording, the staged stop after a safety finding, and the backends' lifecycle
+(``teleop_rt.hal.base``: configured and activated before the first tick; whatever ends the
+run, deactivated together and released, ``teleop_rt.hal.stopping``).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -45,53 +48,85 @@ class LoopOutcome:
         return timing
 
 
+@dataclass(frozen=True)
+class LoopOptions:
+    """How the loop keeps time. ``realtime``: one tick per period on the deadline clock (else
+    back to back); ``overrun`` / ``max_missed``: what a missed deadline does (``TickClock``);
+    ``spin_ns``: how long before each deadline the clock stops sleeping and spins (None:
+    ``TickClock``'s default); ``cpu``: the real-time loop's CPU, an index into the CPUs it may
+    use (-1 the last; None leaves the affinity alone)."""
+
+    realtime: bool = False
+    overrun: str = OVERRUN_DEFAULT
+    max_missed: int | None = None
+    spin_ns: int | None = None
+    cpu: int | None = -1
+
+
+class LoopHooks(ABC):
+    """What a run does at the loop's points: ``step`` each tick, ``bring_to_rest`` after a
+    safety finding; the others do nothing unless overridden. A run's own state (a handshake's
+    instant, its summary) lives on its hooks object."""
+
+    @abstractmethod
+    def step(self) -> None:
+        """One tick (timed: whatever it calls, observers included, counts as the tick)."""
+
+    @abstractmethod
+    def bring_to_rest(self, clock: TickClock) -> str:
+        """The staged stop after a safety finding (paced by ``clock`` in real time); its note."""
+
+    def before_start(self) -> None:
+        """Once the signals are caught, before the backends are activated (a site's handshake
+        with its peer: no motor is enabled before it)."""
+        return
+
+    def at_start(self) -> None:
+        """Just before the first tick (a site waits there for the instant both sites start)."""
+        return
+
+    def progress(self, done: int, total: int) -> None:
+        """About 20 times a second of wall time, and once at the end."""
+        return
+
+    def finish(self, outcome: LoopOutcome) -> dict | None:
+        """The summary the recorder is closed with, once the backends are stopped."""
+        return None
+
+
 def run_loop(
-    step: Callable[[], None],
+    hooks: LoopHooks,
     total: int,
     dt: float,
     backends: Sequence[Backend],
-    bring_to_rest: Callable[[TickClock], str],
-    realtime: bool = False,
-    overrun: str = OVERRUN_DEFAULT,
-    max_missed: int | None = None,
-    progress: Callable[[int, int], None] | None = None,
-    after_tick: Callable[[], None] | None = None,
+    options: LoopOptions = LoopOptions(),
     recorder: Recorder | None = None,
-    before_start: Callable[[], None] | None = None,
-    at_start: Callable[[], None] | None = None,
-    finish: Callable[[LoopOutcome], dict] | None = None,
-    spin_ns: int | None = None,
-    cpu: int | None = -1,
 ) -> LoopOutcome:
-    """Run ``step`` ``total`` times, one per period ``dt`` in real time (else back to back).
-
-    ``before_start`` runs once the signals are caught and before the backends start (a site's
-    handshake with its peer: no motor is enabled before it), ``at_start`` just before the first
-    tick (a site waits there for the instant both sites start at); ``after_tick`` after each tick
-    (tests' observers); ``bring_to_rest(clock)`` after a safety finding (the staged stop, paced
-    by the clock in real time). Whatever ends the run, every backend is stopped together and
-    ``recorder`` is closed with the summary ``finish(outcome)`` gives. ``spin_ns``: how long
-    before each deadline the clock stops sleeping and spins (None: ``TickClock``'s default);
-    ``cpu``: the real-time loop's CPU, an index into the CPUs it may use (-1 the last; None
-    leaves the affinity alone)."""
+    """Run ``hooks.step`` ``total`` times, one per period ``dt`` in real time (else back to
+    back), calling the hooks at their points. Whatever ends the run, every backend is
+    deactivated together and released, and ``recorder`` (if any), which records every tick,
+    is closed with the summary ``hooks.finish(outcome)`` gives."""
+    realtime = options.realtime
     period_ns = int(round(dt * 1e9))
     stats = TimingStats(total, period_ns)
-    spin = {} if spin_ns is None else {"spin_ns": spin_ns}
-    clock = TickClock(period_ns, realtime, overrun, max_missed=max_missed, **spin)
-    grant = acquire_realtime(cpu=cpu) if realtime else None
+    spin = {} if options.spin_ns is None else {"spin_ns": options.spin_ns}
+    clock = TickClock(period_ns, realtime, options.overrun, max_missed=options.max_missed, **spin)
+    grant = acquire_realtime(cpu=options.cpu) if realtime else None
     perf = time.perf_counter_ns
     out = LoopOutcome(stats, clock, realtime, perf(), StopSignals())
     out.notes += grant.notes if grant else []
     stop = out.stop
+    step = hooks.step
     next_report = 0
     try:
         stop.install()
-        if before_start is not None:
-            before_start()
+        hooks.before_start()
+        # one robot configured and activated after the other: a configured CAN robot's drives
+        # are NMT operational, and its keepalive (SYNC, heartbeat) starts with activation
         for backend in backends:
-            backend.start()
-        if at_start is not None:
-            at_start()
+            backend.configure()
+            backend.activate()
+        hooks.at_start()
         clock.start()
         for k in range(total):
             if stop.requested:
@@ -99,20 +134,18 @@ def run_loop(
             lateness = clock.wait()
             t0 = perf()
             step()
-            if after_tick is not None:
-                after_tick()
             t1 = perf()
             missed = clock.finish(clock.now_ns()) if realtime else False
             stats.add(t1 - t0, lateness, missed)
             if recorder is not None:
                 recorder.record(t1 - t0, lateness, missed)
-            if progress is not None and t1 >= next_report:
-                progress(k + 1, total)
+            if t1 >= next_report:
+                hooks.progress(k + 1, total)
                 next_report = t1 + 50_000_000
     except SafetyStop as exc:
         out.error = f"safety stop: {exc}"
         out.safety_stop = True
-        out.notes.append(f"after the stop: {bring_to_rest(clock)}")
+        out.notes.append(f"after the stop: {hooks.bring_to_rest(clock)}")
     except RecordingFailure as exc:  # on_loss: stop; a normal stop, as by Ctrl-C
         out.error = f"recording failed: {exc}"
     except BaseException as exc:
@@ -125,9 +158,8 @@ def run_loop(
             grant.release()
         for backend in backends:
             out.notes += backend.notes()
-        summary = finish(out) if finish is not None else None
+        summary = hooks.finish(out)
         if recorder is not None:
             recorder.close(summary)
-    if progress is not None:
-        progress(stats.count, total)
+    hooks.progress(stats.count, total)
     return out

@@ -204,7 +204,7 @@ class RobotGuard(Block):
             ANGLE: lambda: f"angle {x:.4g} rad outside [{self.lo[j]:g}, {self.hi[j]:g}]",
             SPEED: lambda: f"speed {x:.4g} rad/s above {self.vmax[j]:g}",
             TRACKING: self._tracking_reason,
-            TORQUE_NAN: lambda: "commanded torque is nan",
+            TORQUE_NAN: lambda: f"commanded torque is {x}",
             TORQUE_LIMIT: lambda: f"torque {x:.4g} N m above {self.emax[j]:g}",
             MEASURED_ANGLE: lambda: f"angle is {x}",
             MEASURED_SPEED: lambda: f"speed is {x}",
@@ -389,9 +389,9 @@ def guard_check(
             else:
                 run[j] = 0.0
         c = tau_cmd[j]
-        if not -emax[j] <= c <= emax[j]:  # also NaN
-            if c != c:
-                return _found(f, i, n, TORQUE_NAN, j, c)
+        if not math.isfinite(c):  # first: an inf passes torque_limits: off's infinite limit
+            return _found(f, i, n, TORQUE_NAN, j, c)
+        if not -emax[j] <= c <= emax[j]:
             if i[Rg.STOP_ON_TORQUE]:
                 return _found(f, i, n, TORQUE_LIMIT, j, c)
             tau_cmd[j] = emax[j] if c > 0 else -emax[j]

@@ -42,7 +42,7 @@ from teleop_rt.lockstep import (
 )
 from teleop_rt.loop import TickClock
 from teleop_rt.mapping import JOINT, dls_figures
-from teleop_rt.runner import LoopOutcome, run_loop
+from teleop_rt.runner import LoopHooks, LoopOptions, LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
 from teleop_rt.task_limits import tool_limits_figures
 from teleop_rt.transparency_tick import TransparencyAccumulator
@@ -359,19 +359,12 @@ class Session:
         log still holds every completed tick.
         """
         total = self.cfg.n_ticks if ticks is None else ticks
-        summary: list[Summary] = []
-
-        def finish(outcome: LoopOutcome) -> dict:
-            summary.append(self._summary(outcome))
-            return summary[0].to_dict()
-
-        run_loop(
-            self.step, total, self.dt, [self.hsi.backend, self.to.backend], self._bring_to_rest,
-            realtime=realtime, overrun=overrun, max_missed=max_missed, progress=progress,
-            after_tick=None if observer is None else lambda: observer(self), recorder=recorder,
-            finish=finish,
-        )  # fmt: skip
-        return summary[0]
+        hooks = _SessionRun(self, progress, observer)
+        options = LoopOptions(realtime=realtime, overrun=overrun, max_missed=max_missed)
+        backends = [self.hsi.backend, self.to.backend]
+        run_loop(hooks, total, self.dt, backends, options, recorder)
+        assert hooks.summary is not None  # (finish runs however the loop ends)
+        return hooks.summary
 
     def _bring_to_rest(self, clock: TickClock) -> str:
         """The reaction to a safety stop: each site brings its robot to rest until the TO is
@@ -404,3 +397,33 @@ class Session:
             dls=None if self.cfg.channel.space == "joint" else {
                 s.name: dls_figures(s.mapping) for s in self.sites},
         )  # fmt: skip
+
+
+class _SessionRun(LoopHooks):
+    """A session's run in the loop: its ticks (and a test's observer after each), its staged
+    stop, its summary."""
+
+    def __init__(
+        self,
+        session: Session,
+        progress: Callable[[int, int], None] | None,
+        observer: Callable[[Session], None] | None,
+    ) -> None:
+        self.session, self._progress, self._observer = session, progress, observer
+        self.summary: Summary | None = None
+
+    def step(self) -> None:
+        self.session.step()
+        if self._observer is not None:
+            self._observer(self.session)
+
+    def bring_to_rest(self, clock: TickClock) -> str:
+        return self.session._bring_to_rest(clock)
+
+    def progress(self, done: int, total: int) -> None:
+        if self._progress is not None:
+            self._progress(done, total)
+
+    def finish(self, outcome: LoopOutcome) -> dict:
+        self.summary = self.session._summary(outcome)
+        return self.summary.to_dict()

@@ -28,11 +28,12 @@ from teleop_rt.errors import ConfigError
 from teleop_rt.exit_signals import Terminated
 from teleop_rt.keys import key_reader
 from teleop_rt.loop import TickClock
-from teleop_rt.runner import LoopOutcome, run_loop
+from teleop_rt.runner import LoopHooks, LoopOptions, LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
 
 if TYPE_CHECKING:
     from teleop_rt.recording.live import LiveAddress
+    from teleop_rt.recording.recorder import Recorder
 
 SENDER_PRIORITY = 81  # the link's sender thread (with an impairment): above the loop's 80
 ZENOH_PRIORITY = 70  # Zenoh's threads: below the loop's SCHED_FIFO 80, above normal processes
@@ -145,97 +146,110 @@ def run_site(
         link.arrival = recorder.session.arrival
         if recorder.live is not None and on_live is not None:
             on_live(recorder.live)
-    ppm = getattr(cfg.link.zenoh, name).clock_ppm
-    period_s = link.period_ns / 1e9  # the site's own clock: off by clock_ppm in a drift test
-    ticks = TickRecord(cfg.n_ticks, site.n)
-    start_ns = [0]
-    shaken = [False]
-
-    def handshake() -> None:
-        if on_wait is not None:
-            on_wait()
-        start_ns[0] = link.handshake()
-        shaken[0] = True
-        if recorder is not None:  # log times count from the agreed instant, on both sites
-            recorder.describe({"session_id": f"{link.session_id:x}"}, start_ns=start_ns[0])
-        if on_peer is not None:
-            on_peer(f"the {link.peer} site answered (session {link.session_id:x}); starting")
-
-    cpu0 = [0.0]
-    zenoh_note: list[str] = []
-
-    def at_start() -> None:  # both sites start their clocks at the agreed instant
-        if realtime:
-            link.transport.raise_priority(SENDER_PRIORITY)
-            raised = link.transport.raise_zenoh_threads(ZENOH_PRIORITY)
-            zenoh_note[:] = [
-                f"Zenoh's threads at SCHED_FIFO {ZENOH_PRIORITY}: {', '.join(raised)}"
-                if raised
-                else "Zenoh's threads left at normal priority (not granted)"
-            ]
-        # a stop signal ends the wait at once (the loop then runs no tick: exit 130 / 143)
-        wait_until_ns(start_ns[0])
-        link.start()
-        cpu0[0] = time.process_time()
-
-    def step() -> None:
-        site.sense(link)
-        site.update(link)
-        ticks.add(site)
-
-    def stop_safely(clock: TickClock) -> str:
-        return bring_to_rest([site], site, clock.wait, cfg.safety.stop_max_ticks)
-
-    summary: list[SiteSummary] = []
-
-    clock_note = [f"this site's clock ran {ppm:+g} ppm off (link.zenoh.{name}.clock_ppm)"]
-    clock_note = clock_note if ppm else []
-
-    def finish(out: LoopOutcome) -> dict:
-        summary.append(
-            SiteSummary(
-                name=cfg.name,
-                site=name,
-                ticks=out.stats.count,
-                simulated_time_s=out.stats.count * cfg.dt,
-                delay_ticks=cfg.delay_ticks,
-                port_energy_j=site.port.total_energy,
-                channel=channel_figures(cfg, {site.name: site.port}),
-                timing=out.timing(),
-                realtime=realtime,
-                link=link.stats(),
-                cpu_s=time.process_time() - cpu0[0],
-                spin_s=out.clock.spun_ns / 1e9,
-                notes=out.notes + zenoh_note + clock_note,
-                stopped_early=out.stopped_early,
-                stop_signal=out.stop.signum,
-                safety_stop=out.safety_stop,
-                saturated_ticks=site.guard.saturated_ticks,
-                log=None if recorder is None else str(recorder.path),
-                peer_silent=link.silence(out.stats.count),
-            )  # fmt: skip
-        )
-        return summary[0].to_dict()
-
+    run = _SiteRun(cfg, name, site, link, recorder, realtime, on_wait, on_peer)
+    options = LoopOptions(
+        realtime=realtime, overrun=overrun, max_missed=max_missed, spin_ns=SITE_SPIN_NS,
+        cpu=cpu_index,
+    )  # fmt: skip
     try:
         with key_reader(site):  # (mapping.keys: the HSI's operator inputs from the terminal)
-            run_loop(
-                step, cfg.n_ticks, period_s, [site.backend], stop_safely, realtime=realtime,
-                overrun=overrun, max_missed=max_missed, before_start=handshake,
-                at_start=at_start, finish=finish, recorder=recorder, spin_ns=SITE_SPIN_NS,
-                cpu=cpu_index,
-            )  # fmt: skip
+            # the site's own clock: off by clock_ppm in a drift test
+            period_s = link.period_ns / 1e9
+            run_loop(run, cfg.n_ticks, period_s, [site.backend], options, recorder)
     except (HandshakeError, KeyboardInterrupt, Terminated):
-        if recorder is not None and not shaken[0]:  # no session: no log of one
+        if recorder is not None and not run.shaken:  # no session: no log of one
             recorder.discard()
         raise
     finally:
         link.close()
         if record is not None:
-            ticks.save(record)
+            run.ticks.save(record)
+    summary = run.summary
+    assert summary is not None  # (finish runs however the loop ends)
     if recorder is not None:
-        summary[0].recording = recorder.status()
-    return summary[0]
+        summary.recording = recorder.status()
+    return summary
+
+
+class _SiteRun(LoopHooks):
+    """A site's run in the loop, and its state: the handshake's agreed start instant, the CPU
+    time at the first tick, the notes on Zenoh's threads, the summary."""
+
+    def __init__(
+        self, cfg: SessionConfig, name: str, site: Site, link: ZenohLink,
+        recorder: Recorder | None, realtime: bool, on_wait: Callable[[], None] | None,
+        on_peer: Callable[[str], None] | None,
+    ) -> None:  # fmt: skip
+        self.cfg, self.name, self.site, self.link, self.recorder = cfg, name, site, link, recorder
+        self.realtime, self.on_wait, self.on_peer = realtime, on_wait, on_peer
+        self.ticks = TickRecord(cfg.n_ticks, site.n)
+        self.start_ns = 0
+        self.shaken = False  # the peer answered: a session exists (and its log)
+        self.cpu0 = 0.0
+        self.zenoh_note: list[str] = []
+        self.summary: SiteSummary | None = None
+
+    def before_start(self) -> None:
+        if self.on_wait is not None:
+            self.on_wait()
+        link, recorder = self.link, self.recorder
+        self.start_ns = link.handshake()
+        self.shaken = True
+        if recorder is not None:  # log times count from the agreed instant, on both sites
+            recorder.describe({"session_id": f"{link.session_id:x}"}, start_ns=self.start_ns)
+        if self.on_peer is not None:
+            self.on_peer(f"the {link.peer} site answered (session {link.session_id:x}); starting")
+
+    def at_start(self) -> None:  # both sites start their clocks at the agreed instant
+        link = self.link
+        if self.realtime:
+            link.transport.raise_priority(SENDER_PRIORITY)
+            raised = link.transport.raise_zenoh_threads(ZENOH_PRIORITY)
+            self.zenoh_note = [
+                f"Zenoh's threads at SCHED_FIFO {ZENOH_PRIORITY}: {', '.join(raised)}"
+                if raised
+                else "Zenoh's threads left at normal priority (not granted)"
+            ]
+        # a stop signal ends the wait at once (the loop then runs no tick: exit 130 / 143)
+        wait_until_ns(self.start_ns)
+        link.start()
+        self.cpu0 = time.process_time()
+
+    def step(self) -> None:
+        site, link = self.site, self.link
+        site.sense(link)
+        site.update(link)
+        self.ticks.add(site)
+
+    def bring_to_rest(self, clock: TickClock) -> str:
+        return bring_to_rest([self.site], self.site, clock.wait, self.cfg.safety.stop_max_ticks)
+
+    def finish(self, out: LoopOutcome) -> dict:
+        cfg, name, site, link, recorder = self.cfg, self.name, self.site, self.link, self.recorder
+        ppm = getattr(cfg.link.zenoh, name).clock_ppm
+        clock_note = [f"this site's clock ran {ppm:+g} ppm off (link.zenoh.{name}.clock_ppm)"]
+        self.summary = SiteSummary(
+            name=cfg.name,
+            site=name,
+            ticks=out.stats.count,
+            simulated_time_s=out.stats.count * cfg.dt,
+            delay_ticks=cfg.delay_ticks,
+            port_energy_j=site.port.total_energy,
+            channel=channel_figures(cfg, {site.name: site.port}),
+            timing=out.timing(),
+            realtime=self.realtime,
+            link=link.stats(),
+            cpu_s=time.process_time() - self.cpu0,
+            spin_s=out.clock.spun_ns / 1e9,
+            notes=out.notes + self.zenoh_note + (clock_note if ppm else []),
+            stopped_early=out.stopped_early,
+            stop_signal=out.stop.signum,
+            safety_stop=out.safety_stop,
+            saturated_ticks=site.guard.saturated_ticks,
+            log=None if recorder is None else str(recorder.path),
+            peer_silent=link.silence(out.stats.count),
+        )  # fmt: skip
+        return self.summary.to_dict()
 
 
 def pair_transparency(hsi: Path, to: Path, dt: float) -> tuple[list[float], list[float], int]:

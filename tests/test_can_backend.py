@@ -60,12 +60,13 @@ def started():
     def start(*overrides: str, side: str = "hsi") -> CanBackend:
         backend = make_backend(make_cfg(*overrides), side)
         backends.append(backend)
-        backend.start()
+        backend.configure()
+        backend.activate()
         return backend
 
     yield start
     for b in backends:
-        b.stop()
+        b.shutdown()
 
 
 def run_ticks(backend: CanBackend, ticks: int, tau: float = 0.0) -> None:
@@ -159,12 +160,13 @@ def test_a_fault_at_start_is_reset_by_a_rising_edge_of_bit_7() -> None:
     drive = backend.emulator.drives[1]
     drive.state = FAULT
     try:
-        backend.start()
+        backend.configure()
+        backend.activate()
         cws = [cw for cw, _, _ in drive.commands]
         k = cws.index(0x80)
         assert cws[k - 1] == 0x00 and drive.state == OE
     finally:
-        backend.stop()
+        backend.shutdown()
 
 
 # --- faults -----------------------------------------------------------------------------------
@@ -217,7 +219,7 @@ def test_a_bus_error_is_a_safe_stop(started) -> None:
     backend.bus._inner.shutdown()  # the interface goes away under the loop
     with pytest.raises(SafetyStop, match=r"can: hsi bus \(.+\): bus error"):
         run_ticks(backend, 1)
-    backend.stop()  # must not raise
+    backend.shutdown()  # must not raise
     assert backend.stop_report
 
 
@@ -317,7 +319,7 @@ def test_nan_torque_never_reaches_a_drive(started) -> None:
 
 
 def assert_stopped_safely(backend: CanBackend) -> None:
-    backend.stop()
+    backend.shutdown()
     emu = backend.emulator
     for drive in emu.drives:
         assert drive.state in (SOD, FAULT)
@@ -326,13 +328,13 @@ def assert_stopped_safely(backend: CanBackend) -> None:
         # after the stop: zero torque and quick stop / disable voltage only
         stop_part = [c for c in tail if c[0] in (0x02, 0x00)]
         assert all(torque == 0 for _, torque, _ in stop_part)
-    backend.stop()  # idempotent
+    backend.shutdown()  # idempotent
 
 
 def test_normal_stop_quick_stops_then_disables(started) -> None:
     backend = started()
     run_ticks(backend, 5, tau=0.3)
-    backend.stop()
+    backend.shutdown()
     for drive in backend.emulator.drives:
         cws = [cw for cw, _, _ in drive.commands]
         last_enabled = max(k for k, cw in enumerate(cws) if cw == 0x0F)
@@ -349,7 +351,7 @@ def test_a_quick_stop_that_does_not_finish_ends_disabled(started) -> None:
     run_ticks(backend, 5, tau=0.3)
     held = backend.emulator.drives[0]
     held.quick_stop_option = 6  # the drive stays halted in QUICK STOP ACTIVE
-    backend.stop()
+    backend.shutdown()
     all_cws = [cw for cw, _, _ in held.commands]
     stop = held.commands[max(k for k, cw in enumerate(all_cws) if cw == 0x0F) + 1 :]
     cws = [cw for cw, _, _ in stop]
@@ -370,7 +372,7 @@ def test_a_drive_that_is_not_disabled_at_the_end_is_named(started) -> None:
     stuck = backend.emulator.drives[1]
     stuck.quick_stop_option = 6
     stuck._controlword = lambda cw: None  # then ignores every controlword: stays enabled
-    backend.stop()
+    backend.shutdown()
     assert stuck.state == OE and stuck.nmt_log[-1] == "pre-op"  # NMT pre-op all the same
     assert backend.notes()[-1] == (
         "can: hsi joint 1 (drive node 2): not SWITCH ON DISABLED at NMT pre-operational "
@@ -397,9 +399,9 @@ def test_a_missing_drive_is_one_clear_error() -> None:
     backend.bus = emulated_bus(make_cfg(), "hsi")  # the bus has nodes 1 and 2 only
     try:
         with pytest.raises(BackendError, match=r"hsi drive node 9: no boot-up within 0.2 s"):
-            backend.start()
+            backend.configure()  # the start-up: before any drive is enabled
     finally:
-        backend.stop()
+        backend.shutdown()
 
 
 def aborting(drive, index: int, sub: int, code: int):
@@ -439,10 +441,10 @@ def test_an_sdo_abort_at_start_names_the_drive_and_the_object(index, sub, code, 
     aborting(backend.emulator.drives[1], index, sub, code)
     try:
         with pytest.raises(BackendError) as info:
-            backend.start()
+            backend.configure()
         assert str(info.value) == message
     finally:
-        backend.stop()
+        backend.shutdown()
 
 
 def test_cli_an_sdo_abort_at_start_is_one_line(tmp_path) -> None:
@@ -495,8 +497,9 @@ def test_an_unopenable_bus_is_one_clear_error() -> None:
     cfg = make_cfg("can.emulate=false", "can.hsi.bus.interface=nonexistent_interface")
     backend = make_backend(cfg)
     with pytest.raises(BackendError, match=r"can: hsi bus \(interface=nonexistent_interface"):
-        backend.start()
-    backend.stop()
+        backend.configure()
+        backend.activate()
+    backend.shutdown()
 
 
 def test_registering_the_backend_does_not_import_python_can() -> None:
@@ -547,10 +550,11 @@ def test_a_relative_eds_path_is_read_from_the_config_folder(tmp_path, monkeypatc
     assert cfg.can.hsi.drives[1].eds is None  # the bundled default
     backend = make_backend(cfg)
     try:
-        backend.start()  # master and emulator both read it
+        backend.configure()  # master and emulator both read it
+        backend.activate()
         assert backend.running
     finally:
-        backend.stop()
+        backend.shutdown()
 
 
 def test_a_missing_eds_is_one_config_error_naming_the_key(tmp_path, capsys) -> None:
@@ -597,12 +601,13 @@ def free_running(tmp_path):
         backend = make_backend(cfg)
         backend.emu = emu
         stops.append((backend, stop, thread, emu))
-        backend.start()
+        backend.configure()
+        backend.activate()
         return backend
 
     yield start
     for backend, stop, thread, emu in stops:
-        backend.stop()
+        backend.shutdown()
         stop.set()
         thread.join()
         emu.bus.shutdown()
@@ -640,7 +645,7 @@ def test_a_fault_while_the_other_robot_starts_stops_this_one_and_is_raised(free_
     time.sleep(0.2)
     with pytest.raises(SafetyStop, match=r"hsi joint 0 \(drive node 1\): EMCY 0x2310"):
         run_ticks(backend, 1)  # the loop's first read
-    backend.stop()
+    backend.shutdown()
     with emu._lock:
         after = [cw for cw, _, _ in drive.commands[seen:]]
         states = [d.state for d in emu.drives]
@@ -742,4 +747,4 @@ def test_udp_multicast_buses_keep_their_frames_on_this_host() -> None:
         try:
             assert multicast_ttl(backend.bus) == 0
         finally:
-            backend.stop()
+            backend.shutdown()

@@ -26,11 +26,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from teleop_rt import config
 from teleop_rt.cli import main
 from teleop_rt.hal import sim
+from teleop_rt.hal.base import FINALIZED, UNCONFIGURED, Backend, Feedback
 from teleop_rt.hal.can.emulator import QSA, SOD, Fault
 from teleop_rt.hal.registry import register_backend
 from teleop_rt.recording.reader import read_log
@@ -210,14 +212,22 @@ def test_both_robots_stop_together_each_bus_cycling_until_its_drives_are_disable
 def test_stop_all_stops_the_others_when_one_robot_fails_to_stop() -> None:
     from teleop_rt.hal.stopping import stop_all
 
-    class Robot:
+    class Robot(Backend):
+        """A robot whose deactivation takes ``steps`` periods, or raises at the first."""
+
         def __init__(self, steps: int, fail: bool = False) -> None:
+            super().__init__(1)
             self.steps, self.fail, self.calls = steps, fail, 0
+            self.configure()
+            self.activate()
 
-        def begin_stop(self) -> None:
-            pass
+        def read(self) -> Feedback:
+            return self.feedback
 
-        def stop_step(self) -> bool:
+        def write(self, tau: np.ndarray) -> None:
+            return
+
+        def on_deactivate_step(self) -> bool:
             self.calls += 1
             if self.fail:
                 raise RuntimeError("bus gone")
@@ -227,9 +237,11 @@ def test_stop_all_stops_the_others_when_one_robot_fails_to_stop() -> None:
     with pytest.raises(RuntimeError, match="bus gone"):
         stop_all([broken, slow], 1e-4)
     assert (broken.calls, slow.calls) == (1, 5)  # the broken one not retried, the other done
-    stuck = Robot(10**9)
-    assert stop_all([stuck, Robot(2)], 1e-5, max_steps=20) == [stuck]  # bounded
-    assert stuck.calls == 20
+    # released: the one that stopped cleaned up (it may run again), the broken one finalized
+    assert (broken.lifecycle, slow.lifecycle) == (FINALIZED, UNCONFIGURED)
+    stuck, quick = Robot(10**9), Robot(2)
+    assert stop_all([stuck, quick], 1e-5, max_steps=20) == [stuck]  # bounded
+    assert stuck.calls == 20 and (stuck.lifecycle, quick.lifecycle) == (FINALIZED, UNCONFIGURED)
 
 
 def test_a_pdo_longer_than_its_mapping_is_read_counted_and_noted() -> None:

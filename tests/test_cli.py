@@ -357,3 +357,18 @@ def test_every_option_has_help_and_the_readme_synopsis_lists_it() -> None:
             assert action.help, (name, action.dest)
             if action.option_strings:
                 assert any(o in line for o in action.option_strings), (name, action.option_strings)
+
+
+def test_the_site_commands_never_import_the_cli() -> None:
+    """cli -> cli_sites only (issue 25's import cycle): what both use is in cli_common, and no
+    import in cli_sites or cli_common, at the top or inside a function, names teleop_rt.cli."""
+    import ast
+
+    import teleop_rt
+
+    root = Path(teleop_rt.__file__).parent
+    for name in ("cli_sites.py", "cli_common.py"):
+        tree = ast.parse((root / name).read_text())
+        imported = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+        imported |= {a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names}
+        assert "teleop_rt.cli" not in imported, name

@@ -6,9 +6,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from teleop_rt.com.channel import ChannelMonitor, monitor_step
 from teleop_rt.com.port import EFFORT, FLOW
+from tests.conftest import CONFIGS
+
+PAPER = CONFIGS / "paper_experiment.yaml"
 
 
 def _port(n: int, flow: float, effort: float) -> np.ndarray:
@@ -51,3 +55,30 @@ def test_a_reordered_packet_never_lowers_the_peers_e_in_at_the_port() -> None:
         rx.valid = 1
         port_step(port.f, port.i, n, rx.f, rx.i, tx.f)
     assert np.array_equal(port.peer_e_in, [5.0, 5.0])
+
+
+@pytest.mark.parametrize(
+    "spec",
+    [{"enabled": False}, {"enabled": False, "torque_limits": "off"}, {"torque_limits": "off"},
+     {}, {"torque_limits": "stop"}],
+    ids=["safety-off", "safety-off-limits-off", "limits-off", "saturate", "stop"],
+)  # fmt: skip
+@pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
+def test_a_non_finite_command_is_a_stop_whatever_the_safety_spec(spec, bad) -> None:
+    """The command guard the sites' compiled tick runs (``guard_site``) on a finite, in-limit
+    measurement and a non-finite *command*: a stop naming the joint and the value, whatever
+    the spec (``safety.enabled: false`` keeps only this check; ``torque_limits: off``'s
+    infinite limit once let an inf through, and saturation turned an inf into the limit)."""
+    from teleop_rt import config
+    from teleop_rt.errors import SafetyStop
+    from teleop_rt.hal.signals import Feedback
+    from teleop_rt.model import RobotModel
+    from teleop_rt.safety import RobotGuard, check_all
+
+    cfg = config.load(PAPER, [])
+    model = RobotModel.from_spec(cfg.hsi.robot, "hsi")  # scara_2dof: 20 / 10 N m
+    guard = RobotGuard(config.SafetySpec(**spec), model, "hsi", cfg.dt)
+    cmd = np.array([1.0, bad])
+    stop = rf"^tick 3: hsi joint 1 \(elbow\): commanded torque is {bad}$"
+    with pytest.raises(SafetyStop, match=stop):
+        check_all(guard, 3, Feedback(2), np.zeros(2), cmd, np.zeros(2))

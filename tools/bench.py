@@ -113,9 +113,6 @@ class ReplayedFeedback(Backend):
         self.samples = [tuple(memoryview(np.array(x, dtype=float)) for x in s) for s in samples]
         self.k = 0
 
-    def start(self) -> None:
-        """Nothing to start."""
-
     def read(self) -> Feedback:
         fb = self.feedback
         q, v, tau = self.samples[self.k]
@@ -126,9 +123,6 @@ class ReplayedFeedback(Backend):
 
     def write(self, tau: list[float]) -> None:
         self.k += 1
-
-    def stop(self) -> None:
-        """Nothing to stop."""
 
 
 def record_feedback(cfg, ticks: int) -> dict[str, list]:

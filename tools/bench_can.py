@@ -156,7 +156,8 @@ def transport_free(cfg: config.SessionConfig, side: str, cycles: int) -> None:
     backend.spec = backend.spec.model_copy(update={"emulate": True})  # no pacing
     backend.window_ns = 0
     backend.hb_timeout_ns = 1 << 62  # no heartbeats on this bus
-    backend.begin_cyclic(info, PrimedBus(frames))
+    backend.configure_started(info, PrimedBus(frames))
+    backend.activate()
     tau = [0.0] * backend.n
     cpu = np.zeros(cycles, dtype=np.int64)
     thread_ns = time.thread_time_ns
@@ -165,7 +166,7 @@ def transport_free(cfg: config.SessionConfig, side: str, cycles: int) -> None:
         backend.read()
         backend.write(tau)
         cpu[k] = thread_ns() - c0
-    backend.stop()
+    backend.shutdown()
     cpu = cpu / 1e3
     print(f"\nthe backend alone (no transport, {len(frames)} frames in per cycle, {cycles} cycles):"
           f" CPU per cycle p50 {pct(cpu, 50):.0f} us, p99 {pct(cpu, 99):.0f} us")  # fmt: skip
@@ -187,9 +188,10 @@ def run(cfg: config.SessionConfig, args: argparse.Namespace) -> int:
     print("; ".join(grant.notes))
     t0 = time.perf_counter()
     try:
-        backend.start()
+        backend.configure()
+        backend.activate()
     except TeleopError as exc:  # a safety stop or a drive that does not answer
-        backend.stop()
+        backend.shutdown()
         grant.release()
         print(f"bench_can: error: start-up failed: {exc}", file=sys.stderr)
         return 3
@@ -214,7 +216,7 @@ def run(cfg: config.SessionConfig, args: argparse.Namespace) -> int:
     except SafetyStop as exc:
         stop_reason = str(exc)
     finally:
-        backend.stop()  # as a session does: the drives safe first, then the grant
+        backend.shutdown()  # as a session does: the drives safe first, then the grant
         grant.release()
     cpu, wall, late = cpu[:done] / 1e3, wall[:done] / 1e3, late[:done] / 1e3
     stats = {k: backend.stats[k] - base[k] for k in base}

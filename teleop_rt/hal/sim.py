@@ -286,9 +286,6 @@ class SimBackend(Backend):
         return self.state.tau_motor
 
     # --- Backend --------------------------------------------------------------------------
-    def start(self) -> None:
-        """Nothing to power up: the simulated robot accepts torque from construction on."""
-
     def read(self) -> Feedback:
         fb = self.feedback
         if self.faults and self._active("dropout"):
@@ -317,8 +314,11 @@ class SimBackend(Backend):
             self._advance()
         next_tick(f, i, o, n, self._jacobian(), self._x)
 
-    def stop(self) -> None:
+    # --- lifecycle (teleop_rt.hal.base): nothing to configure or power up; torque is accepted
+    # from construction on (a session stepped by hand needs none of it)
+    def on_deactivate_step(self) -> bool:
         self.state.tau_motor[:] = 0.0
+        return True
 
     # --- the general path: sub-steps, RK4, faults, noisy sensors ---------------------------
     def _active(self, kind: str) -> list[FaultSpec]:

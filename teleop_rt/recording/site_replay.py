@@ -34,6 +34,7 @@ from teleop_rt.com.link import Link
 from teleop_rt.com.port import Packet
 from teleop_rt.com.zenoh_link import Arrival, shared_parts
 from teleop_rt.errors import ConfigError
+from teleop_rt.loop import TickClock
 from teleop_rt.recording.reader import LogData, read_log, require_ticks
 from teleop_rt.recording.recorder import default_log_path
 from teleop_rt.recording.replay import (
@@ -44,7 +45,7 @@ from teleop_rt.recording.replay import (
 )
 from teleop_rt.recording.schema import PACKET_EXTRAS, PORT_NAMES
 from teleop_rt.recording.site_log import site_log_path, site_recorder
-from teleop_rt.runner import run_loop
+from teleop_rt.runner import LoopHooks, LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest
 
 COMPARED = ("/port",)  # with the robot's topic: what a replay without overrides reproduces
@@ -110,42 +111,51 @@ def run_site_replay(site: Site, data: LogData, recorder) -> dict:
     """Run the site tick-locked against the logged packets; its summary (a dict)."""
     cfg = site.cfg
     link = LoggedLink(data.topics["/link"], site, recorder.session.arrival if recorder else None)
-    summary: list[dict] = []
+    run = _ReplayRun(site, link, data, logged_inputs(data))
+    run_loop(run, data.ticks, cfg.dt, [site.backend], recorder=recorder)
+    assert run.summary is not None  # (finish runs however the loop ends)
+    return run.summary
 
-    inputs = logged_inputs(data)
 
-    def step() -> None:
-        if inputs is not None:  # the operator's live inputs as the log has them
-            site.feedback.inputs = int(inputs[site.tick])
-        site.sense(link)
-        site.update(link)
+class _ReplayRun(LoopHooks):
+    """A site's replay in the loop: its ticks against the logged packets, its staged stop, its
+    summary."""
 
-    def finish(out) -> dict:
-        summary.append(
-            {
-                "name": cfg.name,
-                "site": data.site,
-                "ticks": out.stats.count,
-                "simulated_time_s": out.stats.count * cfg.dt,
-                "delay_ticks": cfg.delay_ticks,
-                "port_energy_j": site.port.total_energy,
-                "timing": out.timing(),
-                "realtime": False,
-                "notes": out.notes,
-                "stopped_early": out.stopped_early,
-                "stop_signal": out.stop.signum,
-                "safety_stop": out.safety_stop,
-                "saturated_ticks": site.guard.saturated_ticks,
-            }  # fmt: skip
-        )
-        return summary[0]
+    def __init__(
+        self, site: Site, link: LoggedLink, data: LogData, inputs: np.ndarray | None
+    ) -> None:
+        self.site, self.link, self.data = site, link, data
+        self.inputs = inputs  # the operator's live inputs as the log has them (or None)
+        self.summary: dict | None = None
 
-    run_loop(
-        step, data.ticks, cfg.dt, [site.backend],
-        lambda clock: bring_to_rest([site], site, clock.wait, cfg.safety.stop_max_ticks),
-        recorder=recorder, finish=finish,
-    )  # fmt: skip
-    return summary[0]
+    def step(self) -> None:
+        if self.inputs is not None:
+            self.site.feedback.inputs = int(self.inputs[self.site.tick])
+        self.site.sense(self.link)
+        self.site.update(self.link)
+
+    def bring_to_rest(self, clock: TickClock) -> str:
+        site = self.site
+        return bring_to_rest([site], site, clock.wait, site.cfg.safety.stop_max_ticks)
+
+    def finish(self, out: LoopOutcome) -> dict:
+        site, cfg = self.site, self.site.cfg
+        self.summary = {
+            "name": cfg.name,
+            "site": self.data.site,
+            "ticks": out.stats.count,
+            "simulated_time_s": out.stats.count * cfg.dt,
+            "delay_ticks": cfg.delay_ticks,
+            "port_energy_j": site.port.total_energy,
+            "timing": out.timing(),
+            "realtime": False,
+            "notes": out.notes,
+            "stopped_early": out.stopped_early,
+            "stop_signal": out.stop.signum,
+            "safety_stop": out.safety_stop,
+            "saturated_ticks": site.guard.saturated_ticks,
+        }  # fmt: skip
+        return self.summary
 
 
 def site_figures(data: LogData) -> dict:

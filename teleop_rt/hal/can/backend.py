@@ -1,9 +1,10 @@
 """The CAN backend: one robot's CiA 402 drives in cyclic synchronous torque mode over python-can.
 
-``start()`` opens the robot's bus, runs the canopen start-up (``startup.Startup``: NMT reset,
-drive check, SDO configuration, PDO mapping, NMT start), then cycles SYNC while the robot rests
-with its drives disabled to zero the external-torque sensor, and steps the CiA 402 state
-machine to OPERATION ENABLED. From then on the loop owns the bus; per tick:
+Its lifecycle (``teleop_rt.hal.base``, as ros2_control's): ``configure()`` opens the robot's
+bus and runs the canopen start-up (``startup.Startup``: NMT reset, drive check, SDO
+configuration, PDO mapping, NMT start); ``activate()`` cycles SYNC while the robot rests with
+its drives disabled to zero the external-torque sensor, and steps the CiA 402 state machine to
+OPERATION ENABLED. From then on the loop owns the bus; per tick:
 
 * ``read()``: handle the frames that came in since the last window (late TPDOs, EMCY,
   heartbeats), send SYNC, collect TPDO1 of every drive (position, velocity), TPDO2 where it is
@@ -25,12 +26,14 @@ error frame (seen in the frames the cycle reads anyway), a bus the interface rep
 ``BusState.ERROR`` (polled every ``missed_feedback_ticks`` ticks: a counter check per tick, the
 interface call only then) or a failing send / receive. The stop then sends zero torque with
 quick stop until each drive reports SWITCH ON DISABLED (disable voltage for those that did not
-get there within ``stop_ticks``), then NMT pre-operational. It is stepped, one SYNC period per
-``stop_step`` (``begin_stop`` first), so that ``teleop_rt.hal.stopping.stop_all`` stops both
-robots together, each bus cycling every period until its drives are disabled; ``stop()`` runs
-it to the end here.
+get there within ``stop_ticks``), then NMT pre-operational, and the bus is closed: the
+deactivation, stepped one SYNC period per ``deactivate_step`` (``begin_deactivate`` first), so
+that ``teleop_rt.hal.stopping.stop_all`` stops both robots together, each bus cycling every
+period until its drives are disabled; ``deactivate()`` / ``shutdown()`` run it to the end here.
+A CAN backend runs once: a second ``configure`` or ``activate`` after its activation raises
+``LifecycleError`` (its drives were stopped; a new start-up is a new backend).
 
-Between a robot's start and the loop's first ``read`` (while the session starts the other
+Between a robot's activation and the loop's first ``read`` (while the session starts the other
 robot), a keepalive thread runs the same cycle with zero torque, so the drives keep their SYNC
 and the master's heartbeat (their 0x1016 watch) and faults are still checked.
 
@@ -44,7 +47,7 @@ import time
 from typing import TYPE_CHECKING
 
 from teleop_rt.errors import BackendError, ConfigError, SafetyStop
-from teleop_rt.hal.base import Backend
+from teleop_rt.hal.base import Backend, LifecycleError
 from teleop_rt.hal.can import codec
 from teleop_rt.hal.can.config import CanSpec
 from teleop_rt.hal.signals import INPUT_CLUTCH, INPUT_PRESENT, Feedback
@@ -164,6 +167,8 @@ class CanBackend(Backend):
         self.running = False  # the session's ticks (after start-up)
         self._cyclic = False  # drives are NMT operational and the loop owns the bus
         self._stop_phase: str | None = None  # None, then _QUICK_STOP, ..., _DONE
+        self._started: tuple[list, can.BusABC] | None = None  # configure_started's
+        self._ran = False  # activated once: a CAN backend runs once
         self._stop_count = 0  # periods spent in the stop phase
         self._faulted = False
         self._keepalive: tuple[threading.Event, threading.Thread] | None = None
@@ -178,29 +183,57 @@ class CanBackend(Backend):
         self.last_bus_warning: str | None = None  # the last warning error frame, described
         self.stop_report: list[str] = []
 
-    # --- start ------------------------------------------------------------------------------
-    def start(self) -> None:
+    # --- lifecycle (teleop_rt.hal.base) ------------------------------------------------------
+    def on_configure(self) -> None:
+        """Open the bus and run the canopen start-up (``startup.Startup``): the drives checked,
+        configured, mapped and NMT operational. A start-up that fails closes the bus."""
         from teleop_rt.hal.can.startup import Startup
 
+        self._refuse_a_second_run("configure")
+        if self._started is not None:  # configure_started: drives started elsewhere
+            self.drive_info, self.bus = self._started
+            return
         bus = self._open_bus()
-        startup = Startup(
-            bus, self.side, self.side_spec, self.spec, self.cfg.dt, self._bus_label()
-        )
-        info = startup.run()
-        self.begin_cyclic(info)
+        try:
+            startup = Startup(
+                bus, self.side, self.side_spec, self.spec, self.cfg.dt, self._bus_label()
+            )
+            self.drive_info = startup.run()
+        except BaseException:
+            self._close_bus()
+            raise
+
+    def configure_started(self, info: list, bus: can.BusABC) -> None:
+        """``configure`` for drives already configured and NMT operational on ``bus`` (``info``
+        as ``Startup.run`` returns it): tools measuring the backend without a transport."""
+        self._started = (info, bus)
+        self.configure()
+
+    def on_activate(self) -> None:
+        """Zero the torque sensor (drives disabled, robot at rest), enable the drives (CiA 402
+        to OPERATION ENABLED), and keep the cycle going until the loop's first ``read``."""
+        self._refuse_a_second_run("activate")
+        self._ran = True
+        self._begin_cyclic(self.drive_info)
         if not self.spec.emulate:
             self._start_keepalive()
 
-    def begin_cyclic(self, info: list, bus: can.BusABC | None = None) -> None:
-        """The cyclic part of ``start`` for drives already configured and NMT operational
-        (``info`` as ``Startup.run`` returns it): zero the sensor, enable. ``bus`` replaces the
-        backend's own (tools measuring the backend without a transport)."""
+    def _refuse_a_second_run(self, transition: str) -> None:
+        # once deactivated the drives are NMT pre-operational and the bus is closed; starting
+        # them again is a new start-up with fresh state: a new backend
+        if self._ran:
+            raise LifecycleError(
+                f"CanBackend ({self.side}): cannot {transition} a second time (its drives ran "
+                "once and were stopped; build a new backend)"
+            )
+
+    def _begin_cyclic(self, info: list) -> None:
+        """The cyclic part of activation (``info`` as ``Startup.run`` returns it): zero the
+        sensor, enable."""
         import can
 
         from teleop_rt.hal.can.cia402 import Cia402Stepper
 
-        if bus is not None:
-            self.bus = bus
         self.drive_info = info
         self._units = [d.units for d in info]
         for i, u in enumerate(self._units):
@@ -345,7 +378,7 @@ class CanBackend(Backend):
         self._bus_name = f"can: {self.side} bus ({self._bus_label()})"
         self._next_state_poll = self.tick + 1
         bus = self.bus
-        assert bus is not None  # begin_cyclic follows start's _open_bus
+        assert bus is not None  # activation follows configure's bus
         self._recv = bus.recv
         self._send_raw = bus.send
         self._next_ns = time.perf_counter_ns()
@@ -682,17 +715,7 @@ class CanBackend(Backend):
             st.request_stop()
         self.feedback.age_ticks = max(self.feedback.age_ticks, self.missed_limit)
 
-    def stop(self) -> None:
-        """The stepped stop run to its end here, at the SYNC period (``stop_all`` steps both
-        robots' stops together instead)."""
-        self.begin_stop()
-        while self._stop_phase != _DONE:
-            self._pace()
-            self.stop_step()
-
-    def begin_stop(self) -> None:
-        if self._stop_phase is not None:
-            return
+    def on_begin_deactivate(self) -> None:
         self.running = False
         self._join_keepalive()
         if self.bus is None or not self._cyclic:  # never cycled: nothing to walk through
@@ -702,9 +725,9 @@ class CanBackend(Backend):
         for st in self._steppers:
             st.request_stop()
         self._stop_phase, self._stop_count = _QUICK_STOP, 0
-        self._next_ns = time.perf_counter_ns()  # ``stop`` paces from here
+        self._next_ns = time.perf_counter_ns()  # ``deactivate`` paces from here
 
-    def stop_step(self) -> bool:
+    def on_deactivate_step(self) -> bool:
         """One SYNC period of the stop, zero torque throughout: quick stop until every drive
         reports SWITCH ON DISABLED (or FAULT, or is silent), for at most ``stop_ticks``
         periods; if some did not get there, disable voltage (0x00) until they do, for at most
@@ -712,8 +735,6 @@ class CanBackend(Backend):
         pre-operational, and the bus is closed. A drive that did not end in SWITCH ON
         DISABLED is named in ``stop_report``, as is anything else that went wrong: this never
         raises. At most ``stop_ticks + disable_ticks + 1`` calls."""
-        if self._stop_phase is None:
-            self.begin_stop()
         if self._stop_phase == _DONE:
             return True
         try:
@@ -726,6 +747,18 @@ class CanBackend(Backend):
             self._close_bus()
             raise
         return True
+
+    def wait_period(self) -> None:
+        self._pace()
+
+    def on_cleanup(self) -> None:
+        self.on_shutdown()
+
+    def on_shutdown(self) -> None:
+        """The keepalive ended and the bus closed (after a deactivation they already are)."""
+        self.running = False
+        self._join_keepalive()
+        self._close_bus()
 
     def _stop_nmt_step(self) -> None:
         try:
