@@ -43,11 +43,14 @@ def dls_inverse(
     """J# = J^T (J J^T + l^2 I)^-1 of J = jac[:m, :n] into f[inv:] (n x m, row-major), with
     the Cholesky factor at f[work:] (m x m) and the inverse iteration's vector after it (m,
     kept from call to call); returns sigma_min(J)^2 (see the module's docstring)."""
-    for r in range(m):  # A's lower triangle
+    for j in range(n):  # J^T into J#'s place (its rows are solved in place below)
+        for a in range(m):
+            f[inv + j * m + a] = jac[a, j]
+    for r in range(m):  # A's lower triangle, from that copy (flat: cheaper than jac[r, j])
         for c in range(r + 1):
             s = damping2 if r == c else 0.0
             for j in range(n):
-                s += jac[r, j] * jac[c, j]
+                s += f[inv + j * m + r] * f[inv + j * m + c]
             f[work + r * m + c] = s
     for c in range(m):  # A = L L^T, in place
         d = f[work + c * m + c]
@@ -65,9 +68,6 @@ def dls_inverse(
     # (one right-hand side at a time waits on each division: 1.7 times the time at m = n = 6).
     # Each element's arithmetic, in its order, is that of solving them one at a time.
     u = work + m * m
-    for j in range(n):
-        for a in range(m):
-            f[inv + j * m + a] = jac[a, j]
     for step in range(DLS_ITERATIONS):
         last = n if step == 0 else 0  # the right-hand sides: J#'s rows (first step), then u
         for r in range(m):  # L z = b
