@@ -468,6 +468,16 @@ def map_orientation(f: np.ndarray, i: np.ndarray, rot: np.ndarray) -> None:
 
 
 @jit
+def map_tool(f: np.ndarray, i: np.ndarray, jac: np.ndarray, x: np.ndarray, rot: np.ndarray) -> None:
+    """Task space, after each tick's torques: ``map_kinematics`` and, in the pose,
+    ``map_orientation`` (``rot``: the tool's rotation), in one compiled call (each call from
+    Python costs a few hundred ns)."""
+    map_kinematics(f, i, jac, x)
+    if i[M_SPACE] == POSE:
+        map_orientation(f, i, rot)
+
+
+@jit
 def start_orientation(f: np.ndarray, i: np.ndarray) -> None:
     """POSE, at the start pose (after ``map_orientation``): R0 = R_ref = R, the coordinates 0."""
     at, pos = i[M_ROT_AT], i[M_KIN_AT] + 2 * POSE_DIM * i[M_JOINTS]

@@ -36,8 +36,7 @@ from teleop_rt.mapping import (
     POSE,
     PRESENCE_LOST,
     Mapping,
-    map_kinematics,
-    map_orientation,
+    map_tool,
     mapping_for,
     port_size,
     start_orientation,
@@ -177,9 +176,8 @@ class Site:
             return
         model, data, measured, frame, f, i, x, rotation = kin
         at = measured if q is None else q
-        map_kinematics(f, i, pin.computeFrameJacobian(model, data, at, frame, LWA), x)
-        if rotation is not None:  # (the pose: the tool's rotation, which oMf now holds)
-            map_orientation(f, i, rotation)
+        # (the pose: the tool's rotation too, which oMf holds after the Jacobian's call)
+        map_tool(f, i, pin.computeFrameJacobian(model, data, at, frame, LWA), x, rotation)
 
     def bind(self, packed: Packed, first: int = 0) -> None:
         """Work on the site's blocks where they are now: blocks ``first`` on of ``packed``."""
@@ -191,8 +189,7 @@ class Site:
         m, mapping = self.model, self.mapping  # (a task-space map: its Pinocchio call's
         self._kin = None if mapping.space == JOINT else (  # arguments, looked up once)
             m.model, m.data, self.feedback.q, m.ee_frame_id, mapping.f, mapping.i,
-            m._ee_translation,
-            m.data.oMf[m.ee_frame_id].rotation if mapping.space == POSE else None,
+            m._ee_translation, m.data.oMf[m.ee_frame_id].rotation,
         )  # fmt: skip
 
     def warm_up(self) -> None:

@@ -99,7 +99,7 @@ SITE_STAGES: tuple[Stage, ...] = (
           "saturated ticks; T_p, T_tau (eq 18)"),
     Stage("write", HOST, "write", ("Backend.write", "teleop_rt.hal.sim:command"),
           ("computed_torque",), (), "the checked torque to the backend"),
-    Stage("kinematics", HOST, "kinematics", ("teleop_rt.site:map_kinematics",),
+    Stage("kinematics", HOST, "kinematics", ("teleop_rt.site:map_tool",),
           ("feedback", "mapping"), ("mapping",),
           "the next tick's Jacobian map at the measured q (one Pinocchio call)",
           when="task_space"),

@@ -22,9 +22,10 @@ and read the medians, not the maxima):
    wave channel (issue 17's target: <= 2 us);
 6. what the workspace mapping costs (teleop_rt.mapping): identity, joint scaling with a clutch
    script, the plane's per-site Jacobian map, alternated in one run;
-7. how the tick grows with the number of joints (planar chains generated from one template),
-   joint to joint and coupled in the plane: what the task-space map adds per site (issue 26's
-   target: <= 2 us for 6 joints).
+7. how the tick grows with the number of joints (chains generated from one template), joint
+   to joint and coupled in task space (planar chains in the plane, spatial ones in 3-D and in
+   the pose): what the task-space map adds per site (issue 26's target: <= 2 us for 6
+   joints), beside its Pinocchio floor (the map's frame Jacobian alone).
 Times are min / median / p99 over R repeats of N ticks (the repeat with the lowest median).
 """
 
@@ -366,20 +367,26 @@ def cyclictest_summary(text: str, period_us: int) -> dict:
     }
 
 
-def chain_urdf(n: int) -> str:
-    """A planar serial chain of n revolute z joints, 0.6 m long in all, a tool at its end."""
+SPATIAL_AXES = ("0 0 1", "0 1 0", "1 0 0")  # a spatial chain's joint axes, in turn
+
+
+def chain_urdf(n: int, spatial: bool = False) -> str:
+    """A serial chain of n revolute joints, 0.6 m long in all, a tool at its end: planar (z
+    axes) or ``spatial`` (axes z, y, x in turn: the tool moves and turns in 3-D)."""
     length, mass = 0.6 / n, 2.0 / n
     inertia = mass * length * length / 12.0
+    ixx = inertia if spatial else 1e-5
     parts = ['<robot name="chain">', '<link name="base"/>']
     parent = "base"
     for i in range(n):
         offset = 0.0 if i == 0 else length
+        axis = SPATIAL_AXES[i % 3] if spatial else "0 0 1"
         parts += [
             f'<link name="l{i}"><inertial><origin xyz="{length / 2} 0 0"/><mass value="{mass}"/>'
-            f'<inertia ixx="1e-5" iyy="{inertia}" izz="{inertia}" ixy="0" ixz="0" iyz="0"/>'
+            f'<inertia ixx="{ixx}" iyy="{inertia}" izz="{inertia}" ixy="0" ixz="0" iyz="0"/>'
             "</inertial></link>",
             f'<joint name="j{i}" type="revolute"><parent link="{parent}"/><child link="l{i}"/>'
-            f'<origin xyz="{offset} 0 0"/><axis xyz="0 0 1"/>'
+            f'<origin xyz="{offset} 0 0"/><axis xyz="{axis}"/>'
             '<limit lower="-3" upper="3" velocity="20" effort="100"/>'
             '<dynamics damping="0.01" friction="0.0"/></joint>',
         ]
@@ -393,18 +400,21 @@ def chain_urdf(n: int) -> str:
     return "\n".join(parts)
 
 
-def chain_config(n: int, tmp: Path) -> Path:
-    """The paper experiment's structure on an n-joint chain: a hand moving the tool 2 cm, a
-    wall out of reach (evaluated every tick, never touched)."""
+def chain_config(n: int, tmp: Path, spatial: bool = False) -> Path:
+    """The paper experiment's structure on an n-joint chain (``spatial``: in 3-D): a hand
+    moving the tool 2 cm, a wall out of reach (evaluated every tick, never touched)."""
     import yaml
 
-    urdf = tmp / f"chain{n}.urdf"
-    urdf.write_text(chain_urdf(n))
+    name = f"chain{n}{'s' if spatial else ''}"
+    urdf = tmp / f"{name}.urdf"
+    urdf.write_text(chain_urdf(n, spatial))
     q0 = [0.3] * n
     model = pin.buildModelFromUrdf(str(urdf))
     data = model.createData()
     pin.framesForwardKinematics(model, data, np.array(q0))
-    x, y, _ = data.oMf[model.getFrameId("tool")].translation.tolist()
+    x, y, z = data.oMf[model.getFrameId("tool")].translation.tolist()
+    hand, wall = ([x + 0.02, y, z], [5.0, 0.0, 0.0]) if spatial else ([x + 0.02, y], [5.0, 0.0])
+    normal = [-1, 0, 0] if spatial else [-1, 0]
 
     def side(kp: float) -> dict:  # a fresh dict per robot: no YAML aliases in the dump
         robot = {"urdf": urdf.name, "ee_frame": "tool", "q0_rad": list(q0)}
@@ -416,12 +426,12 @@ def chain_config(n: int, tmp: Path) -> Path:
         "hsi": side(2.0),
         "to": side(20.0),
         "channel": {"mode": "wave", "delay_ms": 0, "wave_impedance": 2.0},
-        "operator": {"kind": "hand", "waypoints": [{"t_s": 5.0, "position_m": [x + 0.02, y]}]},
+        "operator": {"kind": "hand", "waypoints": [{"t_s": 5.0, "position_m": hand}]},
         "environment": [
-            {"kind": "wall", "point_m": [5.0, 0.0], "normal": [-1, 0], "stiffness_n_per_m": 5000}
+            {"kind": "wall", "point_m": wall, "normal": normal, "stiffness_n_per_m": 5000}
         ],
     }
-    path = tmp / f"chain{n}.yaml"
+    path = tmp / f"{name}.yaml"
     path.write_text(yaml.safe_dump(spec))
     return path
 
@@ -429,18 +439,59 @@ def chain_config(n: int, tmp: Path) -> Path:
 PLANE = ["channel.space=plane", "channel.wave_impedance=50"]  # the task-space map (b in N s/m)
 
 
+TASK_SPACES = {  # label -> (spatial chain, overrides); "joint" / "joint 3-D": the baselines
+    "joint": (False, []),
+    "plane": (False, PLANE),
+    "joint 3-D": (True, []),
+    "position": (True, ["channel.space=position", "channel.wave_impedance=50"]),
+    "pose": (True, ["channel.space=pose", "channel.wave_impedance=[50,50,50,2,2,2]"]),
+}
+TASK_SPAN = {"position": 3, "pose": 6}  # the joints a spatial chain needs to span the task
+MAP_GOAL_US = 2.0  # issue 26: the task-space map adds at most this per site at 6 joints
+
+
+def map_floor(n: int, tmp: Path, spatial: bool) -> dict:
+    """The map's own Pinocchio call, alone: one frame Jacobian (world-aligned) of the chain
+    at its start pose (``chain_config`` wrote its URDF)."""
+    model = pin.buildModelFromUrdf(str(tmp / f"chain{n}{'s' if spatial else ''}.urdf"))
+    data, frame, q = model.createData(), model.getFrameId("tool"), np.full(n, 0.3)
+    call, lwa = pin.computeFrameJacobian, pin.LOCAL_WORLD_ALIGNED
+    return best_of([time_ticks(lambda: call(model, data, q, frame, lwa), 5000) for _ in range(3)])
+
+
 def scaling(joints: list[int], ticks: int, repeat: int, tmp: Path) -> list[dict]:
-    """Full tick per joint count, joint to joint and (``plane``) coupled in task space (each
-    site's Jacobian map, ``teleop_rt.mapping``); the repeats go round the joint counts and the
-    two maps, so a change of the machine's speed during the run hits every one alike."""
-    configs = {(n, space): config.load(chain_config(n, tmp), PLANE if space else [])
-               for n in joints for space in (False, True)}  # fmt: skip
-    runs: dict[tuple[int, bool], list[np.ndarray]] = {key: [] for key in configs}
+    """Full tick per joint count, joint to joint and coupled in task space (each site's
+    Jacobian map, ``teleop_rt.mapping``): planar chains in the plane, spatial chains (with
+    their own joint-to-joint baseline) in 3-D and in the pose where they span it; the repeats
+    go round the joint counts and the maps, so a change of the machine's speed during the run
+    hits every one alike. Each row also has the map's Pinocchio floor (one frame Jacobian)."""
+    configs = {}
+    for n in joints:
+        for label, (spatial, overrides) in TASK_SPACES.items():
+            if n >= TASK_SPAN.get(label, 0) and (not spatial or n >= 3):
+                configs[n, label] = config.load(chain_config(n, tmp, spatial), overrides)
+    runs: dict[tuple[int, str], list[np.ndarray]] = {key: [] for key in configs}
     for _ in range(repeat):
         for key, cfg in configs.items():
             runs[key].append(time_ticks(Session(cfg).step, ticks))
-    return [{"joints": n, **best_of(runs[n, False]), "plane": best_of(runs[n, True])}
-            for n in joints]  # fmt: skip
+    rows = []
+    for n in joints:
+        row = {"joints": n, **best_of(runs[n, "joint"])}
+        for label in TASK_SPACES:
+            if label != "joint" and (n, label) in runs:
+                row[label] = best_of(runs[n, label])
+        row["map_floor"] = map_floor(n, tmp, n >= 3)
+        rows.append(row)
+    return rows
+
+
+def map_cost(row: dict, label: str) -> float | None:
+    """What the task-space map adds per site (us, medians): against the chain's own joint
+    baseline, both sites' difference halved (None: not run at this joint count)."""
+    if label not in row:
+        return None
+    base = row["joint 3-D"] if TASK_SPACES[label][0] else row
+    return (row[label]["median"] - base["median"]) / 2
 
 
 def main() -> int:
@@ -586,12 +637,18 @@ def run(args, cfg, joints: list[int]) -> int:
             rows = scaling(joints, max(args.ticks // 2, 100), args.repeat, tmp)
             base = rows[0]["median"]
             print(f"  {'joints':>6}  {'min':>6}  {'median':>6}  {'p99':>6} us   median / first row"
-                  "   plane: median, and what the task-space map adds per site")  # fmt: skip
+                  "   the task-space map per site (median vs joint to joint): plane, "
+                  "position, pose; the map's Pinocchio floor (one frame Jacobian)")  # fmt: skip
             for r in rows:
-                plane = r["plane"]["median"]
+                adds = "  ".join(
+                    f"{label} {cost:+5.2f}" if (cost := map_cost(r, label)) is not None
+                    else f"{label}   -  " for label in ("plane", "position", "pose")
+                )  # fmt: skip
                 print(f"  {r['joints']:>6}  {r['min']:6.1f}  {r['median']:6.1f}  {r['p99']:6.1f}"
-                      f"      {r['median'] / base:5.2f}          {plane:6.1f}  "
-                      f"{(plane - r['median']) / 2:+5.2f} us")  # fmt: skip
+                      f"      {r['median'] / base:5.2f}          {adds}  us   floor "
+                      f"{r['map_floor']['median']:4.2f} us")  # fmt: skip
+            print(f"  goal (issue 26): the map adds <= {MAP_GOAL_US:g} us per site at 6 joints;"
+                  " the floor is in it (the map's Jacobian is a Pinocchio call from Python)")
             out["scaling"] = rows
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
