@@ -21,7 +21,7 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from teleop_rt.com.port import HSI, N_PACKET_VECTORS, P_UNSENT, P_WAVE, Packet
+from teleop_rt.com.port import HSI, Packet
 from teleop_rt.declarations import require_delay_ticks
 from teleop_rt.flat import Block, Int, jit, jit_inline
 
@@ -30,13 +30,15 @@ N_PACKET_SCALARS, N_PACKET_INTS = len(Packet.SCALARS), len(Packet.INTS)
 
 @jit_inline
 def packet_floats(n: int) -> int:
-    return N_PACKET_VECTORS * n + N_PACKET_SCALARS
+    Pk = Packet.idx
+    return Pk.N_VECTORS * n + N_PACKET_SCALARS
 
 
 @jit_inline
 def entry_size(n: int) -> int:
     """Floats per packet held in a delay line: its floats, then its ints (exact as float64)."""
-    return N_PACKET_VECTORS * n + N_PACKET_SCALARS + N_PACKET_INTS
+    Pk = Packet.idx
+    return Pk.N_VECTORS * n + N_PACKET_SCALARS + N_PACKET_INTS
 
 
 class Link(ABC):
@@ -73,9 +75,10 @@ class InProcessLink(Block, Link):
 
     def stored_wave_energy(self, dt: float) -> float:
         """Wave energy held in the lines: dt/2 times the sum of squares of the waves in flight."""
+        Pk = Packet.idx
         e, n = entry_size(self.n), self.n
         lines = self.f[self.tail_start :].reshape(-1, e)
-        waves = lines[:, P_WAVE * n : (P_WAVE + 1) * n]
+        waves = lines[:, Pk.WAVE * n : (Pk.WAVE + 1) * n]
         return 0.5 * dt * float(np.sum(waves * waves))
 
     # --- the Link interface, for sites stepped from Python (a session's lock-step tick runs
@@ -136,8 +139,9 @@ def line_put(
 ) -> None:  # fmt: skip
     """The packet at ``pf[pf0:]``, ``pi[pi0:]`` into the slot at ``lines[s:]`` (one the codec
     did not send, as a zero packet: nothing travels)."""
+    Pk = Packet.idx
     m = packet_floats(n)
-    sent = pi[pi0 + P_UNSENT] == 0
+    sent = pi[pi0 + Pk.UNSENT] == 0
     for k in range(m):
         lines[s + k] = pf[pf0 + k] if sent else 0.0
     for k in range(N_PACKET_INTS):

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from teleop_rt.com.port import P_E_OUT, P_SUM, P_WAVE_ENERGY, P_X_SUM, Packet
+from teleop_rt.com.port import Packet
 from teleop_rt.flat import int_view, jit
 
 if sys.byteorder != "little":  # the layout is read through native views
@@ -67,7 +67,8 @@ W_ID, W_SESSION, W_SEQ, W_TICK, W_TIME = range(HEADER_WORDS)
 # the Packet's vectors, then its one scalar; the decoder's checks rely on the cumulative
 # energies (wave energy, E_in, E_out) being its last vectors
 N_FLOATS_PER_JOINT = len(Packet.VECTORS)
-assert len(Packet.SCALARS) == 1 and P_E_OUT == N_FLOATS_PER_JOINT - 1 == P_WAVE_ENERGY + 2
+assert len(Packet.SCALARS) == 1
+assert Packet.idx.E_OUT == N_FLOATS_PER_JOINT - 1 == Packet.idx.WAVE_ENERGY + 2
 ID_MASK = (1 << 40) - 1  # magic and version: the low 40 bits of word 0 (then side, n)
 
 # decode's status codes, each also the index of its counter
@@ -279,6 +280,7 @@ def _check(
     words: np.ndarray, floats: np.ndarray, n: int, session: int, sender: int, newest: int,
     bounds: np.ndarray, state: np.ndarray,
 ) -> int:  # fmt: skip
+    Pk = Packet.idx
     w = words[W_ID]
     if (w & ID_MASK) != (MAGIC | (VERSION << 32)):
         return MAGIC_VERSION
@@ -302,15 +304,15 @@ def _check(
             return IMPLAUSIBLE
     e_max = bounds[2 * n]
     for k in range(n):  # the integrals, and the energy crossed (they may be negative)
-        if abs(floats[HEADER_WORDS + P_SUM * n + k]) > e_max:
+        if abs(floats[HEADER_WORDS + Pk.WAVE_SUM * n + k]) > e_max:
             return IMPLAUSIBLE
-        if abs(floats[HEADER_WORDS + P_X_SUM * n + k]) > e_max:
+        if abs(floats[HEADER_WORDS + Pk.X_SUM * n + k]) > e_max:
             return IMPLAUSIBLE
     if abs(floats[HEADER_WORDS + m]) > e_max:
         return IMPLAUSIBLE
     if words[last - 1] != 0 and words[last - 1] != 1:  # engaged: a flag, nothing else
         return IMPLAUSIBLE
-    for k in range(P_WAVE_ENERGY * n, m):  # cumulative energies: monotone from zero
+    for k in range(Pk.WAVE_ENERGY * n, m):  # cumulative energies: monotone from zero
         e = floats[HEADER_WORDS + k]
         if e < 0.0 or e > e_max:
             return IMPLAUSIBLE
