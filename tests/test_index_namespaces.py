@@ -29,7 +29,7 @@ KERNEL_MODULES = (
     "teleop_rt/hal/sim.py", "teleop_rt/hal/signals.py", "teleop_rt/control.py",
     "teleop_rt/safety.py", "teleop_rt/lockstep.py", "teleop_rt/lockstep_fused.py",
     "teleop_rt/site_tick.py", "teleop_rt/transparency_tick.py", "teleop_rt/world.py",
-    "teleop_rt/com/port.py", "teleop_rt/com/codec.py",
+    "teleop_rt/com/port.py", "teleop_rt/com/codec.py", "teleop_rt/com/channel.py",
 )  # fmt: skip
 
 

@@ -44,34 +44,25 @@ class ChannelMonitor(Block):
         self.dt = dt
 
 
-M_POWER, M_ENERGY = ChannelMonitor.power.k, ChannelMonitor.energy.k
-M_TOTAL, M_MIN, M_DT = (
-    ChannelMonitor.total_energy.k,
-    ChannelMonitor.min_total_energy.k,
-    ChannelMonitor.dt.k,
-)
-N_MONITOR_VECTORS = len(ChannelMonitor.VECTORS)
-
-
 @jit
 def monitor_step(f: np.ndarray, n: int, port_h: np.ndarray, port_t: np.ndarray) -> None:
     """Update power, energy (per joint), total_energy and its running minimum (a diverged
     channel, NaN, never looks passive). Indexed by offset: it runs every tick."""
-    Pt = Port.idx
-    s = N_MONITOR_VECTORS * n
-    dt = f[s + M_DT]
+    Pt, Cm = Port.idx, ChannelMonitor.idx
+    s = Cm.N_VECTORS * n
+    dt = f[s + Cm.DT]
     total = 0.0
     for j in range(n):
         p = (
             port_h[Pt.FLOW * n + j] * port_h[Pt.EFFORT * n + j]
             - port_t[Pt.FLOW * n + j] * port_t[Pt.EFFORT * n + j]
         )
-        f[M_POWER * n + j] = p
-        f[M_ENERGY * n + j] += p * dt
-        total += f[M_ENERGY * n + j]
-    f[s + M_TOTAL] = total
-    if not total >= f[s + M_MIN]:
-        f[s + M_MIN] = total
+        f[Cm.POWER * n + j] = p
+        f[Cm.ENERGY * n + j] += p * dt
+        total += f[Cm.ENERGY * n + j]
+    f[s + Cm.TOTAL_ENERGY] = total
+    if not total >= f[s + Cm.MIN_TOTAL_ENERGY]:
+        f[s + Cm.MIN_TOTAL_ENERGY] = total
 
 
 # the standalone two-port's blocks, in its packed buffers
