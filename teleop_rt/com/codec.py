@@ -74,8 +74,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop_rt.com.link import DELAY as LINK_DELAY
-from teleop_rt.com.link import LF, LI, SLOT, entry_size, packet_floats
+from teleop_rt.com.link import LF, LI, InProcessLink, entry_size, packet_floats
 from teleop_rt.com.port import WAVE, Packet, Port
 from teleop_rt.declarations import REFLECTED
 from teleop_rt.flat import jit
@@ -270,12 +269,12 @@ def codec_line_ahead(
     stands for a network of no latency and a playout delay of D: every packet in it has
     arrived. The wave energy declared by the newest one sent that is not due this tick (the
     slots pushed 1 .. D - 1 ticks ago; the due one the port credits itself)."""
-    Pt, Pk = Port.idx, Packet.idx
+    Pt, Pk, Ln = Port.idx, Packet.idx, InProcessLink.idx
     if port_i[Pt.CODEC] == NONE or port_i[Pt.MODE] != WAVE:
         return
-    d = i[at[LI] + LINK_DELAY]
+    d = i[at[LI] + Ln.DELAY_TICKS]
     e, m = entry_size(n), packet_floats(n)
-    base, slot = at[LF] + sender * d * e, i[at[LI] + SLOT]
+    base, slot = at[LF] + sender * d * e, i[at[LI] + Ln.SLOT]
     for back in range(1, d):
         s = base + ((slot - back) % d) * e
         if f[s + m + Pk.VALID] != 0.0:  # (unsent: a zero entry)
