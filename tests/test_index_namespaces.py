@@ -23,12 +23,14 @@ import teleop_rt
 from teleop_rt.flat import COUNTS, Block, jit, vec
 
 ROOT = Path(__file__).resolve().parents[1]
-# the kernel modules whose indices all come from blocks' namespaces (com/, mapping.py and
+# the kernel modules whose indices all come from blocks' namespaces (mapping.py and
 # task_math.py still use their own constants: ``Block.field.k``)
 KERNEL_MODULES = (
     "teleop_rt/hal/sim.py", "teleop_rt/hal/signals.py", "teleop_rt/control.py",
     "teleop_rt/safety.py", "teleop_rt/lockstep.py", "teleop_rt/lockstep_fused.py",
     "teleop_rt/site_tick.py", "teleop_rt/transparency_tick.py", "teleop_rt/world.py",
+    "teleop_rt/com/port.py", "teleop_rt/com/codec.py", "teleop_rt/com/channel.py",
+    "teleop_rt/com/wire.py", "teleop_rt/com/link.py", "teleop_rt/com/playout.py",
 )  # fmt: skip
 
 

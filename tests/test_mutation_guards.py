@@ -9,16 +9,17 @@ import numpy as np
 import pytest
 
 from teleop_rt.com.channel import ChannelMonitor, monitor_step
-from teleop_rt.com.port import EFFORT, FLOW
+from teleop_rt.com.port import Port
 from tests.conftest import CONFIGS
 
 PAPER = CONFIGS / "paper_experiment.yaml"
 
 
 def _port(n: int, flow: float, effort: float) -> np.ndarray:
-    f = np.zeros((max(FLOW, EFFORT) + 1) * n)
-    f[FLOW * n : (FLOW + 1) * n] = flow
-    f[EFFORT * n : (EFFORT + 1) * n] = effort
+    Pt = Port.idx
+    f = np.zeros((max(Pt.FLOW, Pt.EFFORT) + 1) * n)
+    f[Pt.FLOW * n : (Pt.FLOW + 1) * n] = flow
+    f[Pt.EFFORT * n : (Pt.EFFORT + 1) * n] = effort
     return f
 
 

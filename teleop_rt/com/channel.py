@@ -15,19 +15,7 @@ import numpy as np
 
 from teleop_rt.com.exchange import link_exchange, port_stage
 from teleop_rt.com.link import InProcessLink, link_offsets, link_push
-from teleop_rt.com.port import (
-    EFFORT,
-    FLOW,
-    HSI,
-    P_ENGAGED,
-    P_SEQ,
-    P_TICK,
-    P_VALID,
-    TO,
-    Packet,
-    Port,
-    port_input,
-)
+from teleop_rt.com.port import HSI, TO, Packet, Port, port_input
 from teleop_rt.declarations import (
     DEFAULT_RECONSTRUCTION,
     DIRECT,
@@ -56,33 +44,25 @@ class ChannelMonitor(Block):
         self.dt = dt
 
 
-M_POWER, M_ENERGY = ChannelMonitor.power.k, ChannelMonitor.energy.k
-M_TOTAL, M_MIN, M_DT = (
-    ChannelMonitor.total_energy.k,
-    ChannelMonitor.min_total_energy.k,
-    ChannelMonitor.dt.k,
-)
-N_MONITOR_VECTORS = len(ChannelMonitor.VECTORS)
-
-
 @jit
 def monitor_step(f: np.ndarray, n: int, port_h: np.ndarray, port_t: np.ndarray) -> None:
     """Update power, energy (per joint), total_energy and its running minimum (a diverged
     channel, NaN, never looks passive). Indexed by offset: it runs every tick."""
-    s = N_MONITOR_VECTORS * n
-    dt = f[s + M_DT]
+    Pt, Cm = Port.idx, ChannelMonitor.idx
+    s = Cm.N_VECTORS * n
+    dt = f[s + Cm.DT]
     total = 0.0
     for j in range(n):
         p = (
-            port_h[FLOW * n + j] * port_h[EFFORT * n + j]
-            - port_t[FLOW * n + j] * port_t[EFFORT * n + j]
+            port_h[Pt.FLOW * n + j] * port_h[Pt.EFFORT * n + j]
+            - port_t[Pt.FLOW * n + j] * port_t[Pt.EFFORT * n + j]
         )
-        f[M_POWER * n + j] = p
-        f[M_ENERGY * n + j] += p * dt
-        total += f[M_ENERGY * n + j]
-    f[s + M_TOTAL] = total
-    if not total >= f[s + M_MIN]:
-        f[s + M_MIN] = total
+        f[Cm.POWER * n + j] = p
+        f[Cm.ENERGY * n + j] += p * dt
+        total += f[Cm.ENERGY * n + j]
+    f[s + Cm.TOTAL_ENERGY] = total
+    if not total >= f[s + Cm.MIN_TOTAL_ENERGY]:
+        f[s + Cm.MIN_TOTAL_ENERGY] = total
 
 
 # the standalone two-port's blocks, in its packed buffers
@@ -138,6 +118,7 @@ def two_port_step(
 ) -> None:  # fmt: skip
     """A tick of both ports, the link and the monitor: the port stages of a lock-step pair
     (``teleop_rt.tick_stages.TWO_PORT``), the port inputs given instead of sensed."""
+    Pk = Packet.idx
     ph, pih = floats_of(f, o, TP_PORT_H), ints_of(i, o, TP_PORT_H)
     pt, pit = floats_of(f, o, TP_PORT_T), ints_of(i, o, TP_PORT_T)
     tx_h, rx_h = floats_of(f, o, TP_TX_H), floats_of(f, o, TP_RX_H)
@@ -145,16 +126,16 @@ def two_port_step(
     port_input(ph, pih, n, omega_c, tx_h)
     port_input(pt, pit, n, tau_t, tx_t)
     for tx in (TP_TX_H, TP_TX_T):  # tick and sequence number count from 0, as a site's do
-        ints_of(i, o, tx)[P_VALID] = 1
-        ints_of(i, o, tx)[P_ENGAGED] = 1  # (no operator map: always coupled)
+        ints_of(i, o, tx)[Pk.VALID] = 1
+        ints_of(i, o, tx)[Pk.ENGAGED] = 1  # (no operator map: always coupled)
     link_exchange(f, i, at, n, ph, pih, pt, pit)
     port_stage(ph, pih, n, rx_h, ints_of(i, o, TP_RX_H), tx_h, ints_of(i, o, TP_TX_H))
     port_stage(pt, pit, n, rx_t, ints_of(i, o, TP_RX_T), tx_t, ints_of(i, o, TP_TX_T))
     link_push(f, i, at, n)
     for tx in (TP_TX_H, TP_TX_T):
         tx_i = ints_of(i, o, tx)
-        tx_i[P_TICK] += 1
-        tx_i[P_SEQ] += 1
+        tx_i[Pk.TICK] += 1
+        tx_i[Pk.SEQ] += 1
     monitor_step(floats_of(f, o, TP_MONITOR), n, ph, pt)
 
 

@@ -74,34 +74,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from teleop_rt.com.link import DELAY as LINK_DELAY
-from teleop_rt.com.link import LF, LI, SLOT, entry_size, packet_floats
-from teleop_rt.com.port import (
-    DELAY,
-    DT,
-    FLOW,
-    LAST_SEQ,
-    MODE,
-    N_PORT_VECTORS,
-    P_E_IN,
-    P_ENGAGED,
-    P_SEQ,
-    P_SUM,
-    P_TICK,
-    P_UNSENT,
-    P_VALID,
-    P_WAVE,
-    P_WAVE_ENERGY,
-    P_X,
-    P_X_SUM,
-    PEER_E_IN,
-    PEER_ENERGY,
-    PEER_X_SUM,
-    RECONSTRUCTION,
-    USED_SUM,
-    WAVE,
-    Port,
-)
+from teleop_rt.com.link import LF, LI, InProcessLink, entry_size, packet_floats
+from teleop_rt.com.port import WAVE, Packet, Port
 from teleop_rt.declarations import REFLECTED
 from teleop_rt.flat import jit
 
@@ -135,27 +109,6 @@ PREDICTIONS = {"hold": 0.0, "linear": 1.0}
 # halves the displayed mass in free space), TDPA the TO's torque (the HSI's velocity is
 # integrated into position, which the integral reconstruction keeps)
 PREDICTIONS_BY_MODE = {"wave": ("linear", "hold"), "tdpa": ("hold", "linear")}
-
-C_REF, C_RX, C_SIM_USED, C_SIM_DECLARED = (
-    Port.codec_ref.k, Port.codec_rx.k, Port.codec_sim_used.k, Port.codec_sim_declared.k
-)  # fmt: skip
-C_WEBER, C_FLOOR, C_GAIN = Port.codec_weber.k, Port.codec_floor.k, Port.codec_velocity_gain.k
-C_RESERVE, C_ROOM_TICKS = Port.codec_reserve.k, Port.codec_room_ticks.k
-C_E_SENT, C_ENERGY_STEP = Port.codec_e_sent.k, Port.codec_energy_step.k
-C_SLOPE, C_RX_SLOPE, C_PREDICT, C_RX_SEQ = (
-    Port.codec_slope.k, Port.codec_rx_slope.k, Port.codec_predict.k, Port.codec_rx_seq.k
-)  # fmt: skip
-C_RX_PREDICT = Port.codec_rx_predict.k
-C_AHEAD, C_AHEAD_TICKS = Port.codec_ahead.k, Port.codec_ahead_ticks.k
-C_RX_SUM, C_DEBT, C_SUM_RATE = Port.codec_rx_sum.k, Port.codec_debt.k, Port.codec_sum_rate.k
-C_CODEC, C_MIN, C_MAX, C_SINCE, C_AGE = (
-    Port.codec.k, Port.codec_min.k, Port.codec_max.k, Port.codec_since.k, Port.codec_age.k
-)  # fmt: skip
-C_SENT, C_BY_THRESHOLD, C_BY_INTERVAL, C_BY_ENERGY = (
-    Port.codec_sent.k, Port.codec_by_threshold.k, Port.codec_by_interval.k, Port.codec_by_energy.k
-)  # fmt: skip
-C_SILENT, C_HELD, C_EXPIRED = Port.codec_silent.k, Port.codec_held.k, Port.codec_expired.k
-C_ENGAGED = Port.codec_engaged.k
 
 
 def configure(
@@ -240,69 +193,70 @@ def codec_receive(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np
     """Before the port: a tick with no packet within the maximum interval since the peer's
     last one gets that packet again (its value, the energy it declared), for the port's own
     passivity rule to hold it; past the interval the tick stays a loss."""
-    if i[C_CODEC] == NONE or i[DELAY] == 0:
+    Pt, Pk = Port.idx, Packet.idx
+    if i[Pt.CODEC] == NONE or i[Pt.DELAY_TICKS] == 0:
         return
-    wave = i[MODE] == WAVE
-    sig = P_WAVE if wave else P_X
-    s = N_PORT_VECTORS * n
-    dt = f[s + DT]
-    rate = f[s + C_SUM_RATE]
-    if rx_i[P_VALID] != 0:
-        gap = rx_i[P_SEQ] - i[C_RX_SEQ]
+    wave = i[Pt.MODE] == WAVE
+    sig = Pk.WAVE if wave else Pk.X
+    s = Pt.N_VECTORS * n
+    dt = f[s + Pt.DT]
+    rate = f[s + Pt.CODEC_SUM_RATE]
+    if rx_i[Pk.VALID] != 0:
+        gap = rx_i[Pk.SEQ] - i[Pt.CODEC_RX_SEQ]
         for j in range(n):
             r = rx[sig * n + j]
             slope = 0.0
-            if i[C_RX_SEQ] >= 0 and gap > 0:
-                slope = f[s + C_RX_PREDICT] * (r - f[C_RX * n + j]) / gap
-            f[C_RX_SLOPE * n + j] = slope
-            f[C_RX * n + j] = r
+            if i[Pt.CODEC_RX_SEQ] >= 0 and gap > 0:
+                slope = f[s + Pt.CODEC_RX_PREDICT] * (r - f[Pt.CODEC_RX * n + j]) / gap
+            f[Pt.CODEC_RX_SLOPE * n + j] = slope
+            f[Pt.CODEC_RX * n + j] = r
             if not wave and rate > 0.0:
                 # what the reconstruction so far missed of the peer's integral, this packet's
                 # sample included; a part of it paid back now, the rest over the next ticks
-                debt = rx[P_X_SUM * n + j] - f[C_RX_SUM * n + j] - r * dt
+                debt = rx[Pk.X_SUM * n + j] - f[Pt.CODEC_RX_SUM * n + j] - r * dt
                 pay = rate * debt * dt
                 rx[sig * n + j] = r + pay / dt
-                f[C_RX_SUM * n + j] = rx[P_X_SUM * n + j] - debt + pay
-                f[C_DEBT * n + j] = debt - pay
+                f[Pt.CODEC_RX_SUM * n + j] = rx[Pk.X_SUM * n + j] - debt + pay
+                f[Pt.CODEC_DEBT * n + j] = debt - pay
             if wave:  # the newest declared energy that has arrived, the look-ahead included
                 # (monotone: the port credits the increment over the last, never one twice)
-                e = max(rx[P_WAVE_ENERGY * n + j], f[C_AHEAD * n + j])
-                rx[P_WAVE_ENERGY * n + j] = max(e, f[PEER_ENERGY * n + j])
-        i[C_RX_SEQ] = rx_i[P_SEQ]
-        i[C_AGE] = 0
-        if wave and i[RECONSTRUCTION] == REFLECTED and i[LAST_SEQ] >= 0:
+                e = max(rx[Pk.WAVE_ENERGY * n + j], f[Pt.CODEC_AHEAD * n + j])
+                rx[Pk.WAVE_ENERGY * n + j] = max(e, f[Pt.PEER_ENERGY * n + j])
+        i[Pt.CODEC_RX_SEQ] = rx_i[Pk.SEQ]
+        i[Pt.CODEC_AGE] = 0
+        if wave and i[Pt.RECONSTRUCTION] == REFLECTED and i[Pt.LAST_SEQ] >= 0:
             # the held ticks were the codec's, not losses: no integral to catch up in one
             # tick (a jolt of several ticks' worth of the hold's error, beyond what the TO can
             # follow when packets come late); what the hold missed is the port's debt, paid
             # back at its drift rate. On time a packet is the next in line: unchanged.
-            rx_i[P_SEQ] = min(rx_i[P_SEQ], i[LAST_SEQ] + 1)
+            rx_i[Pk.SEQ] = min(rx_i[Pk.SEQ], i[Pt.LAST_SEQ] + 1)
         return
-    age = i[C_AGE] + 1
-    i[C_AGE] = age
-    if i[LAST_SEQ] < 0:
+    age = i[Pt.CODEC_AGE] + 1
+    i[Pt.CODEC_AGE] = age
+    if i[Pt.LAST_SEQ] < 0:
         return  # nothing received yet: nothing to hold
-    if age >= i[C_MAX]:
-        i[C_EXPIRED] += 1  # the peer would have sent by now: a loss
+    if age >= i[Pt.CODEC_MAX]:
+        i[Pt.CODEC_EXPIRED] += 1  # the peer would have sent by now: a loss
         return
-    i[C_HELD] += 1
+    i[Pt.CODEC_HELD] += 1
     for j in range(n):
-        held = _predicted(f[C_RX * n + j], f[C_RX_SLOPE * n + j], age)
+        held = _predicted(f[Pt.CODEC_RX * n + j], f[Pt.CODEC_RX_SLOPE * n + j], age)
         if not wave and rate > 0.0:
-            debt = f[C_DEBT * n + j]
+            debt = f[Pt.CODEC_DEBT * n + j]
             pay = rate * debt * dt
             held += pay / dt
-            f[C_DEBT * n + j] = debt - pay
-            f[C_RX_SUM * n + j] += held * dt
+            f[Pt.CODEC_DEBT * n + j] = debt - pay
+            f[Pt.CODEC_RX_SUM * n + j] += held * dt
         rx[sig * n + j] = held
-        rx[P_E_IN * n + j] = f[PEER_E_IN * n + j]
-        rx[P_X_SUM * n + j] = f[PEER_X_SUM * n + j] + held * dt  # as reconstructed
+        rx[Pk.E_IN * n + j] = f[Pt.PEER_E_IN * n + j]
+        rx[Pk.X_SUM * n + j] = f[Pt.PEER_X_SUM * n + j] + held * dt  # as reconstructed
         # what the peer declared in the packets that have arrived (the look-ahead included),
         # not a joule more: the bound holds the wave within it
-        rx[P_WAVE_ENERGY * n + j] = max(f[PEER_ENERGY * n + j], f[C_AHEAD * n + j])
-        rx[P_SUM * n + j] = f[USED_SUM * n + j] + held * dt  # the integral as used
-    rx_i[P_SEQ] = i[LAST_SEQ] + 1  # the next in line: nothing missed, nothing to catch up
-    rx_i[P_TICK] = rx_i[P_SEQ]
-    rx_i[P_VALID] = 1
+        rx[Pk.WAVE_ENERGY * n + j] = max(f[Pt.PEER_ENERGY * n + j], f[Pt.CODEC_AHEAD * n + j])
+        rx[Pk.WAVE_SUM * n + j] = f[Pt.USED_SUM * n + j] + held * dt  # the integral as used
+    rx_i[Pk.SEQ] = i[Pt.LAST_SEQ] + 1  # the next in line: nothing missed, nothing to catch up
+    rx_i[Pk.TICK] = rx_i[Pk.SEQ]
+    rx_i[Pk.VALID] = 1
 
 
 @jit
@@ -315,19 +269,20 @@ def codec_line_ahead(
     stands for a network of no latency and a playout delay of D: every packet in it has
     arrived. The wave energy declared by the newest one sent that is not due this tick (the
     slots pushed 1 .. D - 1 ticks ago; the due one the port credits itself)."""
-    if port_i[C_CODEC] == NONE or port_i[MODE] != WAVE:
+    Pt, Pk, Ln = Port.idx, Packet.idx, InProcessLink.idx
+    if port_i[Pt.CODEC] == NONE or port_i[Pt.MODE] != WAVE:
         return
-    d = i[at[LI] + LINK_DELAY]
+    d = i[at[LI] + Ln.DELAY_TICKS]
     e, m = entry_size(n), packet_floats(n)
-    base, slot = at[LF] + sender * d * e, i[at[LI] + SLOT]
+    base, slot = at[LF] + sender * d * e, i[at[LI] + Ln.SLOT]
     for back in range(1, d):
         s = base + ((slot - back) % d) * e
-        if f[s + m + P_VALID] != 0.0:  # (unsent: a zero entry)
+        if f[s + m + Pk.VALID] != 0.0:  # (unsent: a zero entry)
             for j in range(n):
-                port[C_AHEAD * n + j] = f[s + P_WAVE_ENERGY * n + j]
+                port[Pt.CODEC_AHEAD * n + j] = f[s + Pk.WAVE_ENERGY * n + j]
             return
     for j in range(n):
-        port[C_AHEAD * n + j] = 0.0
+        port[Pt.CODEC_AHEAD * n + j] = 0.0
 
 
 @jit
@@ -335,81 +290,83 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
     """After the port: send this tick's packet, or mark it unsent (the links carry
     nothing), by the deadband, the intervals and, on a wave channel, the peer's predicted
     energy room."""
-    if i[C_CODEC] == NONE or i[DELAY] == 0:
+    Pt, Pk = Port.idx, Packet.idx
+    if i[Pt.CODEC] == NONE or i[Pt.DELAY_TICKS] == 0:
         return
-    s = N_PORT_VECTORS * n
-    wave = i[MODE] == WAVE
-    sig = P_WAVE if wave else P_X
-    dt = f[s + DT]
+    s = Pt.N_VECTORS * n
+    wave = i[Pt.MODE] == WAVE
+    sig = Pk.WAVE if wave else Pk.X
+    dt = f[s + Pt.DT]
     half_dt = 0.5 * dt
-    weber, floor, gain = f[s + C_WEBER], f[s + C_FLOOR], f[s + C_GAIN]
-    reserve, room_ticks = f[s + C_RESERVE], f[s + C_ROOM_TICKS]
-    step = f[s + C_ENERGY_STEP]
+    weber, floor, gain = f[s + Pt.CODEC_WEBER], f[s + Pt.CODEC_FLOOR], f[s + Pt.CODEC_VELOCITY_GAIN]
+    reserve, room_ticks = f[s + Pt.CODEC_RESERVE], f[s + Pt.CODEC_ROOM_TICKS]
+    step = f[s + Pt.CODEC_ENERGY_STEP]
     # with a look-ahead of A ticks the peer's room at its playout of this tick includes the
     # energy declared by any packet sent in the next A ticks: this tick's true wave energy,
     # if one goes out within A + 1 ticks of the last
-    ahead = wave and i[C_AHEAD_TICKS] > 0
+    ahead = wave and i[Pt.CODEC_AHEAD_TICKS] > 0
     # ``reflected``: the peer's room is no bound to model (it reflects what it holds)
-    reflects = wave and i[RECONSTRUCTION] == REFLECTED
-    since = i[C_SINCE] + 1
+    reflects = wave and i[Pt.RECONSTRUCTION] == REFLECTED
+    since = i[Pt.CODEC_SINCE] + 1
     crossed = short = False
     for j in range(n):
-        ref = _predicted(f[C_REF * n + j], f[C_SLOPE * n + j], since)
+        ref = _predicted(f[Pt.CODEC_REF * n + j], f[Pt.CODEC_SLOPE * n + j], since)
         x = tx[sig * n + j]
-        k = weber * (1.0 + gain * abs(f[FLOW * n + j]))
+        k = weber * (1.0 + gain * abs(f[Pt.FLOW * n + j]))
         if abs(x - ref) > k * abs(ref) + floor:
             crossed = True
-        if not wave and step > 0.0 and tx[P_E_IN * n + j] - f[C_E_SENT * n + j] > step:
+        if not wave and step > 0.0 and tx[Pk.E_IN * n + j] - f[Pt.CODEC_E_SENT * n + j] > step:
             short = True  # the peer's controller would dissipate what it has not been told
         if wave and not reflects:
             # would the peer's bound cut the held wave this tick (the room declared so far)?
             if ahead:
-                f[C_SIM_DECLARED * n + j] = tx[P_WAVE_ENERGY * n + j]
-            if f[C_SIM_USED * n + j] + ref * ref * half_dt > f[C_SIM_DECLARED * n + j]:
+                f[Pt.CODEC_SIM_DECLARED * n + j] = tx[Pk.WAVE_ENERGY * n + j]
+            sim_used = f[Pt.CODEC_SIM_USED * n + j] + ref * ref * half_dt
+            if sim_used > f[Pt.CODEC_SIM_DECLARED * n + j]:
                 short = True
-    first = i[C_SENT] == 0
-    due = since >= i[C_MAX] or (ahead and since > i[C_AHEAD_TICKS])
+    first = i[Pt.CODEC_SENT] == 0
+    due = since >= i[Pt.CODEC_MAX] or (ahead and since > i[Pt.CODEC_AHEAD_TICKS])
     # the clutch or presence changed: the peer decouples on it, so it goes out now
-    changed = tx_i[P_ENGAGED] != i[C_ENGAGED]
+    changed = tx_i[Pk.ENGAGED] != i[Pt.CODEC_ENGAGED]
     crossed = crossed or changed
-    if first or due or changed or (since >= i[C_MIN] and (crossed or short)):
+    if first or due or changed or (since >= i[Pt.CODEC_MIN] and (crossed or short)):
         if crossed or first:
-            i[C_BY_THRESHOLD] += 1
+            i[Pt.CODEC_BY_THRESHOLD] += 1
         elif short:
-            i[C_BY_ENERGY] += 1
+            i[Pt.CODEC_BY_ENERGY] += 1
         else:
-            i[C_BY_INTERVAL] += 1
-        i[C_SENT] += 1
-        i[C_ENGAGED] = tx_i[P_ENGAGED]
-        tx_i[P_UNSENT] = 0
+            i[Pt.CODEC_BY_INTERVAL] += 1
+        i[Pt.CODEC_SENT] += 1
+        i[Pt.CODEC_ENGAGED] = tx_i[Pk.ENGAGED]
+        tx_i[Pk.UNSENT] = 0
         since_sent, since = since, 0
         for j in range(n):
             x = tx[sig * n + j]
             w = x
             if wave:
-                declared = tx[P_WAVE_ENERGY * n + j]
-                used = f[C_SIM_USED * n + j]
+                declared = tx[Pk.WAVE_ENERGY * n + j]
+                used = f[Pt.CODEC_SIM_USED * n + j]
                 # short of the room to hold it a while: send it a little smaller (within the
                 # band), so that holding it builds the room (0: off)
                 if declared - used - w * w * half_dt < room_ticks * w * w * half_dt:
                     w *= 1.0 - reserve * weber
                 tx[sig * n + j] = w
-                f[C_SIM_DECLARED * n + j] = declared
+                f[Pt.CODEC_SIM_DECLARED * n + j] = declared
                 _peer_uses(f, n, j, w, half_dt, ahead)
             slope = 0.0
             if not first:
-                slope = f[s + C_PREDICT] * (w - f[C_REF * n + j]) / since_sent
-            f[C_SLOPE * n + j] = slope
-            f[C_REF * n + j] = w
-            f[C_E_SENT * n + j] = tx[P_E_IN * n + j]
+                slope = f[s + Pt.CODEC_PREDICT] * (w - f[Pt.CODEC_REF * n + j]) / since_sent
+            f[Pt.CODEC_SLOPE * n + j] = slope
+            f[Pt.CODEC_REF * n + j] = w
+            f[Pt.CODEC_E_SENT * n + j] = tx[Pk.E_IN * n + j]
     else:
-        tx_i[P_UNSENT] = 1
-        i[C_SILENT] += 1
+        tx_i[Pk.UNSENT] = 1
+        i[Pt.CODEC_SILENT] += 1
         if wave:  # the peer holds (or extrapolates) the last wave sent, cut to its room
             for j in range(n):
-                w = _predicted(f[C_REF * n + j], f[C_SLOPE * n + j], since)
+                w = _predicted(f[Pt.CODEC_REF * n + j], f[Pt.CODEC_SLOPE * n + j], since)
                 _peer_uses(f, n, j, w, half_dt, ahead)
-    i[C_SINCE] = since
+    i[Pt.CODEC_SINCE] = since
 
 
 @jit
@@ -417,10 +374,11 @@ def _peer_uses(f: np.ndarray, n: int, j: int, w: float, half_dt: float, ahead: b
     """The peer uses wave ``w`` on joint j this tick, cut by its bound to the room declared:
     the wave energy it has used, as this sender predicts it. With a look-ahead the peer's
     room may be more than this sender knows of yet: uncut (what the peer uses at most)."""
-    used, e = f[C_SIM_USED * n + j], w * w * half_dt
+    Pt = Port.idx
+    used, e = f[Pt.CODEC_SIM_USED * n + j], w * w * half_dt
     if not ahead:
-        e = min(e, max(f[C_SIM_DECLARED * n + j] - used, 0.0))
-    f[C_SIM_USED * n + j] = used + e
+        e = min(e, max(f[Pt.CODEC_SIM_DECLARED * n + j] - used, 0.0))
+    f[Pt.CODEC_SIM_USED * n + j] = used + e
 
 
 @jit

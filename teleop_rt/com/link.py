@@ -21,22 +21,22 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
-from teleop_rt.com.port import HSI, N_PACKET_VECTORS, P_UNSENT, P_WAVE, Packet
+from teleop_rt.com.port import HSI, Packet
 from teleop_rt.declarations import require_delay_ticks
 from teleop_rt.flat import Block, Int, jit, jit_inline
-
-N_PACKET_SCALARS, N_PACKET_INTS = len(Packet.SCALARS), len(Packet.INTS)
 
 
 @jit_inline
 def packet_floats(n: int) -> int:
-    return N_PACKET_VECTORS * n + N_PACKET_SCALARS
+    Pk = Packet.idx
+    return Pk.N_VECTORS * n + Pk.N_SCALARS
 
 
 @jit_inline
 def entry_size(n: int) -> int:
     """Floats per packet held in a delay line: its floats, then its ints (exact as float64)."""
-    return N_PACKET_VECTORS * n + N_PACKET_SCALARS + N_PACKET_INTS
+    Pk = Packet.idx
+    return Pk.N_VECTORS * n + Pk.N_SCALARS + Pk.N_INTS
 
 
 class Link(ABC):
@@ -73,9 +73,10 @@ class InProcessLink(Block, Link):
 
     def stored_wave_energy(self, dt: float) -> float:
         """Wave energy held in the lines: dt/2 times the sum of squares of the waves in flight."""
+        Pk = Packet.idx
         e, n = entry_size(self.n), self.n
         lines = self.f[self.tail_start :].reshape(-1, e)
-        waves = lines[:, P_WAVE * n : (P_WAVE + 1) * n]
+        waves = lines[:, Pk.WAVE * n : Pk.WAVE * n + n]
         return 0.5 * dt * float(np.sum(waves * waves))
 
     # --- the Link interface, for sites stepped from Python (a session's lock-step tick runs
@@ -111,8 +112,6 @@ class InProcessLink(Block, Link):
         self._sent, self._ended = [None, None], [False, False]
 
 
-SLOT, DELAY = InProcessLink.slot.k, InProcessLink.delay_ticks.k
-
 # The kernels below work on one pair of buffers (f, i) holding the link's block and the four
 # packets, reached by offsets: ``at`` = (link float, link int, then float and int start of the
 # HSI's tx, the HSI's rx, the TO's tx, the TO's rx); a slice per block would cost numba tens of
@@ -126,8 +125,9 @@ def line_start(li: np.ndarray, link_i: int, link_f: int, n: int, sender: int) ->
     ``link_f``: where the link's ints and floats start in ``li`` and its float buffer (the
     block has no vectors or scalars: the lines are its whole float buffer, forward then
     backward)."""
-    d = li[link_i + DELAY]
-    return link_f + (sender * d + li[link_i + SLOT]) * entry_size(n)
+    Ln = InProcessLink.idx
+    d = li[link_i + Ln.DELAY_TICKS]
+    return link_f + (sender * d + li[link_i + Ln.SLOT]) * entry_size(n)
 
 
 @jit
@@ -136,11 +136,12 @@ def line_put(
 ) -> None:  # fmt: skip
     """The packet at ``pf[pf0:]``, ``pi[pi0:]`` into the slot at ``lines[s:]`` (one the codec
     did not send, as a zero packet: nothing travels)."""
+    Pk = Packet.idx
     m = packet_floats(n)
-    sent = pi[pi0 + P_UNSENT] == 0
+    sent = pi[pi0 + Pk.UNSENT] == 0
     for k in range(m):
         lines[s + k] = pf[pf0 + k] if sent else 0.0
-    for k in range(N_PACKET_INTS):
+    for k in range(Pk.N_INTS):
         lines[s + m + k] = pi[pi0 + k] if sent else 0
 
 
@@ -150,29 +151,32 @@ def line_get(
 ) -> None:  # fmt: skip
     """The packet in the slot at ``lines[s:]`` (pushed D ticks ago; zeros before) into the
     packet at ``pf[pf0:]``, ``pi[pi0:]``."""
+    Pk = Packet.idx
     m = packet_floats(n)
     for k in range(m):
         pf[pf0 + k] = lines[s + k]
-    for k in range(N_PACKET_INTS):
+    for k in range(Pk.N_INTS):
         pi[pi0 + k] = np.int64(lines[s + m + k])
 
 
 @jit
 def next_slot(li: np.ndarray, link_i: int) -> None:
     """Both lines on by one slot (after this tick's packets are in)."""
-    slot = li[link_i + SLOT] + 1
-    li[link_i + SLOT] = 0 if slot == li[link_i + DELAY] else slot
+    Ln = InProcessLink.idx
+    slot = li[link_i + Ln.SLOT] + 1
+    li[link_i + Ln.SLOT] = 0 if slot == li[link_i + Ln.DELAY_TICKS] else slot
 
 
 @jit
 def link_deliver(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int) -> None:
     """Each site's packet of this tick: the peer's of this tick (D = 0), else of D ticks ago."""
-    if i[at[LI] + DELAY] == 0:
+    Pk, Ln = Packet.idx, InProcessLink.idx
+    if i[at[LI] + Ln.DELAY_TICKS] == 0:
         m = packet_floats(n)
         for k in range(m):
             f[at[RXT] + k] = f[at[TXH] + k]
             f[at[RXH] + k] = f[at[TXT] + k]
-        for k in range(N_PACKET_INTS):
+        for k in range(Pk.N_INTS):
             i[at[RXT + 1] + k] = i[at[TXH + 1] + k]
             i[at[RXH + 1] + k] = i[at[TXT + 1] + k]
     else:
@@ -183,7 +187,8 @@ def link_deliver(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int) -> None:
 @jit
 def link_push(f: np.ndarray, i: np.ndarray, at: np.ndarray, n: int) -> None:
     """This tick's packets into the lines (after both ports have written their waves)."""
-    if i[at[LI] + DELAY]:
+    Ln = InProcessLink.idx
+    if i[at[LI] + Ln.DELAY_TICKS]:
         line_put(f, line_start(i, at[LI], at[LF], n, HSI), n, f, at[TXH], i, at[TXH + 1])
         line_put(f, line_start(i, at[LI], at[LF], n, 1 - HSI), n, f, at[TXT], i, at[TXT + 1])
         next_slot(i, at[LI])

@@ -60,8 +60,6 @@ HISTOGRAM = 8 + len(COUNTERS)  # the delay histogram's first bin
 # what arrive() did with a packet
 STORED, DROPPED_LATE, DROPPED_DUPLICATE, DROPPED_EARLY = range(4)
 
-P_TICK = Packet.tick.k
-
 
 class Playout:
     """The playout buffer of one direction, for packets of ``n`` joints."""
@@ -136,10 +134,6 @@ class Playout:
         return {"p50": p50, "p99": p99, "max": int(self.st[MAX_DELAY])}
 
 
-N_INTS = len(Packet.INTS)
-R_TICK, R_USED = N_INTS, N_INTS + 1  # a slot's sender tick and used flag, after the packet's
-
-
 @jit
 def _record_delay(st: np.ndarray, k: int, sender_tick: int) -> None:
     st[RECEIVED] += 1
@@ -161,7 +155,9 @@ def _arrive(
     st: np.ndarray, ring_f: np.ndarray, ring_i: np.ndarray, k: int, pf: np.ndarray,
     pi: np.ndarray,
 ) -> int:  # fmt: skip
-    s = pi[P_TICK]
+    Pk = Packet.idx
+    r_tick, r_used = Pk.N_INTS, Pk.N_INTS + 1  # a slot's sender tick and used flag
+    s = pi[Pk.TICK]
     _record_delay(st, k, s)
     target = s + st[DELAY] + st[OFFSET]  # the tick this packet plays at
     # late: its tick has passed (fixed), or it is not newer than the packet last played (an
@@ -170,7 +166,7 @@ def _arrive(
         st[LATE] += 1
         return DROPPED_LATE
     slot = s % st[SLOTS]
-    if ring_i[slot, R_TICK] == s:
+    if ring_i[slot, r_tick] == s:
         st[DUPLICATED] += 1
         return DROPPED_DUPLICATE
     if target > k + st[EARLY_TICKS]:
@@ -179,10 +175,10 @@ def _arrive(
     # the slot's previous tick is at least SLOTS older: played (or missed) already
     for j in range(pf.size):
         ring_f[slot, j] = pf[j]
-    for j in range(N_INTS):
+    for j in range(Pk.N_INTS):
         ring_i[slot, j] = pi[j]
-    ring_i[slot, R_TICK] = s
-    ring_i[slot, R_USED] = 0
+    ring_i[slot, r_tick] = s
+    ring_i[slot, r_used] = 0
     if s < st[NEWEST]:
         st[REORDERED] += 1
     else:
@@ -195,6 +191,8 @@ def _take(
     st: np.ndarray, ring_f: np.ndarray, ring_i: np.ndarray, k: int, pf: np.ndarray,
     pi: np.ndarray,
 ) -> int:  # fmt: skip
+    Pk = Packet.idx
+    r_tick, r_used = Pk.N_INTS, Pk.N_INTS + 1  # a slot's sender tick and used flag
     s = k - st[DELAY] - st[OFFSET]
     last = st[LAST_TAKEN]
     if last == NONE or s > last:
@@ -207,20 +205,20 @@ def _take(
             found = NONE
             for t in range(top, oldest - 1, -1):
                 slot = t % st[SLOTS]
-                if ring_i[slot, R_TICK] == t and ring_i[slot, R_USED] == 0:
+                if ring_i[slot, r_tick] == t and ring_i[slot, r_used] == 0:
                     found = t
                     break
         if found != NONE:
             slot = found % st[SLOTS]
-            if ring_i[slot, R_TICK] == found and ring_i[slot, R_USED] == 0:
+            if ring_i[slot, r_tick] == found and ring_i[slot, r_used] == 0:
                 if last != NONE:
                     st[SKIPPED] += found - last - 1
                 st[LAST_TAKEN] = found
                 for j in range(pf.size):
                     pf[j] = ring_f[slot, j]
-                for j in range(N_INTS):
+                for j in range(Pk.N_INTS):
                     pi[j] = ring_i[slot, j]
-                ring_i[slot, R_USED] = 1
+                ring_i[slot, r_used] = 1
                 st[USED] += 1
                 return 1
         if st[POLICY] == FIXED:  # the tick's packet is missing: it is passed over for good

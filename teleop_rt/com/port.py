@@ -263,50 +263,19 @@ class Port(Block):
         }
 
 
-# indices for the kernels, derived from the declarations above
-P_X, P_WAVE = Packet.x.k, Packet.wave.k
-P_SUM, P_X_SUM, P_WAVE_ENERGY, P_E_IN, P_E_OUT = (
-    Packet.wave_sum.k, Packet.x_sum.k, Packet.wave_energy.k, Packet.e_in.k, Packet.e_out.k
-)  # fmt: skip
-P_ENERGY = Packet.energy.k  # scalar, after the vectors
-P_TICK, P_SEQ, P_VALID, P_UNSENT = Packet.tick.k, Packet.seq.k, Packet.valid.k, Packet.unsent.k
-P_ENGAGED = Packet.engaged.k
-N_PACKET_VECTORS = len(Packet.VECTORS)
-B, SQRT_2B, SQRT_2_OVER_B = Port.b.k, Port.sqrt_2b.k, Port.sqrt_2_over_b.k
-FLOW, EFFORT, WAVE_OUT, WAVE_IN = Port.flow.k, Port.effort.k, Port.wave_out.k, Port.wave_in.k
-POWER, ENERGY = Port.power.k, Port.energy.k
-TOTAL_ENERGY, ALPHA, DT = Port.total_energy.k, Port.alpha.k, Port.dt.k
-BALANCE, MIN_BALANCE = Port.balance.k, Port.min_balance.k
-SIDE, MODE, DELAY, FILTERED = Port.side.k, Port.mode.k, Port.delay_ticks.k, Port.filtered.k
-E_IN, E_OUT, WAVE_SUM, WAVE_ENERGY, HELD = (
-    Port.e_in.k, Port.e_out.k, Port.wave_sum.k, Port.wave_energy.k, Port.held.k
-)  # fmt: skip
-PEER_SUM, PEER_ENERGY, USED_SUM, USED_ENERGY = (
-    Port.peer_sum.k, Port.peer_energy.k, Port.used_sum.k, Port.used_energy.k
-)  # fmt: skip
-PEER_E_IN, LIMITED, GOT_ENERGY = Port.peer_e_in.k, Port.limited.k, Port.got_energy.k
-DEBT, WAVE_DRIFT_RATE = Port.debt.k, Port.wave_drift_rate.k
-OUT_ENERGY, BANKED, DECLARED = Port.out_energy.k, Port.banked.k, Port.declared.k
-RECONSTRUCTION, LAST_SEQ, ACTED = Port.reconstruction.k, Port.last_seq.k, Port.acted.k
-MISSING, TERMINATED, CODEC = Port.missing.k, Port.terminated.k, Port.codec.k
-X_SUM, PEER_X_SUM, OUT_SUM, DRIFT_RATE = (
-    Port.x_sum.k, Port.peer_x_sum.k, Port.out_sum.k, Port.drift_rate.k
-)  # fmt: skip
-N_PORT_VECTORS = len(Port.VECTORS)
-
-
 @jit
 def port_input(f: np.ndarray, i: np.ndarray, n: int, x: np.ndarray, tx: np.ndarray) -> None:
     """This tick's port input x (omega_c at the HSI, tau_t at the TO) into the port and into
     the outgoing packet (before the exchange: with no delay the peer needs it this tick)."""
-    own = vec(f, FLOW, n) if i[SIDE] == HSI else vec(f, EFFORT, n)
-    out = vec(tx, P_X, n)
-    dt = f[N_PORT_VECTORS * n + DT]
+    Pt, Pk = Port.idx, Packet.idx
+    own = vec(f, Pt.FLOW, n) if i[Pt.SIDE] == HSI else vec(f, Pt.EFFORT, n)
+    out = vec(tx, Pk.X, n)
+    dt = f[Pt.N_VECTORS * n + Pt.DT]
     for j in range(n):
         own[j] = x[j]
         out[j] = x[j]
-        f[X_SUM * n + j] += x[j] * dt
-        tx[P_X_SUM * n + j] = f[X_SUM * n + j]
+        f[Pt.X_SUM * n + j] += x[j] * dt
+        tx[Pk.X_SUM * n + j] = f[Pt.X_SUM * n + j]
 
 
 @jit
@@ -315,28 +284,29 @@ def port_step(
 ) -> None:
     """The port's output from the received packet (rx, rx_i); the outgoing wave into tx; the
     power and energy that crossed the port."""
-    valid = rx_i[P_VALID] != 0
+    Pt, Pk = Port.idx, Packet.idx
+    valid = rx_i[Pk.VALID] != 0
     if valid:  # the peer's E_in: monotone, so the newest packet's is the largest
         for j in range(n):
-            f[PEER_E_IN * n + j] = max(f[PEER_E_IN * n + j], rx[P_E_IN * n + j])
-            f[PEER_X_SUM * n + j] = rx[P_X_SUM * n + j]
-    if i[DELAY] == 0 or i[MODE] == DIRECT:
+            f[Pt.PEER_E_IN * n + j] = max(f[Pt.PEER_E_IN * n + j], rx[Pk.E_IN * n + j])
+            f[Pt.PEER_X_SUM * n + j] = rx[Pk.X_SUM * n + j]
+    if i[Pt.DELAY_TICKS] == 0 or i[Pt.MODE] == DIRECT:
         # direct coupling (no delay) or plain delayed force feedback: the peer's port input
-        out = vec(f, EFFORT, n) if i[SIDE] == HSI else vec(f, FLOW, n)
-        peer_x = vec(rx, P_X, n)
+        out = vec(f, Pt.EFFORT, n) if i[Pt.SIDE] == HSI else vec(f, Pt.FLOW, n)
+        peer_x = vec(rx, Pk.X, n)
         for j in range(n):
             out[j] = peer_x[j]
-    elif i[MODE] == TDPA:
+    elif i[Pt.MODE] == TDPA:
         tdpa_step(f, i, n, rx, rx_i)
     else:
         wave_step(f, i, n, rx, rx_i, tx)
     if valid:
-        i[LAST_SEQ] = rx_i[P_SEQ]
-        i[MISSING] = 0
+        i[Pt.LAST_SEQ] = rx_i[Pk.SEQ]
+        i[Pt.MISSING] = 0
     else:
-        i[MISSING] += 1
+        i[Pt.MISSING] += 1
     account_port_power(f, i, n, tx)
-    if i[DELAY] > 0:
+    if i[Pt.DELAY_TICKS] > 0:
         account_balance(f, i, n)
 
 
@@ -345,24 +315,26 @@ def account_balance(f: np.ndarray, i: np.ndarray, n: int) -> None:
     """This port's energy balance as its method accounts it, the smallest over joints: a wave
     channel's wave energy received minus emitted; TDPA's (and, for comparison, the direct
     channel's) peer E_in received minus this port's E_out. Negative: the channel made energy."""
-    s = N_PORT_VECTORS * n
-    if i[MODE] == WAVE:
-        got, spent = GOT_ENERGY, USED_ENERGY
+    Pt = Port.idx
+    s = Pt.N_VECTORS * n
+    if i[Pt.MODE] == WAVE:
+        got, spent = Pt.GOT_ENERGY, Pt.USED_ENERGY
     else:
-        got, spent = PEER_E_IN, E_OUT
-    bounded = i[MODE] == WAVE and (i[RECONSTRUCTION] == BOUNDED or i[RECONSTRUCTION] == CORRECTED)
-    reflected = i[MODE] == WAVE and i[RECONSTRUCTION] == REFLECTED
+        got, spent = Pt.PEER_E_IN, Pt.E_OUT
+    how = i[Pt.RECONSTRUCTION]
+    bounded = i[Pt.MODE] == WAVE and (how == BOUNDED or how == CORRECTED)
+    reflected = i[Pt.MODE] == WAVE and how == REFLECTED
     low = math.inf
     for j in range(n):
         if reflected:  # the room: budget and what was sent, less what was declared and used
             low = min(low, reflect_room(f, n, j))
         elif bounded:
-            low = min(low, f[GOT_ENERGY * n + j] - charged(f, n, j))
+            low = min(low, f[Pt.GOT_ENERGY * n + j] - charged(f, n, j))
         else:
             low = min(low, f[got * n + j] - f[spent * n + j])
-    f[s + BALANCE] = low
-    if not low >= f[s + MIN_BALANCE]:  # NaN counts as a new minimum
-        f[s + MIN_BALANCE] = low
+    f[s + Pt.BALANCE] = low
+    if not low >= f[s + Pt.MIN_BALANCE]:  # NaN counts as a new minimum
+        f[s + Pt.MIN_BALANCE] = low
 
 
 @jit
@@ -370,8 +342,9 @@ def charged(f: np.ndarray, n: int, j: int) -> float:
     """What the bound has charged to its budget, J: the energy of the waves it emitted into
     the received-wave filter while that is within the budget (the filter's output has no more:
     its output is a convex combination of its inputs), else the filter's output's own."""
-    used = f[USED_ENERGY * n + j]
-    return used if used <= f[GOT_ENERGY * n + j] else f[OUT_ENERGY * n + j]
+    Pt = Port.idx
+    used = f[Pt.USED_ENERGY * n + j]
+    return used if used <= f[Pt.GOT_ENERGY * n + j] else f[Pt.OUT_ENERGY * n + j]
 
 
 @jit
@@ -380,8 +353,9 @@ def reflect_room(f: np.ndarray, n: int, j: int) -> float:
     peer's declared energy that reached it) plus the wave energy it sent, less what it
     declared and what the filter gave it (>= 0; the two ports' rooms and declarations sum to
     the two-port's energy's lower bound, see ``wave_step``)."""
-    return (f[GOT_ENERGY * n + j] + f[WAVE_ENERGY * n + j] - f[DECLARED * n + j]
-            - f[OUT_ENERGY * n + j])
+    Pt = Port.idx
+    return (f[Pt.GOT_ENERGY * n + j] + f[Pt.WAVE_ENERGY * n + j] - f[Pt.DECLARED * n + j]
+            - f[Pt.OUT_ENERGY * n + j])
 
 
 @jit
@@ -390,51 +364,52 @@ def wave_step(
 ) -> None:
     """Eq 9 on the received wave, reconstructed as the port's ``reconstruction`` says; the
     wave energy received in time and emitted, for every reconstruction (the balance)."""
-    s = N_PORT_VECTORS * n
-    alpha, filtered, dt = f[s + ALPHA], i[FILTERED] != 0, f[s + DT]
+    Pt, Pk = Port.idx, Packet.idx
+    s = Pt.N_VECTORS * n
+    alpha, filtered, dt = f[s + Pt.ALPHA], i[Pt.FILTERED] != 0, f[s + Pt.DT]
     half_dt = 0.5 * dt
-    flow, effort = vec(f, FLOW, n), vec(f, EFFORT, n)
-    b, s2b, s2ob = vec(f, B, n), vec(f, SQRT_2B, n), vec(f, SQRT_2_OVER_B, n)
-    w_in, w_out, received = vec(f, WAVE_IN, n), vec(f, WAVE_OUT, n), vec(rx, P_WAVE, n)
-    held = vec(f, HELD, n)
-    hsi, how, valid = i[SIDE] == HSI, i[RECONSTRUCTION], rx_i[P_VALID] != 0
-    terminated = i[TERMINATED] != 0
-    coded = i[CODEC] != 0  # the deadband codec (teleop_rt.com.codec) is on
+    flow, effort = vec(f, Pt.FLOW, n), vec(f, Pt.EFFORT, n)
+    b, s2b, s2ob = vec(f, Pt.B, n), vec(f, Pt.SQRT_2B, n), vec(f, Pt.SQRT_2_OVER_B, n)
+    w_in, w_out, received = vec(f, Pt.WAVE_IN, n), vec(f, Pt.WAVE_OUT, n), vec(rx, Pk.WAVE, n)
+    held = vec(f, Pt.HELD, n)
+    hsi, how, valid = i[Pt.SIDE] == HSI, i[Pt.RECONSTRUCTION], rx_i[Pk.VALID] != 0
+    terminated = i[Pt.TERMINATED] != 0
+    coded = i[Pt.CODEC] != 0  # the deadband codec (teleop_rt.com.codec) is on
     reflected = how == REFLECTED
     corrected = how == CORRECTED or reflected
     bounded = how == BOUNDED or corrected
-    rate = f[s + WAVE_DRIFT_RATE]
-    missed = rx_i[P_SEQ] - i[LAST_SEQ] - 1  # packets missed since the last one used
+    rate = f[s + Pt.WAVE_DRIFT_RATE]
+    missed = rx_i[Pk.SEQ] - i[Pt.LAST_SEQ] - 1  # packets missed since the last one used
     catch_up = valid and 0 < missed <= CATCH_UP
     # a held wave expires: after HOLD_TICKS ticks of silence the bound emits zeros and gives
     # up what it had left (energy that only a stale wave would spend)
-    expired = bounded and not reflected and not valid and i[MISSING] >= HOLD_TICKS
+    expired = bounded and not reflected and not valid and i[Pt.MISSING] >= HOLD_TICKS
     acted = synced = False
     for j in range(n):
-        used_sum = f[USED_SUM * n + j]
+        used_sum = f[Pt.USED_SUM * n + j]
         r = received[j]
         e_r = r * r * half_dt  # (the term the sender added to its wave energy, bit for bit)
         if valid:
             # in step: nothing missed and the integral as the peer's; after a long gap the
             # integral is not caught up (a jolt), only taken as it is
-            synced = (missed == 0 and used_sum == f[PEER_SUM * n + j]) or missed > CATCH_UP
+            synced = (missed == 0 and used_sum == f[Pt.PEER_SUM * n + j]) or missed > CATCH_UP
             # honest credit: this sample's energy, and in a catch-up that of the samples it
             # catches up (known from the peer's cumulative energy); after a long gap the
             # skipped samples' energy is not credited: they never reached this port
             # (with the deadband codec a held tick repeats the declared energy and the next
             # packet brings the energy of the samples sent while silent: credit what the peer
             # declared, never the held sample's own)
-            got = f[GOT_ENERGY * n + j]
+            got = f[Pt.GOT_ENERGY * n + j]
             if bounded and (missed > 0 or coded):
-                f[GOT_ENERGY * n + j] += rx[P_WAVE_ENERGY * n + j] - f[PEER_ENERGY * n + j]
+                f[Pt.GOT_ENERGY * n + j] += rx[Pk.WAVE_ENERGY * n + j] - f[Pt.PEER_ENERGY * n + j]
             else:
-                f[GOT_ENERGY * n + j] += e_r
+                f[Pt.GOT_ENERGY * n + j] += e_r
             if reflected:  # what the peer declared (monotone: a reordered packet's is less)
-                f[GOT_ENERGY * n + j] = max(got, rx[P_WAVE_ENERGY * n + j])
-            f[PEER_SUM * n + j] = rx[P_SUM * n + j]
-            f[PEER_ENERGY * n + j] = rx[P_WAVE_ENERGY * n + j]
-        debt = f[DEBT * n + j]
-        if reflected and not valid and i[LAST_SEQ] >= 0:  # (before the first: zeros)
+                f[Pt.GOT_ENERGY * n + j] = max(got, rx[Pk.WAVE_ENERGY * n + j])
+            f[Pt.PEER_SUM * n + j] = rx[Pk.WAVE_SUM * n + j]
+            f[Pt.PEER_ENERGY * n + j] = rx[Pk.WAVE_ENERGY * n + j]
+        debt = f[Pt.DEBT * n + j]
+        if reflected and not valid and i[Pt.LAST_SEQ] >= 0:  # (before the first: zeros)
             # the TO brakes: the wave that gives omega_t = 0, u_r = tau_t / sqrt(2b), all of it
             # reflected (zero power, whatever the contact); the HSI holds the TO's effort of
             # its last packet, tau_c = tau_t: v_l = (b omega_c - tau_t) / sqrt(2b) (a static
@@ -447,7 +422,7 @@ def wave_step(
             # the samples this packet brings (in a catch-up: those missed, less what a hold
             # emitted for them, and this one), plus a part of the debt: the integral the bound
             # cut or an outage lost, paid back within the budget (Niemeyer & Slotine 2004)
-            w = (f[PEER_SUM * n + j] - used_sum - debt) / dt if catch_up else r
+            w = (f[Pt.PEER_SUM * n + j] - used_sum - debt) / dt if catch_up else r
             if debt != 0.0:
                 w += rate * debt
         elif how == ZERO or (valid and (how == HOLD or synced)):
@@ -455,9 +430,9 @@ def wave_step(
         elif not valid:
             w = 0.0 if expired else held[j]
         else:  # catch the integral up in this tick: the samples missed and this one
-            w = (f[PEER_SUM * n + j] - used_sum) / dt
+            w = (f[Pt.PEER_SUM * n + j] - used_sum) / dt
         e = w * w * half_dt
-        got = f[GOT_ENERGY * n + j]
+        got = f[Pt.GOT_ENERGY * n + j]
         w_save = w
         # emit no more wave energy than reached this port in time (compared as the sums
         # themselves: with the same waves in the same order they are equal, bit for bit);
@@ -470,17 +445,17 @@ def wave_step(
             if w != w_save:
                 acted = True
             e = w * w * half_dt
-        elif bounded and f[USED_ENERGY * n + j] + e > got:
+        elif bounded and f[Pt.USED_ENERGY * n + j] + e > got:
             acted = True  # (engaged: what the filter gives the port is checked, cut if need be)
-            room = max(got - f[OUT_ENERGY * n + j], 0.0)
+            room = max(got - f[Pt.OUT_ENERGY * n + j], 0.0)
             y = w_in[j] + alpha * (w - w_in[j]) if filtered else w
             e_y = y * y * half_dt
-            if f[OUT_ENERGY * n + j] + e_y > got:
+            if f[Pt.OUT_ENERGY * n + j] + e_y > got:
                 y_c = math.copysign(min(abs(y), math.sqrt(room / half_dt)), y)
-                f[LIMITED * n + j] += e_y - y_c * y_c * half_dt
+                f[Pt.LIMITED * n + j] += e_y - y_c * y_c * half_dt
                 w = w_in[j] + (y_c - w_in[j]) / alpha if filtered else y_c
                 e = w * w * half_dt
-        f[USED_ENERGY * n + j] += e
+        f[Pt.USED_ENERGY * n + j] += e
         y = w_in[j] + alpha * (w - w_in[j]) if filtered else w  # what the filter gives the port
         if bounded and not reflected and (expired or (valid and missed > 0)):
             # what a catch-up did not spend of the skipped samples' energy is not kept beyond
@@ -489,31 +464,32 @@ def wave_step(
             # waves may still draw out of it, Jensen), nothing for a stale wave
             if expired:
                 keep = (1.0 - alpha) / alpha * y * y * half_dt if filtered else 0.0
-                f[GOT_ENERGY * n + j] = min(got, f[OUT_ENERGY * n + j] + y * y * half_dt + keep)
+                out = f[Pt.OUT_ENERGY * n + j] + y * y * half_dt
+                f[Pt.GOT_ENERGY * n + j] = min(got, out + keep)
             else:
-                keep = f[BANKED * n + j] + (e_r if catch_up else 0.0)
-                spent = f[USED_ENERGY * n + j]
+                keep = f[Pt.BANKED * n + j] + (e_r if catch_up else 0.0)
+                spent = f[Pt.USED_ENERGY * n + j]
                 if spent > got:
-                    spent = f[OUT_ENERGY * n + j] + y * y * half_dt
-                f[GOT_ENERGY * n + j] = min(got, spent + keep)
+                    spent = f[Pt.OUT_ENERGY * n + j] + y * y * half_dt
+                f[Pt.GOT_ENERGY * n + j] = min(got, spent + keep)
         # in step with the peer's integral after a packet (what the bound cut is not caught
         # up later: that would need energy the peer did not send)
         if corrected:  # the integral as used, and what it owes after a packet
-            f[USED_SUM * n + j] = used_sum + w * dt
+            f[Pt.USED_SUM * n + j] = used_sum + w * dt
             if valid:
-                f[DEBT * n + j] = f[PEER_SUM * n + j] - f[USED_SUM * n + j]
+                f[Pt.DEBT * n + j] = f[Pt.PEER_SUM * n + j] - f[Pt.USED_SUM * n + j]
         else:
-            f[USED_SUM * n + j] = f[PEER_SUM * n + j] if valid else used_sum + w * dt
+            f[Pt.USED_SUM * n + j] = f[Pt.PEER_SUM * n + j] if valid else used_sum + w * dt
         if not bounded:
             held[j] = w
         elif reflected and hsi and valid:
-            held[j] = rx[P_X * n + j]  # the TO's effort
+            held[j] = rx[Pk.X * n + j]  # the TO's effort
         elif valid:
             held[j] = r  # the sample as it arrived (not a catch-up's sum, nor the bound's cut)
         w_in[j] = y
-        f[OUT_ENERGY * n + j] += y * y * half_dt
+        f[Pt.OUT_ENERGY * n + j] += y * y * half_dt
         if bounded and valid and not reflected:
-            f[BANKED * n + j] = f[GOT_ENERGY * n + j] - charged(f, n, j)
+            f[Pt.BANKED * n + j] = f[Pt.GOT_ENERGY * n + j] - charged(f, n, j)
         if terminated:  # a matched damper: omega = w_in / sqrt(2b), tau = -+ b omega, no wave
             flow[j] = w_in[j] / s2b[j]
             effort[j] = -b[j] * flow[j] if hsi else b[j] * flow[j]
@@ -525,21 +501,21 @@ def wave_step(
             flow[j] = (s2b[j] * w_in[j] - effort[j]) / b[j]
             w_out[j] = w_in[j] - s2ob[j] * effort[j]
         sent = w_out[j]
-        tx[P_WAVE * n + j] = sent
-        f[WAVE_SUM * n + j] += sent * dt
-        f[WAVE_ENERGY * n + j] += sent * sent * half_dt
-        tx[P_SUM * n + j] = f[WAVE_SUM * n + j]
+        tx[Pk.WAVE * n + j] = sent
+        f[Pt.WAVE_SUM * n + j] += sent * dt
+        f[Pt.WAVE_ENERGY * n + j] += sent * sent * half_dt
+        tx[Pk.WAVE_SUM * n + j] = f[Pt.WAVE_SUM * n + j]
         if reflected:
             # declared: what was sent, less what this port used beyond its budget (its debt
             # moves to the peer's budget; monotone, so a late or reordered packet's is never
             # more than today's)
-            debt_e = min(0.0, f[GOT_ENERGY * n + j] - f[OUT_ENERGY * n + j])
-            f[DECLARED * n + j] = max(f[DECLARED * n + j], f[WAVE_ENERGY * n + j] + debt_e)
-            tx[P_WAVE_ENERGY * n + j] = f[DECLARED * n + j]
+            debt_e = min(0.0, f[Pt.GOT_ENERGY * n + j] - f[Pt.OUT_ENERGY * n + j])
+            f[Pt.DECLARED * n + j] = max(f[Pt.DECLARED * n + j], f[Pt.WAVE_ENERGY * n + j] + debt_e)
+            tx[Pk.WAVE_ENERGY * n + j] = f[Pt.DECLARED * n + j]
         else:
-            tx[P_WAVE_ENERGY * n + j] = f[WAVE_ENERGY * n + j]
+            tx[Pk.WAVE_ENERGY * n + j] = f[Pt.WAVE_ENERGY * n + j]
     if acted:
-        i[ACTED] += 1
+        i[Pt.ACTED] += 1
 
 
 @jit
@@ -555,19 +531,20 @@ def reflect_bound(
     terminated port sends nothing: |y| is cut to the room). Energy this port reflects back to
     the peer pays for what it emits beyond the peer's budget, and ``declared`` removes it from
     what the peer may spend: the two-port stays passive."""
+    Pt = Port.idx
     room = max(reflect_room(f, n, j), 0.0)
     y = w_in + alpha * (w - w_in) if filtered else w
     if terminated:
         if y * y * half_dt <= room:
             return w
         y_c = math.copysign(math.sqrt(room / half_dt), y)
-        f[LIMITED * n + j] += y * y * half_dt - room
+        f[Pt.LIMITED * n + j] += y * y * half_dt - room
     else:
         top = room / half_dt + c * c
         if 2.0 * y * c <= top:
             return w
         y_c = top / (2.0 * c)
-        f[LIMITED * n + j] += (2.0 * y * c - top) * half_dt
+        f[Pt.LIMITED * n + j] += (2.0 * y * c - top) * half_dt
     return w_in + (y_c - w_in) / alpha if filtered else y_c
 
 
@@ -576,16 +553,17 @@ def tdpa_step(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.nda
     """The peer's delayed port input (held through a gap of up to ``HOLD_TICKS``, then zero: a
     held velocity would drive the TO on for as long as the gap lasts), then the passivity
     controller: this port's E_out may not exceed the peer's E_in received so far."""
-    s = N_PORT_VECTORS * n
-    dt, rate = f[s + DT], f[s + DRIFT_RATE]
-    flow, effort, held = vec(f, FLOW, n), vec(f, EFFORT, n), vec(f, HELD, n)
-    e_out, peer_e_in, limited = vec(f, E_OUT, n), vec(f, PEER_E_IN, n), vec(f, LIMITED, n)
-    hsi, valid = i[SIDE] == HSI, rx_i[P_VALID] != 0
+    Pt, Pk = Port.idx, Packet.idx
+    s = Pt.N_VECTORS * n
+    dt, rate = f[s + Pt.DT], f[s + Pt.DRIFT_RATE]
+    flow, effort, held = vec(f, Pt.FLOW, n), vec(f, Pt.EFFORT, n), vec(f, Pt.HELD, n)
+    e_out, peer_e_in, limited = vec(f, Pt.E_OUT, n), vec(f, Pt.PEER_E_IN, n), vec(f, Pt.LIMITED, n)
+    hsi, valid = i[Pt.SIDE] == HSI, rx_i[Pk.VALID] != 0
     acted = False
-    expired = not valid and i[MISSING] >= HOLD_TICKS
+    expired = not valid and i[Pt.MISSING] >= HOLD_TICKS
     for j in range(n):
         if valid:
-            held[j] = rx[P_X * n + j]
+            held[j] = rx[Pk.X * n + j]
         elif expired:
             held[j] = 0.0
         if hsi:
@@ -596,7 +574,7 @@ def tdpa_step(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.nda
             # position drift: toward the HSI's position as of its newest packet (an output of
             # the peer's velocity as it was sent adds exactly 0, bit for bit); the passivity
             # controller below then checks the energy of the sum
-            omega += rate * (f[PEER_X_SUM * n + j] - (f[OUT_SUM * n + j] + omega * dt))
+            omega += rate * (f[Pt.PEER_X_SUM * n + j] - (f[Pt.OUT_SUM * n + j] + omega * dt))
             out = omega * tau * dt
         excess = min(e_out[j] + out - peer_e_in[j], out)
         if out > 0.0 and excess > 0.0:
@@ -610,20 +588,21 @@ def tdpa_step(f: np.ndarray, i: np.ndarray, n: int, rx: np.ndarray, rx_i: np.nda
             effort[j] = tau
         else:
             flow[j] = omega
-            f[OUT_SUM * n + j] += omega * dt
+            f[Pt.OUT_SUM * n + j] += omega * dt
     if acted:
-        i[ACTED] += 1
+        i[Pt.ACTED] += 1
 
 
 @jit
 def account_port_power(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray) -> None:
     """Power into the channel at this port (omega_c tau_c, or -omega_t tau_t), its integral,
     the energy that entered and left (E_in, E_out), and the energies in the outgoing packet."""
-    flow, effort = vec(f, FLOW, n), vec(f, EFFORT, n)
-    power, energy = vec(f, POWER, n), vec(f, ENERGY, n)
-    e_in, e_out = vec(f, E_IN, n), vec(f, E_OUT, n)
-    s = N_PORT_VECTORS * n
-    dt, sign = f[s + DT], 1.0 if i[SIDE] == HSI else -1.0
+    Pt, Pk = Port.idx, Packet.idx
+    flow, effort = vec(f, Pt.FLOW, n), vec(f, Pt.EFFORT, n)
+    power, energy = vec(f, Pt.POWER, n), vec(f, Pt.ENERGY, n)
+    e_in, e_out = vec(f, Pt.E_IN, n), vec(f, Pt.E_OUT, n)
+    s = Pt.N_VECTORS * n
+    dt, sign = f[s + Pt.DT], 1.0 if i[Pt.SIDE] == HSI else -1.0
     total = 0.0
     for j in range(n):
         p = sign * flow[j] * effort[j]
@@ -634,7 +613,7 @@ def account_port_power(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray) -> 
             e_in[j] += p * dt
         else:
             e_out[j] -= p * dt
-        tx[P_E_IN * n + j] = e_in[j]
-        tx[P_E_OUT * n + j] = e_out[j]
-    f[s + TOTAL_ENERGY] = total
-    tx[N_PACKET_VECTORS * n + P_ENERGY] = total
+        tx[Pk.E_IN * n + j] = e_in[j]
+        tx[Pk.E_OUT * n + j] = e_out[j]
+    f[s + Pt.TOTAL_ENERGY] = total
+    tx[Pk.N_VECTORS * n + Pk.ENERGY] = total

@@ -52,7 +52,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from teleop_rt.com.port import P_E_OUT, P_SUM, P_WAVE_ENERGY, P_X_SUM, Packet
+from teleop_rt.com.port import Packet
 from teleop_rt.flat import int_view, jit
 
 if sys.byteorder != "little":  # the layout is read through native views
@@ -66,8 +66,8 @@ HEADER_WORDS = 5  # magic/version/n, session, seq, tick, time
 W_ID, W_SESSION, W_SEQ, W_TICK, W_TIME = range(HEADER_WORDS)
 # the Packet's vectors, then its one scalar; the decoder's checks rely on the cumulative
 # energies (wave energy, E_in, E_out) being its last vectors
-N_FLOATS_PER_JOINT = len(Packet.VECTORS)
-assert len(Packet.SCALARS) == 1 and P_E_OUT == N_FLOATS_PER_JOINT - 1 == P_WAVE_ENERGY + 2
+assert len(Packet.SCALARS) == 1
+assert Packet.idx.E_OUT == Packet.idx.N_VECTORS - 1 == Packet.idx.WAVE_ENERGY + 2
 ID_MASK = (1 << 40) - 1  # magic and version: the low 40 bits of word 0 (then side, n)
 
 # decode's status codes, each also the index of its counter
@@ -80,7 +80,8 @@ USED_SEQ, SENDER_TIME, SEEN_TICK, COUNTS = range(4)  # the decoder's state, then
 
 def wire_size(n: int) -> int:
     """Bytes of a packet of ``n`` joints."""
-    return 8 * (HEADER_WORDS + N_FLOATS_PER_JOINT * n + 1 + 1 + 1)  # floats, engaged, CRC
+    Pk = Packet.idx
+    return 8 * (HEADER_WORDS + Pk.N_VECTORS * n + 1 + 1 + 1)  # floats, engaged, CRC
 
 
 def _as_i64(value: int) -> int:
@@ -141,24 +142,22 @@ def encode_into(
     return buffer.data
 
 
-I_TICK, I_SEQ, I_ENGAGED = Packet.tick.k, Packet.seq.k, Packet.engaged.k
-
-
 @jit
 def _encode(
     words: np.ndarray, n: int, pf: np.ndarray, pi: np.ndarray, session: int, time_ns: int,
     side: int,
 ) -> None:  # fmt: skip
+    Pk = Packet.idx
     floats = words.view(np.float64)  # (fewer array arguments: each costs ~80 ns a call)
     words[W_ID] = MAGIC | (VERSION << 32) | ((side & 0xFF) << 40) | (n << 48)
     words[W_SESSION] = session
-    words[W_SEQ] = pi[I_SEQ]
-    words[W_TICK] = pi[I_TICK]
+    words[W_SEQ] = pi[Pk.SEQ]
+    words[W_TICK] = pi[Pk.TICK]
     words[W_TIME] = time_ns
-    for k in range(N_FLOATS_PER_JOINT * n + 1):
+    for k in range(Pk.N_VECTORS * n + 1):
         floats[HEADER_WORDS + k] = pf[k]
     last = words.size - 1
-    words[last - 1] = pi[I_ENGAGED]
+    words[last - 1] = pi[Pk.ENGAGED]
     words[last] = crc32(words.view(np.uint8), 8 * last)
 
 
@@ -251,25 +250,23 @@ class Decoder:
                        self.state, into.f, into.i)  # fmt: skip
 
 
-I_VALID, I_UNSENT = Packet.valid.k, Packet.unsent.k
-
-
 @jit
 def _decode(
     words: np.ndarray, n: int, session: int, sender: int, newest: int, bounds: np.ndarray,
     state: np.ndarray, pf: np.ndarray, pi: np.ndarray,
 ) -> int:  # fmt: skip
+    Pk = Packet.idx
     floats = words.view(np.float64)
     status = _check(words, floats, n, session, sender, newest, bounds, state)
     state[COUNTS + status] += 1
     if status == OK:
-        for k in range(N_FLOATS_PER_JOINT * n + 1):
+        for k in range(Pk.N_VECTORS * n + 1):
             pf[k] = floats[HEADER_WORDS + k]
-        pi[I_TICK] = words[W_TICK]
-        pi[I_SEQ] = words[W_SEQ]
-        pi[I_VALID] = 1
-        pi[I_UNSENT] = 0  # (it arrived: it was sent)
-        pi[I_ENGAGED] = words[words.size - 2]
+        pi[Pk.TICK] = words[W_TICK]
+        pi[Pk.SEQ] = words[W_SEQ]
+        pi[Pk.VALID] = 1
+        pi[Pk.UNSENT] = 0  # (it arrived: it was sent)
+        pi[Pk.ENGAGED] = words[words.size - 2]
         state[SENDER_TIME] = words[W_TIME]
     return status
 
@@ -279,6 +276,7 @@ def _check(
     words: np.ndarray, floats: np.ndarray, n: int, session: int, sender: int, newest: int,
     bounds: np.ndarray, state: np.ndarray,
 ) -> int:  # fmt: skip
+    Pk = Packet.idx
     w = words[W_ID]
     if (w & ID_MASK) != (MAGIC | (VERSION << 32)):
         return MAGIC_VERSION
@@ -293,7 +291,7 @@ def _check(
         return SIDE
     if words[W_SEQ] < 0:  # beyond 2**63: no sender counts that far
         return IMPLAUSIBLE
-    m = N_FLOATS_PER_JOINT * n
+    m = Pk.N_VECTORS * n
     for k in range(m + 1):
         if not math.isfinite(floats[HEADER_WORDS + k]):
             return NON_FINITE
@@ -302,15 +300,15 @@ def _check(
             return IMPLAUSIBLE
     e_max = bounds[2 * n]
     for k in range(n):  # the integrals, and the energy crossed (they may be negative)
-        if abs(floats[HEADER_WORDS + P_SUM * n + k]) > e_max:
+        if abs(floats[HEADER_WORDS + Pk.WAVE_SUM * n + k]) > e_max:
             return IMPLAUSIBLE
-        if abs(floats[HEADER_WORDS + P_X_SUM * n + k]) > e_max:
+        if abs(floats[HEADER_WORDS + Pk.X_SUM * n + k]) > e_max:
             return IMPLAUSIBLE
     if abs(floats[HEADER_WORDS + m]) > e_max:
         return IMPLAUSIBLE
     if words[last - 1] != 0 and words[last - 1] != 1:  # engaged: a flag, nothing else
         return IMPLAUSIBLE
-    for k in range(P_WAVE_ENERGY * n, m):  # cumulative energies: monotone from zero
+    for k in range(Pk.WAVE_ENERGY * n, m):  # cumulative energies: monotone from zero
         e = floats[HEADER_WORDS + k]
         if e < 0.0 or e > e_max:
             return IMPLAUSIBLE
