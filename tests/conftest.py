@@ -59,6 +59,10 @@ MARKS_BY_TEST = {
     "test_recording.py::test_a_hard_kill_leaves_a_readable_log": ("realtime",),
     "test_early_stop.py::test_sigterm_before_the_first_tick_leaves_a_log_or_none": ("realtime",),
     "test_closed_output.py::test_a_site_keeps_its_exit_code": ("zenoh", "realtime"),
+    "test_late_packets.py::test_a_site_log_with_late_packets_used_replays_bit_for_bit": (
+        "zenoh",
+        "realtime",
+    ),
     # each starts fresh interpreters that load every kernel: over a minute on a loaded host
     "test_cli.py::test_python_dash_m_teleop_rt": ("slow",),
     "test_cli.py::test_bode_piped_is_not_cut_at_80_columns": ("slow",),
