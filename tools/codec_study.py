@@ -1,7 +1,8 @@
 #!/usr/bin/env python3
 """The deadband codec studied (issue 24): what it saves and what it costs.
 
-    python tools/codec_study.py [--quick] [--out DIR]      (or: network_study.py --codec)
+    python tools/codec_study.py [--quick] [--out DIR] [--parts P,..] [--rows C:D:CH,..]
+                                [--codec-set KEY=VALUE]   (or: network_study.py --codec)
 
 Three parts, one-process fast-mode sessions (deterministic):
 
@@ -120,6 +121,9 @@ def run(name: str, sets: list[str], duration_s: float | None = None) -> dict:
         "complete": k == cfg.n_ticks and not summary.safety_stop,
         "t_p": summary.t_p_total,
         "t_tau": summary.t_tau_total,
+        # the same as RMS over the run (T_p: rad^2 s, T_tau: (N m)^2 s): what a JND compares
+        "rms_p": math.sqrt(summary.t_p_total / (k * cfg.dt)),
+        "rms_tau": math.sqrt(summary.t_tau_total / (k * cfg.dt)),
         "stiffness": stiffness,
         "mass": mass,
         "min_energy": float(summary.min_channel_energy_j),
@@ -163,16 +167,21 @@ def _pct(x: float) -> str:
     return "n/a" if not math.isfinite(x) else f"{100 * x:+.1f} %"
 
 
-def acceptance(quick: bool) -> list[dict]:
+def acceptance(quick: bool, only: set[tuple[str, int, str]] | None = None,
+               extra: tuple[str, ...] = ()) -> list[dict]:  # fmt: skip
+    """The acceptance rows (``only``: those (config, D, channel); ``extra``: overrides for
+    the runs with the codec)."""
     rows = []
     names = ("stiff_wall",) if quick else tuple(CONFIGS)
     delays = (20,) if quick else DELAYS_MS
     for name in names:
         for d in delays:
             for ch, sets in CHANNELS.items():
+                if only is not None and (name, d, ch) not in only:
+                    continue
                 base = [*sets, f"channel.delay_ms={d}"]
                 off = run(name, [*base, *codec_sets(None)], 2.0 if quick else None)
-                on = run(name, [*base, *codec_sets(WEBER)], 2.0 if quick else None)
+                on = run(name, [*base, *codec_sets(WEBER), *extra], 2.0 if quick else None)
                 rows.append({"config": name, "delay": d, "channel": ch, "off": off, "on": on})
                 print(f"{name} {d} ms {ch}: reduction {on['red_hsi']:.3f}/{on['red_to']:.3f}, "
                       f"T_p {_pct(ratio(on['t_p'], off['t_p']) - 1)}, T_tau "
@@ -298,10 +307,14 @@ def report(
              "RMS difference of the TO's joint angles and of the operator's torque (relative "
              "to its RMS): the perceptual measure, next to the ratios of the integrals (T_p "
              "of a tiny figure at D = 1 ms is a ratio of tiny numbers).", "",
+             "RMS: T_p and T_tau as the RMS over the run of what they integrate (the HSI's "
+             "and the TO's joint angles' difference, mrad; the operator's and the "
+             "environment's torque's, N m), without -> with the codec: what a position or "
+             "force JND compares (docs/codec.md).", "",
              "| config | D (ms) | channel | reduction | T_p | T_tau | stiffness | mass | "
-             "felt: TO angle (mrad) | felt: torque | "
+             "felt: TO angle (mrad) | felt: torque | RMS T_p (mrad) | RMS T_tau (N m) | "
              "min two-port energy (J) | min port balance (J) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for row in acc:
         on, off = row["on"], row["off"]
         dq, dtau = felt(on, off)
@@ -312,38 +325,43 @@ def report(
             f"{_pct(ratio(on['t_tau'], off['t_tau']) - 1)} | "
             f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)} | "
             f"{_pct(ratio(on['mass'], off['mass']) - 1)} | {dq:.2f} | {100 * dtau:.1f} % | "
+            f"{1e3 * off['rms_p']:.2f} -> {1e3 * on['rms_p']:.2f} | "
+            f"{off['rms_tau']:.3f} -> {on['rms_tau']:.3f} | "
             f"{on['min_energy']:.2g} | {on['min_balance']:.2g} |"
         )  # fmt: skip
     lines += ["", "Missed (the goal: reduction >= 85 % each way, T_p, T_tau, stiffness and mass "
               "within 10 % of the same channel without codec): " + misses(acc)]  # fmt: skip
-    lines += ["", "## Reduction and transparency against the deadband", "",
-              "Paper experiment, D = 20 ms. ![curve](figures/codec_curve.png)", "",
-              "| channel | deadband | reduction | T_p ratio | T_tau ratio |",
-              "|---|---|---|---|---|"]  # fmt: skip
+    if cur:
+        lines += ["", "## Reduction and transparency against the deadband", "",
+                  "Paper experiment, D = 20 ms. ![curve](figures/codec_curve.png)", "",
+                  "| channel | deadband | reduction | T_p ratio | T_tau ratio |",
+                  "|---|---|---|---|---|"]  # fmt: skip
     for ch, d in cur.items():
         for w, r in d["on"]:
             lines.append(f"| {ch} | {w:.0%} | {100 * r['red_hsi']:.1f} / "
                          f"{100 * r['red_to']:.1f} % | "
                          f"{ratio(r['t_p'], d['off']['t_p']):.3f} | "
                          f"{ratio(r['t_tau'], d['off']['t_tau']):.3f} |")  # fmt: skip
-    low = min(min(p["r"]["min_energy"], p["r"]["min_balance"]) for p in pas)
-    lines += ["", f"## Passivity with the codec over the impairment classes ({WEBER:.0%})", "",
-              f"Lowest of every run's two-port energy and port balance: {low:.3g} J "
+    low = min((min(p["r"]["min_energy"], p["r"]["min_balance"]) for p in pas), default=0.0)
+    passivity_head = ["", f"## Passivity with the codec over the impairment classes ({WEBER:.0%})",
+              "", f"Lowest of every run's two-port energy and port balance: {low:.3g} J "
               f"({'passive' if low >= PASSIVE_J else 'NOT PASSIVE'}: the criterion is "
               f">= {PASSIVE_J:g} J).", "",
               "| config | network | channel | complete | min two-port energy (J) | "
               "min port balance (J) | reduction |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines += passivity_head if pas else []
     for p in pas:
         r = p["r"]
         lines.append(f"| {p['config']} | {p['case']} ({SWEEPS[p['sweep']][1]}) | {p['channel']} | "
                      f"{'yes' if r['complete'] else 'STOPPED'} | {r['min_energy']:.2g} | "
                      f"{r['min_balance']:.2g} | {100 * r['red_hsi']:.1f} / "
                      f"{100 * r['red_to']:.1f} % |")  # fmt: skip
-    lines += ["", "## Where the error comes from (20 ms, 10 %)", "",
+    split_head = ["", "## Where the error comes from (20 ms, 10 %)", "",
               "Each row switches one part of the codec off or replaces it; changes against the "
               "same channel without codec.", "",
               "| config | channel | codec | reduction | T_p | T_tau | stiffness | mass |",
               "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines += split_head if spl else []
     for row in spl:
         on, off = row["on"], row["off"]
         lines.append(f"| {row['config']} | {row['channel']} | {row['variant']} | "
@@ -357,20 +375,54 @@ def report(
     return path
 
 
+PARTS = ("acceptance", "curve", "passivity", "split")
+
+
+def parse_rows(text: str) -> tuple[set[tuple[str, int, str]], str | None]:
+    """``config:D:channel,...`` as a set of rows, or the problem with it."""
+    rows = set()
+    for item in text.split(","):
+        bits = item.split(":")
+        if len(bits) != 3 or bits[0] not in CONFIGS or bits[2] not in CHANNELS \
+                or not bits[1].isdigit() or int(bits[1]) not in DELAYS_MS:  # fmt: skip
+            return set(), (f"--rows: '{item}' is not config:D:channel with config one of "
+                           f"{', '.join(CONFIGS)}, D one of {DELAYS_MS}, channel one of "
+                           f"{', '.join(CHANNELS)}")  # fmt: skip
+        rows.add((bits[0], int(bits[1]), bits[2]))
+    return rows, None
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     p.add_argument("--quick", action="store_true", help="a few short runs (for the tests)")
     p.add_argument("--out", type=Path, help="report folder (default: a new temporary one)")
+    p.add_argument("--parts", default=",".join(PARTS),
+                   help=f"which parts to run, of {','.join(PARTS)} (default: all)")
+    p.add_argument("--rows", help="acceptance rows only, e.g. stiff_wall:1:tdpa,foam:1:wave "
+                   "(config:D in ms:channel)")  # fmt: skip
+    p.add_argument("--codec-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="an override for the acceptance part's runs with the codec, e.g. "
+                   "channel.deadband.exchange_j=1e-5 (repeatable)")  # fmt: skip
     args = p.parse_args(argv)
+    parts = set(args.parts.split(","))
+    problem = next((f"--parts: no part '{x}' (of {', '.join(PARTS)})"
+                    for x in sorted(parts) if x not in PARTS), None)  # fmt: skip
+    only = None
+    if problem is None and args.rows:
+        only, problem = parse_rows(args.rows)
     out = args.out or Path(tempfile.mkdtemp(prefix="codec_study_"))
-    problem = report_folder_problem(out)
+    problem = problem or report_folder_problem(out)
     if problem:
         print(f"codec_study: error: {problem}", file=sys.stderr)
         return 2
     (out / "figures").mkdir(parents=True, exist_ok=True)
-    acc, cur, pas = acceptance(args.quick), curve(args.quick), passivity(args.quick)
-    spl = split(args.quick)
-    plot_curve(cur, out / "figures" / "codec_curve.png")
+    extra = tuple(args.codec_set)
+    acc = acceptance(args.quick, only, extra) if "acceptance" in parts else []
+    cur = curve(args.quick) if "curve" in parts else {}
+    pas = passivity(args.quick) if "passivity" in parts else []
+    spl = split(args.quick) if "split" in parts else []
+    if cur:
+        plot_curve(cur, out / "figures" / "codec_curve.png")
     print(f"report: {report(acc, cur, pas, spl, out, args.quick)}")
     return 0
 

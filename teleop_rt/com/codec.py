@@ -114,6 +114,7 @@ PREDICTIONS_BY_MODE = {"wave": ("linear", "hold"), "tdpa": ("hold", "linear")}
 def configure(
     port: Port, weber: float, floor: float, min_ticks: int, max_ticks: int,
     velocity_gain: float = 0.0, prediction: str = "linear", peer_prediction: str | None = None,
+    exchange_j: float = 0.0,
 ) -> None:  # fmt: skip
     """Switch the deadband codec on at ``port`` (its own signal's Weber fraction and floor;
     ``prediction``: how the peer reconstructs this port's packets between them, 'linear' or
@@ -123,6 +124,8 @@ def configure(
         raise ValueError(f"the codec's prediction is one of {sorted(PREDICTIONS)}")
     if not 0.0 < weber < 1.0 or floor < 0.0 or velocity_gain < 0.0:
         raise ValueError("the deadband needs 0 < weber < 1, floor >= 0, velocity_gain >= 0")
+    if not exchange_j >= 0.0 or (exchange_j > 0.0 and int(port.mode) == WAVE):
+        raise ValueError("the codec's exchange_j is >= 0 J, and only for TDPA")
     if not 1 <= min_ticks <= max_ticks:
         raise ValueError("the codec's intervals need 1 <= min_ticks <= max_ticks")
     if port.delay_ticks < 1:
@@ -132,6 +135,7 @@ def configure(
     port.codec_min, port.codec_max = min_ticks, max_ticks
     port.codec_reserve, port.codec_room_ticks = RESERVE, ROOM_TICKS
     port.codec_energy_step = ENERGY_STEP_J
+    port.codec_exchange_step = exchange_j
     port.codec_predict = PREDICTIONS[prediction]
     port.codec_rx_predict = PREDICTIONS[peer_prediction]
     port.codec_sum_rate = 1.0 / SUM_TIME_S
@@ -301,6 +305,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
     weber, floor, gain = f[s + Pt.CODEC_WEBER], f[s + Pt.CODEC_FLOOR], f[s + Pt.CODEC_VELOCITY_GAIN]
     reserve, room_ticks = f[s + Pt.CODEC_RESERVE], f[s + Pt.CODEC_ROOM_TICKS]
     step = f[s + Pt.CODEC_ENERGY_STEP]
+    exchange = f[s + Pt.CODEC_EXCHANGE_STEP]
     # with a look-ahead of A ticks the peer's room at its playout of this tick includes the
     # energy declared by any packet sent in the next A ticks: this tick's true wave energy,
     # if one goes out within A + 1 ticks of the last
@@ -317,6 +322,11 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
             crossed = True
         if not wave and step > 0.0 and tx[Pk.E_IN * n + j] - f[Pt.CODEC_E_SENT * n + j] > step:
             short = True  # the peer's controller would dissipate what it has not been told
+        if not wave and exchange > 0.0:
+            # energy crossing the port either way: the contact the peer's hold lags (docs/codec.md)
+            crossed_j = tx[Pk.E_IN * n + j] + tx[Pk.E_OUT * n + j]
+            if crossed_j - f[Pt.CODEC_E_CROSSED * n + j] > exchange:
+                short = True
         if wave and not reflects:
             # would the peer's bound cut the held wave this tick (the room declared so far)?
             if ahead:
@@ -359,6 +369,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
             f[Pt.CODEC_SLOPE * n + j] = slope
             f[Pt.CODEC_REF * n + j] = w
             f[Pt.CODEC_E_SENT * n + j] = tx[Pk.E_IN * n + j]
+            f[Pt.CODEC_E_CROSSED * n + j] = tx[Pk.E_IN * n + j] + tx[Pk.E_OUT * n + j]
     else:
         tx_i[Pk.UNSENT] = 1
         i[Pt.CODEC_SILENT] += 1
