@@ -63,7 +63,18 @@ energy it declared. What keeps that passive is the port's own rule, unchanged:
   beyond it (Xu et al. 2016: the observers' energy travels with the samples). Since that
   E_in is stale between packets, a port also sends once its E_in has grown by
   ``ENERGY_STEP_J`` since its last packet (``by_energy``): less for the controller to
-  dissipate that the peer had put in. (Xu et al. predict the energy instead; not done here.)
+  dissipate that the peer had put in. Xu et al. predict the peer's energy between packets
+  instead, so that the controller is less conservative; not built: at D = 1 ms on the stiff
+  wall the E_in kept fresh to 1e-7 J (this trigger: as fresh as a prediction could make it)
+  leaves the felt stiffness as far off (-42 %), and a prediction that runs above a lost
+  correction is not passive (docs/codec.md).
+- TDPA's energy deadband (``exchange_j``, off by default; our own): a port also sends once
+  more than that much energy has crossed it, in or out, since its last packet. Where energy
+  flows (contact) the hold stays short: at D = 1 ms the hold's lag is what costs the stiff
+  wall's felt stiffness (the channel without codec loses 23 % of it from 1 to 2 ms of
+  delay; the codec's holds drove a sustained oscillation there whose passivity-controller
+  cuts drifted the TO out of the wall). Free motion and a settled push cross little energy
+  and keep the deadband's intervals. It only adds packets: passive as before.
 
 Past the maximum interval the peer should have sent: the tick is a loss (``expired``) and the
 port's own loss rule applies (the bounded hold, TDPA's hold then zero); the peer timeout
