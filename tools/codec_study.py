@@ -208,11 +208,12 @@ def energy(quick: bool) -> list[dict]:
     names = ("stiff_wall",) if quick else tuple(CONFIGS)
     delays = (1,) if quick else DELAYS_MS
     dur = 2.0 if quick else None
-    variants = [(f"{EXCHANGE[0].split('=')[1]} J, linear from the HSI", EXCHANGE)]
+    step = float(EXCHANGE[0].split("=")[1])
+    variants = [(f"{step:g} J, linear from the HSI", EXCHANGE)]
     sweep = [(f"{e:g} J, linear from the HSI",
               (f"channel.deadband.exchange_j={e:g}", EXCHANGE[1]))
-             for e in (() if quick else EXCHANGE_SWEEP_J) if f"{e:g}" != EXCHANGE[0].split("=")[1]]
-    sweep += [("1e-05 J, the default reconstruction (hold from the HSI)",
+             for e in (() if quick else EXCHANGE_SWEEP_J) if e != step]  # fmt: skip
+    sweep += [(f"{1e-5:g} J, the default reconstruction (hold from the HSI)",
                ("channel.deadband.exchange_j=1e-5",))] if not quick else []  # fmt: skip
     for name in names:
         for d in delays:
@@ -220,8 +221,8 @@ def energy(quick: bool) -> list[dict]:
             off = run(name, [*base, *codec_sets(None)], dur)
             for label, extra in variants + (sweep if (name, d) == ("stiff_wall", 1) else []):
                 on = run(name, [*base, *codec_sets(WEBER), *extra], dur)
-                rows.append({"config": name, "delay": d, "channel": "tdpa", "variant": label,
-                             "on": on, "off": off})  # fmt: skip
+                rows.append({"config": name, "delay": d, "channel": f"tdpa ({label})",
+                             "variant": label, "on": on, "off": off})  # fmt: skip
                 print(f"energy {name} {d} ms {label}: reduction {on['red_hsi']:.3f}/"
                       f"{on['red_to']:.3f}, stiffness "
                       f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)}", flush=True)
@@ -251,7 +252,9 @@ def passivity(quick: bool) -> list[dict]:
     for name in ("paper_experiment", "stiff_wall"):
         for sweep, value in classes.items():
             case = make_case(sweep, value)
-            for ch, sets in CHANNELS.items():
+            # (TDPA with the energy deadband too: it only adds packets)
+            for ch, sets in [*CHANNELS.items(), ("tdpa, energy deadband",
+                                                 (*CHANNELS["tdpa"], *EXCHANGE))]:
                 r = run(name, [*sets, *case.overrides(), *codec_sets(WEBER)],
                         2.0 if quick else None)  # fmt: skip
                 rows.append({"config": name, "case": case.label, "sweep": sweep, "channel": ch,
