@@ -163,6 +163,10 @@ class DeadbandSpec(Strict):
     # last one; None: the channel mode's measured best (teleop_rt.com.codec.PREDICTIONS_BY_MODE)
     prediction_hsi: Literal["linear", "hold"] | None = None
     prediction_to: Literal["linear", "hold"] | None = None
+    # TDPA only: a site also sends once this much energy has crossed its port, in or out, since
+    # its last packet (the energy deadband of teleop_rt.com.codec; docs/codec.md measures it at
+    # D = 1 ms, where the hold's lag costs felt stiffness); 0: off
+    exchange_j: NonNegFloat = 0.0
 
     @model_validator(mode="after")
     def _intervals(self) -> DeadbandSpec:
@@ -689,6 +693,11 @@ class SessionConfig(Strict):
                 "channel.codec: the deadband codec holds a wave channel's waves within an "
                 "energy bound; channel.wave_reconstruction must be "
                 f"{' or '.join(CODEC_RECONSTRUCTIONS)}, not {ch.wave_reconstruction}"
+            )
+        if ch.mode == "wave" and ch.deadband.exchange_j > 0:
+            raise ValueError(
+                "channel.deadband.exchange_j: the energy deadband is TDPA's (a wave channel's "
+                "codec bounds the waves' energy itself); set it to 0 or channel.mode: tdpa"
             )
         return self
 

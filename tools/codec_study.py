@@ -1,9 +1,10 @@
 #!/usr/bin/env python3
 """The deadband codec studied (issue 24): what it saves and what it costs.
 
-    python tools/codec_study.py [--quick] [--out DIR]      (or: network_study.py --codec)
+    python tools/codec_study.py [--quick] [--out DIR] [--parts P,..] [--rows C:D:CH,..]
+                                [--codec-set KEY=VALUE]   (or: network_study.py --codec)
 
-Three parts, one-process fast-mode sessions (deterministic):
+Five parts, one-process fast-mode sessions (deterministic):
 
 1. acceptance: the paper experiment, foam and the stiff wall at D = 1 (the least delay a
    network carries: the codec needs one), 20 and 50 ms, the bounded wave channel and TDPA,
@@ -15,7 +16,12 @@ Three parts, one-process fast-mode sessions (deterministic):
 3. passivity: the codec on over one case of every impairment class of tools/network_study.py;
 4. where the error comes from: the paper experiment and the stiff wall at 20 ms with parts of
    the codec switched off or replaced one at a time (the reserve, the reconstruction between
-   packets, TDPA's integral reconstruction; the codec's constants set for the run).
+   packets, TDPA's integral reconstruction; the codec's constants set for the run);
+5. TDPA's energy deadband (``channel.deadband.exchange_j``): every TDPA row with the setting
+   measured best at D = 1 ms, and the stiff wall at 1 ms against the energy step.
+
+``--parts`` runs some of them, ``--rows`` some acceptance rows (``config:D:channel``),
+``--codec-set`` adds an override to the acceptance part's runs with the codec.
 
 Writes DIR/codec_study.md (and the figure); without ``--out`` a new temporary folder.
 """
@@ -120,6 +126,9 @@ def run(name: str, sets: list[str], duration_s: float | None = None) -> dict:
         "complete": k == cfg.n_ticks and not summary.safety_stop,
         "t_p": summary.t_p_total,
         "t_tau": summary.t_tau_total,
+        # the same as RMS over the run (T_p: rad^2 s, T_tau: (N m)^2 s): what a JND compares
+        "rms_p": math.sqrt(summary.t_p_total / (k * cfg.dt)),
+        "rms_tau": math.sqrt(summary.t_tau_total / (k * cfg.dt)),
         "stiffness": stiffness,
         "mass": mass,
         "min_energy": float(summary.min_channel_energy_j),
@@ -163,16 +172,21 @@ def _pct(x: float) -> str:
     return "n/a" if not math.isfinite(x) else f"{100 * x:+.1f} %"
 
 
-def acceptance(quick: bool) -> list[dict]:
+def acceptance(quick: bool, only: set[tuple[str, int, str]] | None = None,
+               extra: tuple[str, ...] = ()) -> list[dict]:  # fmt: skip
+    """The acceptance rows (``only``: those (config, D, channel); ``extra``: overrides for
+    the runs with the codec)."""
     rows = []
     names = ("stiff_wall",) if quick else tuple(CONFIGS)
     delays = (20,) if quick else DELAYS_MS
     for name in names:
         for d in delays:
             for ch, sets in CHANNELS.items():
+                if only is not None and (name, d, ch) not in only:
+                    continue
                 base = [*sets, f"channel.delay_ms={d}"]
                 off = run(name, [*base, *codec_sets(None)], 2.0 if quick else None)
-                on = run(name, [*base, *codec_sets(WEBER)], 2.0 if quick else None)
+                on = run(name, [*base, *codec_sets(WEBER), *extra], 2.0 if quick else None)
                 rows.append({"config": name, "delay": d, "channel": ch, "off": off, "on": on})
                 print(f"{name} {d} ms {ch}: reduction {on['red_hsi']:.3f}/{on['red_to']:.3f}, "
                       f"T_p {_pct(ratio(on['t_p'], off['t_p']) - 1)}, T_tau "
@@ -180,6 +194,38 @@ def acceptance(quick: bool) -> list[dict]:
                       f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)}, mass "
                       f"{_pct(ratio(on['mass'], off['mass']) - 1)}, min energy "
                       f"{on['min_energy']:.2e}", flush=True)  # fmt: skip
+    return rows
+
+
+# part 5, TDPA's energy deadband (channel.deadband.exchange_j; docs/codec.md): every TDPA row
+# with the setting measured best at D = 1 ms, and the stiff wall at 1 ms against the step
+EXCHANGE = ("channel.deadband.exchange_j=3e-5", "channel.deadband.prediction_hsi=linear")
+EXCHANGE_SWEEP_J = (1e-5, 2e-5, 3e-5, 5e-5)
+
+
+def energy(quick: bool) -> list[dict]:
+    rows = []
+    names = ("stiff_wall",) if quick else tuple(CONFIGS)
+    delays = (1,) if quick else DELAYS_MS
+    dur = 2.0 if quick else None
+    step = float(EXCHANGE[0].split("=")[1])
+    variants = [(f"{step:g} J, linear from the HSI", EXCHANGE)]
+    sweep = [(f"{e:g} J, linear from the HSI",
+              (f"channel.deadband.exchange_j={e:g}", EXCHANGE[1]))
+             for e in (() if quick else EXCHANGE_SWEEP_J) if e != step]  # fmt: skip
+    sweep += [(f"{1e-5:g} J, the default reconstruction (hold from the HSI)",
+               ("channel.deadband.exchange_j=1e-5",))] if not quick else []  # fmt: skip
+    for name in names:
+        for d in delays:
+            base = ["channel.mode=tdpa", f"channel.delay_ms={d}"]
+            off = run(name, [*base, *codec_sets(None)], dur)
+            for label, extra in variants + (sweep if (name, d) == ("stiff_wall", 1) else []):
+                on = run(name, [*base, *codec_sets(WEBER), *extra], dur)
+                rows.append({"config": name, "delay": d, "channel": f"tdpa ({label})",
+                             "variant": label, "on": on, "off": off})  # fmt: skip
+                print(f"energy {name} {d} ms {label}: reduction {on['red_hsi']:.3f}/"
+                      f"{on['red_to']:.3f}, stiffness "
+                      f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)}", flush=True)
     return rows
 
 
@@ -206,7 +252,9 @@ def passivity(quick: bool) -> list[dict]:
     for name in ("paper_experiment", "stiff_wall"):
         for sweep, value in classes.items():
             case = make_case(sweep, value)
-            for ch, sets in CHANNELS.items():
+            # (TDPA with the energy deadband too: it only adds packets)
+            for ch, sets in [*CHANNELS.items(), ("tdpa, energy deadband",
+                                                 (*CHANNELS["tdpa"], *EXCHANGE))]:
                 r = run(name, [*sets, *case.overrides(), *codec_sets(WEBER)],
                         2.0 if quick else None)  # fmt: skip
                 rows.append({"config": name, "case": case.label, "sweep": sweep, "channel": ch,
@@ -282,8 +330,10 @@ def misses(acc: list[dict]) -> str:
 
 
 def report(
-    acc: list[dict], cur: dict, pas: list[dict], spl: list[dict], out: Path, quick: bool
+    acc: list[dict], cur: dict, pas: list[dict], spl: list[dict], out: Path, quick: bool,
+    ene: list[dict] | None = None,
 ) -> Path:
+    ene = ene or []
     lines = ["# The deadband codec, measured", "",
              "Generated by `tools/codec_study.py`" + (" --quick" if quick else "") +
              " (one-process fast mode, deterministic). Design: docs/codec.md.", "",
@@ -298,10 +348,14 @@ def report(
              "RMS difference of the TO's joint angles and of the operator's torque (relative "
              "to its RMS): the perceptual measure, next to the ratios of the integrals (T_p "
              "of a tiny figure at D = 1 ms is a ratio of tiny numbers).", "",
+             "RMS: T_p and T_tau as the RMS over the run of what they integrate (the HSI's "
+             "and the TO's joint angles' difference, mrad; the operator's and the "
+             "environment's torque's, N m), without -> with the codec: what a position or "
+             "force JND compares (docs/codec.md).", "",
              "| config | D (ms) | channel | reduction | T_p | T_tau | stiffness | mass | "
-             "felt: TO angle (mrad) | felt: torque | "
+             "felt: TO angle (mrad) | felt: torque | RMS T_p (mrad) | RMS T_tau (N m) | "
              "min two-port energy (J) | min port balance (J) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
     for row in acc:
         on, off = row["on"], row["off"]
         dq, dtau = felt(on, off)
@@ -312,38 +366,43 @@ def report(
             f"{_pct(ratio(on['t_tau'], off['t_tau']) - 1)} | "
             f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)} | "
             f"{_pct(ratio(on['mass'], off['mass']) - 1)} | {dq:.2f} | {100 * dtau:.1f} % | "
+            f"{1e3 * off['rms_p']:.2f} -> {1e3 * on['rms_p']:.2f} | "
+            f"{off['rms_tau']:.3f} -> {on['rms_tau']:.3f} | "
             f"{on['min_energy']:.2g} | {on['min_balance']:.2g} |"
         )  # fmt: skip
     lines += ["", "Missed (the goal: reduction >= 85 % each way, T_p, T_tau, stiffness and mass "
               "within 10 % of the same channel without codec): " + misses(acc)]  # fmt: skip
-    lines += ["", "## Reduction and transparency against the deadband", "",
-              "Paper experiment, D = 20 ms. ![curve](figures/codec_curve.png)", "",
-              "| channel | deadband | reduction | T_p ratio | T_tau ratio |",
-              "|---|---|---|---|---|"]  # fmt: skip
+    if cur:
+        lines += ["", "## Reduction and transparency against the deadband", "",
+                  "Paper experiment, D = 20 ms. ![curve](figures/codec_curve.png)", "",
+                  "| channel | deadband | reduction | T_p ratio | T_tau ratio |",
+                  "|---|---|---|---|---|"]  # fmt: skip
     for ch, d in cur.items():
         for w, r in d["on"]:
             lines.append(f"| {ch} | {w:.0%} | {100 * r['red_hsi']:.1f} / "
                          f"{100 * r['red_to']:.1f} % | "
                          f"{ratio(r['t_p'], d['off']['t_p']):.3f} | "
                          f"{ratio(r['t_tau'], d['off']['t_tau']):.3f} |")  # fmt: skip
-    low = min(min(p["r"]["min_energy"], p["r"]["min_balance"]) for p in pas)
-    lines += ["", f"## Passivity with the codec over the impairment classes ({WEBER:.0%})", "",
-              f"Lowest of every run's two-port energy and port balance: {low:.3g} J "
+    low = min((min(p["r"]["min_energy"], p["r"]["min_balance"]) for p in pas), default=0.0)
+    passivity_head = ["", f"## Passivity with the codec over the impairment classes ({WEBER:.0%})",
+              "", f"Lowest of every run's two-port energy and port balance: {low:.3g} J "
               f"({'passive' if low >= PASSIVE_J else 'NOT PASSIVE'}: the criterion is "
               f">= {PASSIVE_J:g} J).", "",
               "| config | network | channel | complete | min two-port energy (J) | "
               "min port balance (J) | reduction |", "|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines += passivity_head if pas else []
     for p in pas:
         r = p["r"]
         lines.append(f"| {p['config']} | {p['case']} ({SWEEPS[p['sweep']][1]}) | {p['channel']} | "
                      f"{'yes' if r['complete'] else 'STOPPED'} | {r['min_energy']:.2g} | "
                      f"{r['min_balance']:.2g} | {100 * r['red_hsi']:.1f} / "
                      f"{100 * r['red_to']:.1f} % |")  # fmt: skip
-    lines += ["", "## Where the error comes from (20 ms, 10 %)", "",
+    split_head = ["", "## Where the error comes from (20 ms, 10 %)", "",
               "Each row switches one part of the codec off or replaces it; changes against the "
               "same channel without codec.", "",
               "| config | channel | codec | reduction | T_p | T_tau | stiffness | mass |",
               "|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines += split_head if spl else []
     for row in spl:
         on, off = row["on"], row["off"]
         lines.append(f"| {row['config']} | {row['channel']} | {row['variant']} | "
@@ -352,26 +411,83 @@ def report(
                      f"{_pct(ratio(on['t_tau'], off['t_tau']) - 1)} | "
                      f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)} | "
                      f"{_pct(ratio(on['mass'], off['mass']) - 1)} |")  # fmt: skip
+    energy_head = ["", "## TDPA's energy deadband (channel.deadband.exchange_j, 10 %)", "",
+                   "A site also sends once that much energy has crossed its port since its "
+                   "last packet (docs/codec.md); changes against TDPA without codec at the "
+                   "same D.", "",
+                   "| config | D (ms) | codec | reduction | T_p | T_tau | stiffness | mass | "
+                   "RMS T_p (mrad) | RMS T_tau (N m) | min two-port energy (J) | "
+                   "min port balance (J) |",
+                   "|---|---|---|---|---|---|---|---|---|---|---|---|"]  # fmt: skip
+    lines += energy_head if ene else []
+    for row in ene:
+        on, off = row["on"], row["off"]
+        lines.append(f"| {row['config']} | {row['delay']} | {row['variant']} | "
+                     f"{100 * on['red_hsi']:.1f} / {100 * on['red_to']:.1f} % | "
+                     f"{_pct(ratio(on['t_p'], off['t_p']) - 1)} | "
+                     f"{_pct(ratio(on['t_tau'], off['t_tau']) - 1)} | "
+                     f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)} | "
+                     f"{_pct(ratio(on['mass'], off['mass']) - 1)} | "
+                     f"{1e3 * off['rms_p']:.2f} -> {1e3 * on['rms_p']:.2f} | "
+                     f"{off['rms_tau']:.3f} -> {on['rms_tau']:.3f} | "
+                     f"{on['min_energy']:.2g} | {on['min_balance']:.2g} |")  # fmt: skip
+    if ene:
+        lines += ["", "Missed with the energy deadband: " + misses(ene)]
     path = out / "codec_study.md"
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+PARTS = ("acceptance", "curve", "passivity", "split", "energy")
+
+
+def parse_rows(text: str) -> tuple[set[tuple[str, int, str]], str | None]:
+    """``config:D:channel,...`` as a set of rows, or the problem with it."""
+    rows = set()
+    for item in text.split(","):
+        bits = item.split(":")
+        if len(bits) != 3 or bits[0] not in CONFIGS or bits[2] not in CHANNELS \
+                or not bits[1].isdigit() or int(bits[1]) not in DELAYS_MS:  # fmt: skip
+            return set(), (f"--rows: '{item}' is not config:D:channel with config one of "
+                           f"{', '.join(CONFIGS)}, D one of {DELAYS_MS}, channel one of "
+                           f"{', '.join(CHANNELS)}")  # fmt: skip
+        rows.add((bits[0], int(bits[1]), bits[2]))
+    return rows, None
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=" ".join(__doc__.split("\n\n")[0].split()))
     p.add_argument("--quick", action="store_true", help="a few short runs (for the tests)")
     p.add_argument("--out", type=Path, help="report folder (default: a new temporary one)")
+    p.add_argument("--parts", default=",".join(PARTS),
+                   help=f"which parts to run, of {','.join(PARTS)} (default: all)")
+    p.add_argument("--rows", help="acceptance rows only, e.g. stiff_wall:1:tdpa,foam:1:wave "
+                   "(config:D in ms:channel)")  # fmt: skip
+    p.add_argument("--codec-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="an override for the acceptance part's runs with the codec, e.g. "
+                   "channel.deadband.exchange_j=1e-5 (repeatable)")  # fmt: skip
     args = p.parse_args(argv)
+    parts = set(args.parts.split(","))
+    problem = next((f"--parts: no part '{x}' (of {', '.join(PARTS)})"
+                    for x in sorted(parts) if x not in PARTS), None)  # fmt: skip
+    only = None
+    if problem is None and args.rows:
+        only, problem = parse_rows(args.rows)
     out = args.out or Path(tempfile.mkdtemp(prefix="codec_study_"))
-    problem = report_folder_problem(out)
+    problem = problem or report_folder_problem(out)
     if problem:
         print(f"codec_study: error: {problem}", file=sys.stderr)
         return 2
     (out / "figures").mkdir(parents=True, exist_ok=True)
-    acc, cur, pas = acceptance(args.quick), curve(args.quick), passivity(args.quick)
-    spl = split(args.quick)
-    plot_curve(cur, out / "figures" / "codec_curve.png")
-    print(f"report: {report(acc, cur, pas, spl, out, args.quick)}")
+    extra = tuple(args.codec_set)
+    acc = acceptance(args.quick, only, extra) if "acceptance" in parts else []
+    cur = curve(args.quick) if "curve" in parts else {}
+    pas = passivity(args.quick) if "passivity" in parts else []
+    spl = split(args.quick) if "split" in parts else []
+    ene = energy(args.quick) if "energy" in parts else []
+    if cur:
+        plot_curve(cur, out / "figures" / "codec_curve.png")
+    print(f"report: {report(acc, cur, pas, spl, out, args.quick, ene)}")
     return 0
 
 

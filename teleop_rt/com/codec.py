@@ -63,7 +63,18 @@ energy it declared. What keeps that passive is the port's own rule, unchanged:
   beyond it (Xu et al. 2016: the observers' energy travels with the samples). Since that
   E_in is stale between packets, a port also sends once its E_in has grown by
   ``ENERGY_STEP_J`` since its last packet (``by_energy``): less for the controller to
-  dissipate that the peer had put in. (Xu et al. predict the energy instead; not done here.)
+  dissipate that the peer had put in. Xu et al. predict the peer's energy between packets
+  instead, so that the controller is less conservative; not built: at D = 1 ms on the stiff
+  wall the E_in kept fresh to 1e-7 J (this trigger: as fresh as a prediction could make it)
+  leaves the felt stiffness as far off (-42 %), and a prediction that runs above a lost
+  correction is not passive (docs/codec.md).
+- TDPA's energy deadband (``exchange_j``, off by default; our own): a port also sends once
+  more than that much energy has crossed it, in or out, since its last packet. Where energy
+  flows (contact) the hold stays short: at D = 1 ms the hold's lag is what costs the stiff
+  wall's felt stiffness (the channel without codec loses 23 % of it from 1 to 2 ms of
+  delay; the codec's holds drove a sustained oscillation there whose passivity-controller
+  cuts drifted the TO out of the wall). Free motion and a settled push cross little energy
+  and keep the deadband's intervals. It only adds packets: passive as before.
 
 Past the maximum interval the peer should have sent: the tick is a loss (``expired``) and the
 port's own loss rule applies (the bounded hold, TDPA's hold then zero); the peer timeout
@@ -114,6 +125,7 @@ PREDICTIONS_BY_MODE = {"wave": ("linear", "hold"), "tdpa": ("hold", "linear")}
 def configure(
     port: Port, weber: float, floor: float, min_ticks: int, max_ticks: int,
     velocity_gain: float = 0.0, prediction: str = "linear", peer_prediction: str | None = None,
+    exchange_j: float = 0.0,
 ) -> None:  # fmt: skip
     """Switch the deadband codec on at ``port`` (its own signal's Weber fraction and floor;
     ``prediction``: how the peer reconstructs this port's packets between them, 'linear' or
@@ -123,6 +135,8 @@ def configure(
         raise ValueError(f"the codec's prediction is one of {sorted(PREDICTIONS)}")
     if not 0.0 < weber < 1.0 or floor < 0.0 or velocity_gain < 0.0:
         raise ValueError("the deadband needs 0 < weber < 1, floor >= 0, velocity_gain >= 0")
+    if not exchange_j >= 0.0 or (exchange_j > 0.0 and int(port.mode) == WAVE):
+        raise ValueError("the codec's exchange_j is >= 0 J, and only for TDPA")
     if not 1 <= min_ticks <= max_ticks:
         raise ValueError("the codec's intervals need 1 <= min_ticks <= max_ticks")
     if port.delay_ticks < 1:
@@ -132,6 +146,7 @@ def configure(
     port.codec_min, port.codec_max = min_ticks, max_ticks
     port.codec_reserve, port.codec_room_ticks = RESERVE, ROOM_TICKS
     port.codec_energy_step = ENERGY_STEP_J
+    port.codec_exchange_step = exchange_j
     port.codec_predict = PREDICTIONS[prediction]
     port.codec_rx_predict = PREDICTIONS[peer_prediction]
     port.codec_sum_rate = 1.0 / SUM_TIME_S
@@ -301,6 +316,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
     weber, floor, gain = f[s + Pt.CODEC_WEBER], f[s + Pt.CODEC_FLOOR], f[s + Pt.CODEC_VELOCITY_GAIN]
     reserve, room_ticks = f[s + Pt.CODEC_RESERVE], f[s + Pt.CODEC_ROOM_TICKS]
     step = f[s + Pt.CODEC_ENERGY_STEP]
+    exchange = f[s + Pt.CODEC_EXCHANGE_STEP]
     # with a look-ahead of A ticks the peer's room at its playout of this tick includes the
     # energy declared by any packet sent in the next A ticks: this tick's true wave energy,
     # if one goes out within A + 1 ticks of the last
@@ -317,6 +333,11 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
             crossed = True
         if not wave and step > 0.0 and tx[Pk.E_IN * n + j] - f[Pt.CODEC_E_SENT * n + j] > step:
             short = True  # the peer's controller would dissipate what it has not been told
+        if not wave and exchange > 0.0:
+            # energy crossing the port either way: the contact the peer's hold lags (docs/codec.md)
+            crossed_j = tx[Pk.E_IN * n + j] + tx[Pk.E_OUT * n + j]
+            if crossed_j - f[Pt.CODEC_E_CROSSED * n + j] > exchange:
+                short = True
         if wave and not reflects:
             # would the peer's bound cut the held wave this tick (the room declared so far)?
             if ahead:
@@ -359,6 +380,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
             f[Pt.CODEC_SLOPE * n + j] = slope
             f[Pt.CODEC_REF * n + j] = w
             f[Pt.CODEC_E_SENT * n + j] = tx[Pk.E_IN * n + j]
+            f[Pt.CODEC_E_CROSSED * n + j] = tx[Pk.E_IN * n + j] + tx[Pk.E_OUT * n + j]
     else:
         tx_i[Pk.UNSENT] = 1
         i[Pt.CODEC_SILENT] += 1

@@ -184,6 +184,7 @@ class Port(Block):
     codec_rx_slope = Vector("the slope of the peer's last two packets, per tick")
     codec_rx_sum = Vector("TDPA: dt times the sum of the peer's values as reconstructed here")
     codec_debt = Vector("TDPA: the peer's x integral minus the one reconstructed, not yet paid")
+    codec_e_crossed = Vector("TDPA: E_in + E_out of this port at its last packet sent, J")
     codec_ahead = Vector("the wave energy the peer declared in its newest packet that has "
                          "arrived but is not due yet, J (the link's look-ahead; 0: none)")
     codec_weber = Scalar("Weber fraction of the deadband", param=True)
@@ -192,6 +193,8 @@ class Port(Block):
     codec_reserve = Scalar("fraction of the band a wave is sent smaller by, when short", param=True)
     codec_room_ticks = Scalar("ticks of held wave the peer's room should cover", param=True)
     codec_energy_step = Scalar("TDPA: E_in grown by this since sent sends, J (0: off)", param=True)
+    codec_exchange_step = Scalar("TDPA: energy crossed (in or out) since sent that sends, J "
+                                 "(0: off)", param=True)
     codec_predict = Scalar("1: the peer extrapolates this port's packets (linear); 0: holds",
                            param=True)  # fmt: skip
     codec_rx_predict = Scalar("the same for this port's reconstruction of the peer's", param=True)
