@@ -606,7 +606,7 @@ class MappingSpec(Strict):
     # of its posture task, v_ref += (I - J# J) k_p (posture_rad - q), which moves the joints
     # in the tool Jacobian's null space only (0: none), and the posture (default: the TO's
     # configuration at its first tick; one angle per joint, within the joint limits)
-    posture_gain_per_s: NonNegFloat = 1.0
+    posture_gain_per_s: NonNegFloat = 0.0
     posture_rad: list[FiniteFloat] | None = None
     # the TO's frame against the HSI's (task space only; teleop_rt.mapping): the TO's tool is
     # to be at R (alpha x_hsi) + offset_m, R from roll, pitch, yaw about the fixed x, y, z
@@ -734,10 +734,16 @@ class SessionConfig(Strict):
 
     @model_validator(mode="after")
     def _posture_in_task_space(self) -> SessionConfig:
-        if self.mapping.posture_rad is not None and self.channel.space == "joint":
+        m = self.mapping
+        if m.posture_rad is not None and self.channel.space == "joint":
             raise ValueError(
                 "mapping.posture_rad: the posture task acts in the null space of the TO's tool "
                 "Jacobian; it needs channel.space: plane, position or pose"
+            )
+        if m.posture_rad is not None and m.posture_gain_per_s == 0:
+            raise ValueError(
+                "mapping.posture_rad: the posture acts with mapping.posture_gain_per_s > 0 "
+                "(its gain k_p, 1/s; 0 turns the posture task off)"
             )
         return self
 

@@ -642,8 +642,9 @@ def to_posture(f: np.ndarray, i: np.ndarray, n: int, q: np.ndarray, error: np.nd
     i.e. the second task of Nakamura, Hanafusa & Yoshikawa's task priority ("Task-priority
     based redundancy control of robot manipulators", IJRR 1987) when the second task is the
     whole configuration, its velocity z (their J2 = I: with the exact pseudo-inverse P is
-    symmetric idempotent and P J^+ = 0, so their second term is P z); Siciliano & Slotine ("A general framework for managing multiple tasks
-    in highly redundant robotic systems", ICAR 1991) give it as the lowest priority. Why a
+    symmetric idempotent and P J^+ = 0, so their second term is P z); Siciliano & Slotine
+    ("A general framework for managing multiple tasks in highly redundant robotic systems",
+    ICAR 1991) give it as the lowest priority. Why a
     posture and not null-space damping -k_d P v: C2 already acts on v_ref - v, so the null
     space's velocity is already damped toward 0 (at the velocity loop's rate 1 / T2); what
     nothing restores is its position, which drifts (J# is one tick stale, damped, and the plane

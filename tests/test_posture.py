@@ -38,11 +38,12 @@ from teleop_rt.mapping import (
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
 from tests.test_bad_input import assert_refused
+from tests.test_no_allocation import net_blocks
 
 TASK_SPACE = CONFIGS / "task_space"
 LWA = pin.LOCAL_WORLD_ALIGNED
 L2 = DLS_DAMPING_M**2
-KP = 1.0  # the default's k_p, 1/s (mapping.posture_gain_per_s)
+KP = 1.0  # k_p, 1/s (mapping.posture_gain_per_s; off by default)
 T2 = 0.005  # the TO's M2 / c2 in the task-space configs
 RNG = np.random.default_rng(26)
 
@@ -107,6 +108,20 @@ def test_the_posture_defaults_to_the_first_ticks_configuration() -> None:
     assert Mapping(6, TO, 1e-3, space=JOINT, posture_gain=KP).posture_gain == 0
 
 
+def test_off_by_default_and_in_a_session_the_posture_is_the_start() -> None:
+    """The default config has no posture task (the kernel is not called: the runs are those
+    of before it); with a gain and no posture_rad, a session's posture is the TO's start."""
+    path = TASK_SPACE / "scara_ur5_plane.yaml"
+    assert Session(config.load(path, [])).to.mapping.posture_gain == 0
+    session = Session(config.load(path, ["mapping.posture_gain_per_s=1", "duration_s=0.005"]))
+    session.run()
+    to = session.to.mapping
+    assert to.posture_gain == 1 and to.posture_held == 1
+    at = to.posture_at
+    assert to.f[at : at + 6].tolist() == session.cfg.to.robot.q0_rad
+    assert session.hsi.mapping.posture_gain == 0
+
+
 def tool_pose(model: pin.Model, data: pin.Data, frame: int, q: np.ndarray, m: int) -> np.ndarray:
     pin.framesForwardKinematics(model, data, q)
     return data.oMf[frame].translation[: min(m, 3)].copy()
@@ -164,9 +179,8 @@ def test_a_null_space_offset_decays_as_exp_minus_kp_t_and_the_tool_stays(name: s
     session = Session(config.load(path, [
         "environment=[]", "duration_s=4", "operator={kind: damper, damping_nm_s_per_rad: 1.0}",
         "to.robot.q0_rad=" + json.dumps(q0.tolist()),
-        "mapping.posture_rad=" + json.dumps(q_p.tolist()),
+        "mapping.posture_rad=" + json.dumps(q_p.tolist()), f"mapping.posture_gain_per_s={KP}",
     ]))  # fmt: skip
-    assert session.cfg.mapping.posture_gain_per_s == KP
     rows: list[np.ndarray] = []
     summary = session.run(observer=lambda s: rows.append(
         np.concatenate([s.to.feedback.q, s.to.feedback.v])))  # fmt: skip
@@ -248,20 +262,36 @@ def test_the_posture_does_no_work_on_the_wall() -> None:
 
 
 def posture_case(*overrides: str) -> list[str]:
-    return ["check", str(TASK_SPACE / "scara_ur5_plane.yaml"),
-            *(x for o in overrides for x in ("--set", o))]  # fmt: skip
+    return ["check", str(TASK_SPACE / "scara_ur5_plane.yaml"), "--set",
+            "mapping.posture_gain_per_s=1", *(x for o in overrides for x in ("--set", o))]
 
 
 def test_a_bad_posture_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
-    """Wrong length, outside a joint's limits, in joint space, or a TO with no joint to spare:
-    one line naming mapping.posture_rad, exit 2."""
+    """Wrong length, outside a joint's limits, in joint space, without a gain, or a TO with no
+    joint to spare: one line naming mapping.posture_rad, exit 2."""
     assert_refused(posture_case("mapping.posture_rad=[0, 0]"), capsys,
                    "mapping.posture_rad: has 2 entries but the TO has 6 joints")  # fmt: skip
     assert_refused(posture_case("mapping.posture_rad=[0, -1.2, 7.0, -1.97, -1.57, 0]"), capsys,
                    "mapping.posture_rad: 7 rad for joint 2", "outside its limits")  # fmt: skip
     assert_refused(posture_case("channel.space=joint", "mapping.posture_rad=[0, 0]"), capsys,
                    "mapping.posture_rad", "channel.space: plane, position or pose")  # fmt: skip
+    assert_refused(["check", str(TASK_SPACE / "scara_ur5_plane.yaml"), "--set",
+                    "mapping.posture_rad=[0, -1.2, 1.6, -1.97, -1.57, 0]"], capsys,
+                   "mapping.posture_rad", "mapping.posture_gain_per_s > 0")  # fmt: skip
     with pytest.raises(ConfigError) as err:
-        Session(config.load(TASK_SPACE / "ur5_scara_plane.yaml", ["mapping.posture_rad=[0, 1]"]))
+        Session(config.load(TASK_SPACE / "ur5_scara_plane.yaml",
+                            ["mapping.posture_gain_per_s=1", "mapping.posture_rad=[0, 1]"]))
     said = str(err.value)
     assert "\n" not in said and said.startswith("mapping.posture_rad: the TO's 2 joints have none")
+
+
+def test_a_tick_with_the_posture_keeps_no_allocation() -> None:
+    """The posture's tick path allocates nothing it keeps (tests/test_no_allocation.py's
+    measurement): the SCARA -> UR5 pair with the posture on, after warm-up."""
+    session = Session(config.load(TASK_SPACE / "scara_ur5_plane.yaml",
+                                  ["mapping.posture_gain_per_s=1"]))  # fmt: skip
+    for _ in range(500):
+        session.step()
+    ticks = 4000
+    assert net_blocks(session.step, ticks) < ticks // 100
+    assert session.to.mapping.posture_held == 1
