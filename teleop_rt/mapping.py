@@ -659,8 +659,9 @@ def to_posture(f: np.ndarray, i: np.ndarray, n: int, q: np.ndarray, error: np.nd
     |J z| at sigma_min = 0.3 m). It is computed here, J (P z), at no extra storage, and its
     largest |entry| is reported (``peak_posture_leak``). Passivity: the channel's port
     variables (omega_t in, r beta J#^T tau_e out) do not contain the term, and the power it
-    does on a force F at the tool (tau_e = J^T F) is F . J P z, the leak's: zero but for
-    l^2 (tests/test_posture.py). Near a singularity the leak is the damping's own trade:
+    does on a force F at the tool (tau_e = J^T F) is F . J P z, the leak's, and what the
+    one-tick stale J leaves, F . (J - J_stale) P z (tests/test_posture.py: 4e-6 of the
+    port's peak power). Near a singularity the leak is the damping's own trade:
     the posture's motion then moves the tool along the weak direction, as J#'s task motion
     loses it."""
     Mp = Mapping.idx
