@@ -17,6 +17,7 @@ moves it."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
@@ -38,6 +39,7 @@ from teleop_rt.mapping import (
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
 from tests.test_bad_input import assert_refused
+from tests.test_heterogeneous_pairs import IMPAIRMENTS, assert_passive_under
 from tests.test_no_allocation import net_blocks
 
 TASK_SPACE = CONFIGS / "task_space"
@@ -295,3 +297,15 @@ def test_a_tick_with_the_posture_keeps_no_allocation() -> None:
     ticks = 4000
     assert net_blocks(session.step, ticks) < ticks // 100
     assert session.to.mapping.posture_held == 1
+
+
+@pytest.mark.parametrize("impairment", IMPAIRMENTS)
+@pytest.mark.parametrize("name", ["scara_ur5_plane", "scara_panda_plane"])
+def test_a_pair_with_the_posture_stays_passive_under_every_impairment(
+    name: str, impairment: str, tmp_path: Path
+) -> None:  # fmt: skip
+    """The plane pairs with a redundant TO, the posture on (k_p 1 /s), under the study's
+    impairment classes and traces on the default channel: both ports' balances and the
+    channel's energy >= -1e-9 J, motion bounded, no stop (slow)."""
+    assert_passive_under(TASK_SPACE / f"{name}.yaml", impairment, tmp_path, 6.0,
+                         ("mapping.posture_gain_per_s=1",))  # fmt: skip
