@@ -606,6 +606,12 @@ class MappingSpec(Strict):
     # channel.space: pose, at the TO: the gain K (1/s) of its orientation's correction toward
     # the orientation the channel commanded, integrated on SO(3) (0: none)
     orientation_gain_per_s: NonNegFloat = 5.0
+    # task space, a redundant TO (more joints than the task's directions): the gain k_p (1/s)
+    # of its posture task, v_ref += (I - J# J) k_p (posture_rad - q), which moves the joints
+    # in the tool Jacobian's null space only (0: none), and the posture (default: the TO's
+    # configuration at its first tick; one angle per joint, within the joint limits)
+    posture_gain_per_s: NonNegFloat = 0.0
+    posture_rad: list[FiniteFloat] | None = None
     # the TO's frame against the HSI's (task space only; teleop_rt.mapping): the TO's tool is
     # to be at R (alpha x_hsi) + offset_m, R from roll, pitch, yaw about the fixed x, y, z
     # axes (URDF's rpy), in the pose its orientation at R R_hsi; in the plane only a yaw and
@@ -732,6 +738,21 @@ class SessionConfig(Strict):
                 "mapping: in the plane (channel.space: plane) the frames differ by an x, y "
                 "offset and a yaw only: offset_m's z and rotation_rpy_deg's roll and pitch "
                 "must be 0"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _posture_in_task_space(self) -> SessionConfig:
+        m = self.mapping
+        if m.posture_rad is not None and self.channel.space == "joint":
+            raise ValueError(
+                "mapping.posture_rad: the posture task acts in the null space of the TO's tool "
+                "Jacobian; it needs channel.space: plane, position or pose"
+            )
+        if m.posture_rad is not None and m.posture_gain_per_s == 0:
+            raise ValueError(
+                "mapping.posture_rad: the posture acts with mapping.posture_gain_per_s > 0 "
+                "(its gain k_p, 1/s; 0 turns the posture task off)"
             )
         return self
 

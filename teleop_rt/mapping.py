@@ -196,9 +196,16 @@ class Mapping(Block):
         "where R (d x d, row major; d: frame_dim), the offset (d) and a task-sized scratch "
         "start", param=True,
     )
+    # the posture task (task space, a redundant TO: ``to_posture``)
+    posture_gain = Scalar("TO: k_p, 1/s, the null-space pull toward the posture (0: none)",
+                          param=True)
+    peak_posture_leak = Scalar("the largest |J (I - J# J) z| so far: the task motion the "
+                               "posture term made (m/s; the pose: its largest entry)")
+    posture_at = Int("where the posture (joints) and two task-sized scratches start", param=True)
+    posture_held = Int("1: the posture is set (0: the first tick's q becomes it)")
     # the script: starts then ends of the clutch, then of the absences; then (task space) the
     # kinematics, refreshed by ``map_kinematics`` after every tick, the virtual walls, the
-    # DLS's work (m > 2), the pose's rotations and the frame map
+    # DLS's work (m > 2), the pose's rotations, the frame map and the posture
     TAIL_IS_STATE = False
 
     def __init__(
@@ -208,7 +215,8 @@ class Mapping(Block):
         space: int = JOINT, joints: int | None = None, speed_limit: float = math.inf,
         force_limit: float = math.inf, walls: list[tuple[float, ...]] | None = None,
         live: int = 0, follow: bool = False, orientation_gain: float = 0.0,
-        frame: tuple[np.ndarray, np.ndarray] | None = None,
+        frame: tuple[np.ndarray, np.ndarray] | None = None, posture_gain: float = 0.0,
+        posture: np.ndarray | None = None,
     ) -> None:  # fmt: skip
         """``n``: the port's size (the joints, or the task's dimension); ``joints``: the robot's
         (default n). ``speed_limit``, ``force_limit``, ``walls`` (x, y, nx, ny, k, d each):
@@ -217,7 +225,9 @@ class Mapping(Block):
         ``follow``: the TO decouples while the HSI's packets say it is decoupled.
         ``orientation_gain``: POSE at the TO, K of its orientation's correction (1/s). ``frame``:
         the TO's (R, offset), R d x d and the offset d (``frame_dim``; None: the frames
-        agree)."""
+        agree). ``posture_gain``: at a redundant TO in task space (more joints than the task's
+        dimension), k_p of its posture task (``to_posture``; 0: none, and elsewhere ignored);
+        ``posture``: its joint angles (None: the configuration at the first tick)."""
         clutch, absent, walls = clutch or [], absent or [], walls or []
         script = 2 * (len(clutch) + len(absent))
         nj = n if joints is None else joints
@@ -229,7 +239,15 @@ class Mapping(Block):
             raise ValueError("a frame map needs a task space")
         d = frame_dim(m)  # (R: d x d, the offset d, then an m-float scratch)
         framing = d * d + d + m if frame is not None else 0
-        super().__init__(n, tail=script + kin + work + rotations + framing)
+        redundant = side == TO and space != JOINT and nj > m and posture_gain > 0.0
+        posing = nj + 2 * m if redundant else 0  # the posture, then J z and J P z (m each)
+        super().__init__(n, tail=script + kin + work + rotations + framing + posing)
+        if redundant:  # (the tail's last)
+            self.posture_gain = posture_gain
+            self.posture_at = self.tail_start + self.tail - posing
+            if posture is not None:
+                self.f[self.posture_at : self.posture_at + nj] = posture
+                self.posture_held = 1
         self.task = m
         self.work_at = self.tail_start + script + kin
         self.rot_at = self.work_at + work
@@ -615,6 +633,68 @@ def to_plane_output(
 
 
 @jit
+def to_posture(f: np.ndarray, i: np.ndarray, n: int, q: np.ndarray, error: np.ndarray) -> None:
+    """Task space at a redundant TO (nj joints > the task's n), after ``to_plane_output``: the
+    posture task's joint velocity (I - J# J) z, z = k_p (q_posture - q), added to C2's error.
+
+    The gradient projection of Liegeois ("Automatic supervisory control of the configuration
+    and behavior of multibody mechanisms", IEEE T-SMC 1977) with the cost k_p |q - q_p|^2 / 2,
+    i.e. the second task of Nakamura, Hanafusa & Yoshikawa's task priority ("Task-priority
+    based redundancy control of robot manipulators", IJRR 1987) when the second task is the
+    whole configuration, its velocity z (their J2 = I: with the exact pseudo-inverse P is
+    symmetric idempotent and P J^+ = 0, so their second term is P z); Siciliano & Slotine
+    ("A general framework for managing multiple tasks in highly redundant robotic systems",
+    ICAR 1991) give it as the lowest priority. Why a
+    posture and not null-space damping -k_d P v: C2 already acts on v_ref - v, so the null
+    space's velocity is already damped toward 0 (at the velocity loop's rate 1 / T2); what
+    nothing restores is its position, which drifts (J# is one tick stale, damped, and the plane
+    leaves z and the orientation free). With T2 = M2 / c2 the same on every joint, a posture
+    offset in the null space obeys T2 e'' + e' + k_p e = 0: exp(-k_p t) for k_p T2 << 1.
+
+    The projector is the DLS's own, P = I - J# J = I - J^T A^-1 J (A = J J^T + l^2 I, J# as
+    ``map_kinematics`` wrote it): symmetric, eigenvalue 1 on J's null space (exact there) and
+    l^2 / (sigma^2 + l^2) along each row-space direction of singular value sigma. So it is not
+    quite a null-space projector: J P z = l^2 A^-1 J z (since J J# = I - l^2 A^-1), the leak,
+    |J P z| <= l^2 / (sigma_min^2 + l^2) |J z|, at most l / 2 |z| whatever sigma (1e-5 of
+    |J z| at sigma_min = 0.3 m). It is computed here, J (P z), at no extra storage, and its
+    largest |entry| is reported (``peak_posture_leak``). Passivity: the channel's port
+    variables (omega_t in, r beta J#^T tau_e out) do not contain the term, and the power it
+    does on a force F at the tool (tau_e = J^T F) is F . J P z, the leak's, and what the
+    one-tick stale J leaves, F . (J - J_stale) P z (tests/test_posture.py: 4e-6 of the
+    port's peak power). Near a singularity the leak is the damping's own trade:
+    the posture's motion then moves the tool along the weak direction, as J#'s task motion
+    loses it."""
+    Mp = Mapping.idx
+    nj, k = i[Mp.JOINTS], i[Mp.KIN_AT]
+    jj, inv = k, k + n * nj
+    at = i[Mp.POSTURE_AT]
+    w, leak = at + nj, at + nj + n
+    s = Mp.N_VECTORS * n
+    gain = f[s + Mp.POSTURE_GAIN]
+    if not i[Mp.POSTURE_HELD]:  # the first tick's configuration
+        for j in range(nj):
+            f[at + j] = q[j]
+        i[Mp.POSTURE_HELD] = 1
+    for a in range(n):  # J z
+        ja = 0.0
+        for j in range(nj):
+            ja += f[jj + a * nj + j] * (f[at + j] - q[j])
+        f[w + a] = gain * ja
+        f[leak + a] = 0.0
+    for j in range(nj):  # P z = z - J# (J z), and the leak J (P z)
+        pz = gain * (f[at + j] - q[j])
+        for a in range(n):
+            pz -= f[inv + j * n + a] * f[w + a]
+        error[j] += pz
+        for a in range(n):
+            f[leak + a] += f[jj + a * nj + j] * pz
+    peak = f[s + Mp.PEAK_POSTURE_LEAK]
+    for a in range(n):
+        peak = max(peak, abs(f[leak + a]))
+    f[s + Mp.PEAK_POSTURE_LEAK] = peak
+
+
+@jit
 def frame_turn(
     f: np.ndarray, fr: int, d: int, n: int, x: np.ndarray, out: int, transposed: bool
 ) -> None:  # fmt: skip
@@ -673,7 +753,8 @@ def mapping_for(cfg: SessionConfig, joints: int, side: int) -> Mapping:
         spec.engage_step_nm, -1 if timeout is None else round(timeout * rate),
         space, joints, speed, force, walls, live_inputs(cfg) if side == HSI else 0,
         side == TO and live_inputs(cfg) != 0, spec.orientation_gain_per_s,
-        frame_for(cfg) if side == TO and spec.framed else None,
+        frame_for(cfg) if side == TO and spec.framed else None, spec.posture_gain_per_s,
+        None if spec.posture_rad is None else np.array(spec.posture_rad, dtype=float),
     )  # fmt: skip
 
 

@@ -82,6 +82,29 @@ def require_task_span(model: RobotModel, space: str, task: int, name: str) -> No
         )
 
 
+def require_posture(model: RobotModel, posture: list[float] | None, space: str, task: int) -> None:
+    """ConfigError unless ``mapping.posture_rad`` (None: the first tick's q) fits the TO: one
+    angle per joint, each within its joint limits, and joints to spare over the task."""
+    if posture is None:
+        return
+    n = model.nv
+    if len(posture) != n:
+        raise ConfigError(f"mapping.posture_rad: has {len(posture)} entries but the TO has {n} "
+                          "joints")  # fmt: skip
+    if n <= task:
+        raise ConfigError(
+            f"mapping.posture_rad: the TO's {n} joints have none to spare over the {task} "
+            f"directions of channel.space: {space} (a posture needs a redundant TO)"
+        )
+    low, high = model.position_limits
+    for j, angle in enumerate(posture):
+        if not low[j] <= angle <= high[j]:
+            raise ConfigError(
+                f"mapping.posture_rad: {angle:g} rad for joint {j} ({model.joint_names[j]}) is "
+                f"outside its limits [{low[j]:g}, {high[j]:g}] rad"
+            )
+
+
 class SensorsUnusable(Exception):
     """A robot's sensors cannot be trusted while stopping: zero torque at once."""
 
@@ -101,6 +124,9 @@ class Site:
         self.cfg = cfg
         model = RobotModel.from_spec(spec.robot, name, cfg.plant.coulomb_smoothing_rad_s)
         n = model.nv
+        if name == "to" and cfg.channel.space != "joint":  # (before the map takes it)
+            require_posture(model, cfg.mapping.posture_rad, cfg.channel.space,
+                            port_size(cfg.channel.space, n))  # fmt: skip
         self.virtual_mass = per_joint(spec.virtual_mass, n, f"{name}.virtual_mass")
         self.backend_name = backend_name or cfg.backend_for(name)
         self._assemble(

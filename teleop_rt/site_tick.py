@@ -39,6 +39,7 @@ from teleop_rt.mapping import (
     to_map_output,
     to_plane_input,
     to_plane_output,
+    to_posture,
 )
 from teleop_rt.safety import guard_site, measured_fault
 from teleop_rt.task_limits import to_speed_ceiling, to_speed_limit, to_tool_sense
@@ -160,6 +161,8 @@ def site_before_models(f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int) -> N
         if mapped and ints_of(i, o, MAP)[Mp.SPACE] != JOINT:  # r alpha J# omega_t
             mf, mi = floats_of(f, o, MAP), ints_of(i, o, MAP)
             to_plane_output(mf, mi, n, omega_t, v, error)
+            if mf[ms + Mp.POSTURE_GAIN] > 0.0:  # a redundant TO's posture, in J's null space
+                to_posture(mf, mi, n, vec(floats_of(f, o, FB), Fb.Q, nj), error)
             if mi[Mp.LIMITS]:
                 to_speed_limit(mf, mi, n, omega_t, v)
         elif mapped:  # the velocity reference r alpha omega_t

@@ -68,6 +68,9 @@ MARKS_BY_TEST = {
     "test_cli.py::test_bode_piped_is_not_cut_at_80_columns": ("slow",),
     "test_heterogeneous_pairs.py::test_a_pair_stays_passive_under_every_impairment": ("slow",),
     "test_task_space_3d.py::test_a_3d_pair_stays_passive_under_every_impairment": ("slow",),
+    "test_posture.py::test_a_pair_with_the_posture_stays_passive_under_every_impairment": (
+        "slow",
+    ),
     "test_frames.py::test_a_turned_scaled_pair_stays_passive_under_every_impairment": ("slow",),
     "test_frames.py::test_a_turned_offset_3d_pair_stays_passive_under_every_impairment": ("slow",),
     "test_cli.py::test_console_script_check": ("slow",),
