@@ -29,7 +29,9 @@ from teleop_rt.declarations import (
     CODEC_RECONSTRUCTIONS,
     DEFAULT_RECONSTRUCTION,
     MAX_DELAY_MS,
+    PLAYOUT_DEFAULT,
     ChannelMode,
+    Playout,
     Reconstruction,
     Space,
 )
@@ -584,10 +586,8 @@ class LinkSpec(Strict):
     # reordering, traces; in one process (fast mode, bit-reproducible) and in front of Zenoh
     # (each site holds its own packets until their instant: teleop_rt.com.zenoh_link)
     impairment: ImpairmentSpec | None = None
-    # which packet a site uses at its tick k (teleop_rt.com.playout): fixed, the one sent at
-    # k - D (jitter within D becomes the constant delay D); newest, the newest one sent by
-    # k - D that it has not used (lower latency; the delay varies with the network's)
-    playout: Literal["fixed", "newest"] = "fixed"
+    # which packet a site uses at its tick k (teleop_rt.declarations.Playout)
+    playout: Playout = PLAYOUT_DEFAULT
 
 
 class MappingSpec(Strict):

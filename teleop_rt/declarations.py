@@ -33,6 +33,13 @@ CODEC_RECONSTRUCTION: Reconstruction = CODEC_RECONSTRUCTIONS[0]
 Space = Literal["joint", "plane", "position", "pose"]
 TASK_DIMS: dict[str, int] = {"plane": 2, "position": 3, "pose": 6}  # the port's vector length
 
+# which packet a site uses at its tick k (link.playout; teleop_rt.com.playout): newest, the
+# newest one sent by k - D not yet used (a late packet is used once due instead of dropped: it
+# meets what fixed misses under outages and delay swings, docs/transparency_under_loss.md);
+# fixed, only the one sent at k - D (jitter within D becomes the constant delay D)
+Playout = Literal["newest", "fixed"]
+PLAYOUT_DEFAULT: Playout = "newest"
+
 MAX_DELAY_MS = 10_000.0  # 10 s one way: beyond any teleoperation link, and bounded memory
 
 

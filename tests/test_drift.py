@@ -31,7 +31,7 @@ def run(ppm: float, max_ppm: float = 200.0, seed: int = 1) -> dict:
     sends = TICKS + 200
     arrival = np.arange(sends) / rate + 0.1 + 0.2 + np.minimum(rng.exponential(0.3, sends), 3.0)
     order = np.argsort(arrival, kind="stable")  # the network may reorder
-    playout = Playout(N, D)
+    playout = Playout(N, D, policy="fixed")  # the rule whose floor the follower keeps
     follower = DriftFollower(playout, max_ppm=max_ppm)
     packet, into = Packet(N), Packet(N)
     lateness, used, delays = [], [], []
@@ -97,7 +97,7 @@ def test_jitter_alone_never_retargets() -> None:
 def test_a_step_of_the_networks_delay_is_followed_slowly_not_at_once() -> None:
     """A lasting step down of 5 ticks looks like drift; the follower moves by at most one
     tick per 1e6 / max_ppm ticks (5000 at 200 ppm), never in a jump, until it has followed."""
-    playout = Playout(N, D)
+    playout = Playout(N, D, policy="fixed")  # the rule whose floor the follower keeps
     follower = DriftFollower(playout, max_ppm=200.0)
     offsets = []
     for s in range(40_000):

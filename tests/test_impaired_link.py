@@ -144,8 +144,9 @@ def test_lost_packets_are_the_networks_losses_when_nothing_is_late() -> None:
 
 
 def test_a_network_slower_than_the_playout_delay_is_all_late() -> None:
+    """Under the fixed rule: a packet after its playout tick is dropped."""
     d, ticks = 5, 200
-    link = ImpairedLink(1, d, 0.001, ImpairmentSpec(delay_ms=8))
+    link = ImpairedLink(1, d, 0.001, ImpairmentSpec(delay_ms=8), playout="fixed")
     packet, into = Packet(1), Packet(1)
     for k in range(ticks):
         packet.tick = packet.seq = k

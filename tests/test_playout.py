@@ -47,7 +47,7 @@ def taken(playout: Playout, k: int) -> int | None:
 
 def test_in_time_packets_play_exactly_d_ticks_after_sending() -> None:
     d = 5
-    playout = Playout(N, d)
+    playout = Playout(N, d, policy="fixed")
     used = []
     for k in range(30):
         if k >= 1:
@@ -83,7 +83,7 @@ def test_newest_plays_the_newest_arrival_and_skips_what_it_overtook() -> None:
 
 def test_late_duplicate_early_and_reordered() -> None:
     d = 4
-    playout = Playout(N, d, early_ticks=6)
+    playout = Playout(N, d, early_ticks=6, policy="fixed")
     assert playout.arrive(0, sent(1)) == STORED  # 5 ticks early: within 6
     assert playout.arrive(0, sent(0)) == STORED  # after a later one: reordered, in time
     assert playout.arrive(0, sent(1)) == DROPPED_DUPLICATE
@@ -102,7 +102,7 @@ def test_late_duplicate_early_and_reordered() -> None:
 
 def test_an_arrival_after_its_ticks_take_is_late() -> None:
     """A transport's thread may deliver during tick k after the site took tick k's packet."""
-    playout = Playout(N, 2)
+    playout = Playout(N, 2, policy="fixed")
     assert taken(playout, 2) is None  # sender tick 0 not there yet
     assert playout.arrive(2, sent(0)) == DROPPED_LATE
     assert playout.arrive(2, sent(1)) == STORED
@@ -112,7 +112,7 @@ def test_an_arrival_after_its_ticks_take_is_late() -> None:
 
 
 def test_the_lost_count_starts_at_the_senders_first_tick() -> None:
-    playout = Playout(N, 3)
+    playout = Playout(N, 3, policy="fixed")
     for k in range(10):
         taken(playout, k)
     assert playout.counters()["lost"] == 7  # ticks 3..9 missed sender ticks 0..6
@@ -120,7 +120,7 @@ def test_the_lost_count_starts_at_the_senders_first_tick() -> None:
 
 def test_retarget_shifts_the_played_tick_by_whole_ticks() -> None:
     d = 2
-    playout = Playout(N, d)
+    playout = Playout(N, d, policy="fixed")
     for s in range(40):
         playout.arrive(0, sent(s))
     used = [taken(playout, k) for k in range(2, 8)]
@@ -135,7 +135,7 @@ def test_retarget_shifts_the_played_tick_by_whole_ticks() -> None:
 
 
 def test_delay_percentiles_from_the_histogram() -> None:
-    playout = Playout(N, 50, histogram_ticks=64)
+    playout = Playout(N, 50, histogram_ticks=64, policy="fixed")
     delays = [1] * 60 + [7] * 39 + [30, 200]  # 200 beyond the histogram: its last bin
     for s, delay in enumerate(delays):
         playout.arrive(s + delay, sent(s))
@@ -144,9 +144,9 @@ def test_delay_percentiles_from_the_histogram() -> None:
 
 def test_parameters_that_cannot_work_are_refused() -> None:
     with pytest.raises(ValueError, match="at least one tick"):
-        Playout(N, 0)
+        Playout(N, 0, policy="fixed")
     with pytest.raises(ValueError, match="early_ticks"):
-        Playout(N, 10, early_ticks=9)
+        Playout(N, 10, early_ticks=9, policy="fixed")
 
 
 class Model:
@@ -215,7 +215,7 @@ def test_the_ring_equals_the_rule_on_random_schedules(d, slack, data) -> None:
     retargets = data.draw(
         st.dictionaries(st.integers(0, ticks + d), st.integers(-2, 2), max_size=3)
     )
-    playout, model = Playout(N, d, early_ticks=early), Model(d, early)
+    playout, model = Playout(N, d, early_ticks=early, policy="fixed"), Model(d, early)
     for k in range(ticks + d + 6):
         if k in retargets:
             playout.retarget(retargets[k])

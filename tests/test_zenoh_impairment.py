@@ -43,7 +43,9 @@ def two_sites(tmp_path: Path, seconds: float, *overrides: str) -> dict:
 def test_the_receivers_counters_are_the_senders_decisions(tmp_path: Path) -> None:
     spec = ImpairmentSpec(**SPEC)
     flow = json.dumps(SPEC).replace('"', "")
-    both = two_sites(tmp_path, 3, f"link.impairment={flow}")
+    # under the fixed rule each sender tick is played once, used or lost (newest would skip
+    # the ones a stall of the loaded host let a newer one overtake)
+    both = two_sites(tmp_path, 3, f"link.impairment={flow}", "link.playout=fixed")
     for receiver, sender, stream in (("to", "hsi", HSI), ("hsi", "to", TO)):
         decided = both["sites"][sender]["link"]["impairment"]
         rx = both["sites"][receiver]["link"]["from_peer"]

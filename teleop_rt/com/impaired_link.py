@@ -21,6 +21,7 @@ from teleop_rt.com.link import Link
 from teleop_rt.com.playout import Receiver
 from teleop_rt.com.port import HSI, TO, Packet
 from teleop_rt.com.wire import WireBounds, WireBuffer, encode_into
+from teleop_rt.declarations import PLAYOUT_DEFAULT
 
 
 class InFlight:
@@ -81,7 +82,7 @@ class ImpairedLink(Link):
         session_id: int = 1,
         bounds: WireBounds | None = None,
         early_ticks: int | None = None,
-        playout: str = "fixed",
+        playout: str = PLAYOUT_DEFAULT,
     ) -> None:
         """``delay_ticks``: the playout delay D (>= 1); ``impairment``: what the network does
         (None: nothing); ``bounds``: the decoders' (both directions; generous by default);

@@ -42,6 +42,7 @@ import numpy as np
 
 from teleop_rt.com.port import Packet
 from teleop_rt.com.wire import OK, REASONS, STALE, Decoder, WireBounds
+from teleop_rt.declarations import PLAYOUT_DEFAULT
 from teleop_rt.flat import jit
 
 EARLY_SLACK_TICKS = 50  # default early horizon beyond D: room for the clocks' offset
@@ -70,7 +71,7 @@ class Playout:
         delay_ticks: int,
         early_ticks: int | None = None,
         histogram_ticks: int | None = None,
-        policy: str = "fixed",
+        policy: str = PLAYOUT_DEFAULT,
     ) -> None:
         if policy not in POLICIES:
             raise ValueError(f"playout policy {policy!r}: one of {', '.join(POLICIES)}")
@@ -245,7 +246,7 @@ class Receiver:
         sender: int,
         bounds: WireBounds | None = None,
         early_ticks: int | None = None,
-        policy: str = "fixed",
+        policy: str = PLAYOUT_DEFAULT,
     ) -> None:
         """``sender``: the side whose packets this direction carries (0 HSI, 1 TO)."""
         self.session_id = session_id
