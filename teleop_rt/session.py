@@ -414,6 +414,10 @@ class _SessionRun(LoopHooks):
         if self._observer is not None:
             self._observer(self.session)
 
+    def tick(self) -> Callable[[], None]:
+        # without an observer the loop calls the session's step itself: one call less a tick
+        return self.session.step if self._observer is None else self.step
+
     def bring_to_rest(self, clock: TickClock) -> str:
         return self.session._bring_to_rest(clock)
 
