@@ -11,6 +11,7 @@ from typing import Literal, get_args
 ChannelMode = Literal["wave", "tdpa", "direct"]  # the config's names (channel.mode)
 DIRECT, WAVE, TDPA = 0, 1, 2  # the kernels' codes
 MODES: dict[ChannelMode, int] = {"direct": DIRECT, "wave": WAVE, "tdpa": TDPA}
+DEFAULT_MODE: ChannelMode = "wave"  # the paper's wave variables (channel.mode's default)
 
 # what a wave channel puts in place of a packet that did not arrive (channel.wave_reconstruction;
 # the methods in teleop_rt.com.port's docstring)
@@ -128,3 +129,11 @@ LINK_LOG: tuple[Logged, ...] = (
 def port_symbol(site: str, source: str) -> str:
     """The log name of a site's port field ``source`` (``PORT_LOG``): its paper symbol."""
     return next(x.log_name(site) for x in PORT_LOG if x.source == source)
+
+
+# --- a writer process's shared memory (teleop_rt.recording.writer, teleop_rt.hal.can.canlog) --
+# int64 control words first, then the ring of rows (log rows, CAN frames) that the producing
+# process publishes and the writer process consumes: the index of each word
+PUBLISHED, CLOSED, CONSUMED, HEARTBEAT, STATUS, ERRNO, START_NS = range(7)
+CONTROL_WORDS = 8  # (64 bytes: the rows after them stay aligned)
+WRITE_FAILED = 1  # ctrl[STATUS] after a write error, whose errno is ctrl[ERRNO]

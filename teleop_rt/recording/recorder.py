@@ -41,6 +41,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
+from teleop_rt.declarations import (
+    CLOSED,
+    CONSUMED,
+    ERRNO,
+    HEARTBEAT,
+    PUBLISHED,
+    START_NS,
+    STATUS,
+    WRITE_FAILED,
+)
 from teleop_rt.errors import RecordingFailure, TeleopError
 from teleop_rt.flat import jit
 from teleop_rt.loop import StopSignals
@@ -48,15 +58,7 @@ from teleop_rt.mapping import JOINT, frame_rotation
 from teleop_rt.recording.scene import scene_spec, shift_sources
 from teleop_rt.recording.schema import MAPPED_FIELDS, SCHEMA_VERSION, LogLayout
 from teleop_rt.recording.writer import (
-    CLOSED,
-    CONSUMED,
     CONTROL_BYTES,
-    ERRNO,
-    HEARTBEAT,
-    PUBLISHED,
-    START_NS,
-    STATUS,
-    WRITE_FAILED,
     writer_main,
 )
 from teleop_rt.version import software_version
