@@ -167,3 +167,8 @@ def test_each_site_log_column_is_its_declared_block_field(sites, site: str) -> N
             owner, attr = f.source
             first = source.packed.index_of(owners[owner], attr)
             assert _columns(layout, gather, topic, f.name) == list(range(first, first + f.count))
+    for f in _topic(layout, f"/{site}").fields[2:]:  # the robot's: from the blocks it names
+        assert f.source is not None, f.name
+        owner, attr = f.source
+        first = source.packed.index_of(getattr(s, owner), attr)
+        assert _columns(layout, gather, f"/{site}", f.name) == list(range(first, first + f.count))

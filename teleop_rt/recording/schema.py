@@ -140,12 +140,14 @@ MAPPED_STATE = (
     ("inputs", "uint8", "the live inputs this tick's map read: 1 clutch pressed, 2 present"),
 )
 
+# a robot's per-joint fields: (name, doc, (the site's block, its field))
 ROBOT_FIELDS = (
-    ("q", "joint angles, rad"),
-    ("v", "joint velocities, rad/s"),
-    ("tau_ext", "measured torque the outside applies to the robot, N m"),
-    ("tau_cmd", "commanded motor torque, N m"),
-    ("a_ref", "reference acceleration times the virtual mass (controller output), N m"),
+    ("q", "joint angles, rad", ("feedback", "q")),
+    ("v", "joint velocities, rad/s", ("feedback", "v")),
+    ("tau_ext", "measured torque the outside applies to the robot, N m", ("feedback", "tau_ext")),
+    ("tau_cmd", "commanded motor torque, N m", ("computed_torque", "tau")),
+    ("a_ref", "reference acceleration times the virtual mass (controller output), N m",
+     ("controller", "out")),
 )
 
 
@@ -203,19 +205,24 @@ class LogLayout:
             (
                 *_common(),
                 *self._robot(self.joints_hsi),
-                Field("operator_reference_m", "float64", 3, "hand reference, world frame"),
-                Field("operator_reference_velocity_m_s", "float64", 3, ""),
-                Field("operator_force_n", "float64", 3, "operator force on the HSI tool"),
+                Field("operator_reference_m", "float64", 3, "hand reference, world frame",
+                      ("world", "reference")),
+                Field("operator_reference_velocity_m_s", "float64", 3, "",
+                      ("world", "reference_velocity")),
+                Field("operator_force_n", "float64", 3, "operator force on the HSI tool",
+                      ("world", "force")),
             ),
         )
-        contact = [Field("in_contact", "uint8", e, "per environment element")] if e else []
+        contact = [Field("in_contact", "uint8", e, "per environment element",
+                         ("world", "contacts"))] if e else []  # fmt: skip
         to = Topic(
             "/to",
             "teleop_rt/msg/ToTick",
             (
                 *_common(),
                 *self._robot(self.joints_to),
-                Field("environment_force_n", "float64", 3, "environment force on the TO tool"),
+                Field("environment_force_n", "float64", 3, "environment force on the TO tool",
+                      ("world", "force")),
                 *contact,
             ),
         )
@@ -251,9 +258,10 @@ class LogLayout:
 
     def _robot(self, joints: int) -> list[Field]:
         """A robot's fields: per joint, then (a mapped layout) of the channel's size."""
-        robot = [Field(name, "float64", joints, doc) for name, doc in ROBOT_FIELDS]
+        robot = [Field(name, "float64", joints, doc, source) for name, doc, source in ROBOT_FIELDS]
         mapped = [Field(name, "float64", self.n, doc) for name, doc in MAPPED_FIELDS]
-        state = [Field(name, kind, None, doc) for name, kind, doc in MAPPED_STATE]
+        state = [Field(name, kind, None, doc, ("mapping", name))
+                 for name, kind, doc in MAPPED_STATE]  # fmt: skip
         state = state if self.version >= 3 else []
         return robot + (mapped + state if self.mapped else [])
 
