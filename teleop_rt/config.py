@@ -27,6 +27,7 @@ from teleop_rt.com.impairment_spec import ImpairmentSpec
 from teleop_rt.declarations import (
     CODEC_RECONSTRUCTION,
     CODEC_RECONSTRUCTIONS,
+    DEFAULT_MODE,
     DEFAULT_RECONSTRUCTION,
     MAX_DELAY_MS,
     PLAYOUT_DEFAULT,
@@ -185,7 +186,7 @@ class ChannelSpec(Strict):
     passivity approach (tdpa: delayed velocity forward, torque back, with passivity observers
     and controllers), or, for comparison, plain delayed force feedback (direct, not passive)."""
 
-    mode: ChannelMode = "wave"
+    mode: ChannelMode = DEFAULT_MODE
     delay_ms: Annotated[float, Field(ge=0, le=MAX_DELAY_MS, allow_inf_nan=False)] = 0.0
     wave_impedance: PerJointPositive = 2.0  # b, N m s/rad per joint
     # First-order low-pass on each received wave (keeps the channel passive; damps the

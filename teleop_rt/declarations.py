@@ -4,12 +4,14 @@ the config and the command line read them without loading an implementation."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Literal, get_args
 
 # --- the channel (teleop_rt.com.port) ---------------------------------------------------------
 ChannelMode = Literal["wave", "tdpa", "direct"]  # the config's names (channel.mode)
 DIRECT, WAVE, TDPA = 0, 1, 2  # the kernels' codes
 MODES: dict[ChannelMode, int] = {"direct": DIRECT, "wave": WAVE, "tdpa": TDPA}
+DEFAULT_MODE: ChannelMode = "wave"  # the paper's wave variables (channel.mode's default)
 
 # what a wave channel puts in place of a packet that did not arrive (channel.wave_reconstruction;
 # the methods in teleop_rt.com.port's docstring)
@@ -54,3 +56,91 @@ def require_delay_ticks(delay_ticks: int) -> int:
 Overrun = Literal["catch_up", "skip", "stop"]  # what a late tick does
 OVERRUN_POLICIES: tuple[str, ...] = get_args(Overrun)
 OVERRUN_DEFAULT: Overrun = "catch_up"
+
+
+# --- the logged signals (teleop_rt.recording.schema; the gathers of teleop_rt.recording) -------
+SITES = ("hsi", "to")
+
+
+@dataclass(frozen=True)
+class Logged:
+    """One block field a log holds, declared once: where it comes from (``owner``, a block of
+    the site: "port", "packet" (the peer's packet used), "arrival"; its field ``source``),
+    its name in the log (the paper's symbol per site where it has one, else ``name`` or the
+    field's own), its ROS type, whether it is a vector of the channel's size, its doc (the
+    message definition's comment; ``{carried}``: the paper's symbol of what the peer's packet
+    carries in it, ``carries``: the sender's port field per sender site) and the first schema
+    that has it. The schema, the site log's gather and a site replay's packets read this."""
+
+    owner: str
+    source: str
+    doc: str
+    name: str = ""
+    symbols: dict[str, str] = field(default_factory=dict)  # site -> the paper's symbol
+    ros_type: str = "float64"
+    per_joint: bool = True
+    carries: dict[str, str] = field(default_factory=dict)  # sender site -> its port field
+    since: int = 1
+
+    def log_name(self, site: str) -> str:
+        return self.symbols.get(site) or self.name or self.source
+
+    def log_doc(self, site: str) -> str:
+        if not self.carries:
+            return self.doc
+        sender = SITES[1 - SITES.index(site)]
+        return self.doc.format(carried=port_symbol(sender, self.carries[sender]))
+
+
+# a site's port (``/port``), in row order: its variables under the paper's names (eq 8, 9)
+PORT_LOG: tuple[Logged, ...] = (
+    Logged("port", "flow", "port flow, rad/s", symbols={"hsi": "omega_c", "to": "omega_t"}),
+    Logged("port", "effort", "port effort, N m", symbols={"hsi": "tau_c", "to": "tau_t"}),
+    Logged("port", "wave_out", "the wave this port sends (eq 9)",
+           symbols={"hsi": "u_l", "to": "v_r"}),
+    Logged("port", "wave_in", "the wave received, after the optional filter",
+           symbols={"hsi": "v_l", "to": "u_r"}),
+    Logged("port", "power", "into the channel at this port, W and J"),
+    Logged("port", "energy", "into the channel at this port, W and J"),
+    Logged("port", "total_energy", "J, all joints", per_joint=False),
+    Logged("port", "balance", "J received minus emitted (< 0: active)", per_joint=False),
+    Logged("port", "limited", "J removed by the protection", name="removed"),
+)  # fmt: skip
+_EXTRA = "the packet's (teleop_rt.com.port.Packet)"  # the vectors a replay hands back as they are
+# a site's link (``/link``), in row order: the peer's packet the site used at the tick and when
+# it came; all that a replay needs to hand the port the same packet (site_replay.LoggedLink)
+LINK_LOG: tuple[Logged, ...] = (
+    Logged("arrival", "sender_tick", "the peer's tick of the packet used; -1: none",
+           ros_type="int64", per_joint=False),
+    Logged("arrival", "arrival_tick", "this site's tick it arrived at; -1: none",
+           ros_type="int64", per_joint=False),
+    Logged("arrival", "one_way_delay_us", "sent to arrived, one host only", per_joint=False),
+    Logged("packet", "x", "the packet's port input ({carried})",
+           carries={"hsi": "flow", "to": "effort"}),
+    Logged("packet", "wave", "the packet's wave ({carried}), before filtering",
+           carries={"hsi": "wave_out", "to": "wave_out"}),
+    Logged("packet", "wave_sum", _EXTRA),
+    Logged("packet", "x_sum", _EXTRA),
+    Logged("packet", "wave_energy", _EXTRA),
+    Logged("packet", "e_in", _EXTRA),
+    Logged("packet", "e_out", _EXTRA),
+    Logged("packet", "energy", "energy through the peer's port, J", name="peer_energy",
+           per_joint=False),
+    Logged("arrival", "valid", "1: the peer's packet due was there; 0: zeros", ros_type="uint8",
+           per_joint=False),
+    Logged("packet", "engaged", "the packet's engaged: the HSI's coupling", ros_type="uint8",
+           since=3, per_joint=False),
+)  # fmt: skip
+
+
+def port_symbol(site: str, source: str) -> str:
+    """The log name of a site's port field ``source`` (``PORT_LOG``): its paper symbol."""
+    return next(x.log_name(site) for x in PORT_LOG if x.source == source)
+
+
+# --- a writer process's shared memory (teleop_rt.recording.writer, teleop_rt.hal.can.canlog) --
+# int64 control words first, then the ring of rows (log rows, CAN frames) that the producing
+# process publishes and the writer process consumes: the index of each word
+PUBLISHED, CLOSED, CONSUMED, HEARTBEAT, STATUS, ERRNO, START_NS = range(7)
+CONTROL_WORDS = 8  # (64 bytes: the rows after them stay aligned)
+WRITE_FAILED = 1  # ctrl[STATUS] after a write error, whose errno is ctrl[ERRNO]

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -76,6 +76,11 @@ class LoopHooks(ABC):
     def bring_to_rest(self, clock: TickClock) -> str:
         """The staged stop after a safety finding (paced by ``clock`` in real time); its note."""
 
+    def tick(self) -> Callable[[], None]:
+        """What the loop calls each tick: ``step``, or a callable a run binds to save a Python
+        call per tick (a session without an observer hands over its own ``step``)."""
+        return self.step
+
     def before_start(self) -> None:
         """Once the signals are caught, before the backends are activated (a site's handshake
         with its peer: no motor is enabled before it)."""
@@ -102,7 +107,7 @@ def run_loop(
     options: LoopOptions = LoopOptions(),
     recorder: Recorder | None = None,
 ) -> LoopOutcome:
-    """Run ``hooks.step`` ``total`` times, one per period ``dt`` in real time (else back to
+    """Run ``hooks.tick()`` ``total`` times, one per period ``dt`` in real time (else back to
     back), calling the hooks at their points. Whatever ends the run, every backend is
     deactivated together and released, and ``recorder`` (if any), which records every tick,
     is closed with the summary ``hooks.finish(outcome)`` gives."""
@@ -116,7 +121,7 @@ def run_loop(
     out = LoopOutcome(stats, clock, realtime, perf(), StopSignals())
     out.notes += grant.notes if grant else []
     stop = out.stop
-    step = hooks.step
+    step = hooks.tick()
     next_report = 0
     try:
         stop.install()

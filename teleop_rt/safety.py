@@ -21,6 +21,10 @@ session then brings both robots to rest and commands zero torque, finishes the l
 from __future__ import annotations
 
 import math
+from collections import namedtuple
+from collections.abc import Callable
+from enum import IntEnum, unique
+from typing import Any
 
 import numpy as np
 
@@ -46,13 +50,60 @@ class RobotLimits:
         self.effort = [e if e > 0 else None for e in model.effort_limits.tolist()]
 
 
-# what a check found (0: nothing); MEASURED_*: a non-finite measurement; SATURATION: a torque
-# at its limit for too long
-OK, STALE, ANGLE, SPEED, TRACKING, TORQUE_NAN, TORQUE_LIMIT = range(7)
-MEASURED_ANGLE, MEASURED_SPEED, MEASURED_TORQUE, IMPLAUSIBLE_TORQUE, IMPLAUSIBLE_SPEED = range(
-    7, 12
+@unique
+class Finding(IntEnum):
+    """What a robot's compiled checks found, each declared once: its code (what the kernels
+    return, as the compile-time constants of ``FOUND``; 0: nothing; the sites' own findings,
+    ``mapping.PRESENCE_LOST`` and ``task_limits.TOOL_FORCE``, are from 200), its wording
+    (``RobotGuard.stop_for`` formats it with the guard's figures: ``RobotGuard.wording``) and
+    whether it names a joint (then "<robot> joint j (<name>): " comes first; else the text
+    names the robot itself). MEASURED_*: a non-finite measurement; SATURATION: a torque at
+    its limit for too long."""
+
+    text: str
+    joint: bool
+
+    def __new__(cls, code: int, text: str = "", joint: bool = True) -> Finding:
+        member = int.__new__(cls, code)
+        member._value_ = code
+        member.text, member.joint = text, joint
+        return member
+
+    OK = 0, ""
+    STALE = 1, "{robot} feedback stale for {age_ticks} ticks (sensor dropout)", False
+    ANGLE = 2, "angle {x:.4g} rad outside [{lo:g}, {hi:g}]"
+    SPEED = 3, "speed {x:.4g} rad/s above {vmax:g}"
+    TRACKING = 4, (
+        "does not follow its commanded acceleration (off by more than {tolerance:g} rad/s^2 "
+        "for {tracking_ticks} ticks: saturated or blocked actuator)"
+    )
+    TORQUE_NAN = 5, "commanded torque is {x}"
+    TORQUE_LIMIT = 6, "torque {x:.4g} N m above {emax:g}"
+    MEASURED_ANGLE = 7, "angle is {x}"
+    MEASURED_SPEED = 8, "speed is {x}"
+    MEASURED_TORQUE = 9, "measured torque is {x}"
+    IMPLAUSIBLE_TORQUE = 10, (
+        "measured torque {x:.4g} N m is implausible (above {tau_ext_max:.4g}: a sensor "
+        "fault? safety.measured_torque_limit_nm)"
+    )
+    IMPLAUSIBLE_SPEED = 11, (
+        "measured speed {x:.4g} rad/s is implausible (above {v_measured_max:.4g}: a sensor "
+        "fault? safety.measured_velocity_limit_rad_s)"
+    )
+    SATURATION = 100, (
+        "{robot}: a motor torque has been at its effort limit for {saturation_stop_ticks} "
+        "ticks in a row (unstable loop or blocked joint)"
+    ), False
+
+
+# the codes as the kernels read them: a named tuple of ints, which numba folds into a kernel
+# as constants (an IntEnum member is a type of its own there, which ``if code:`` refuses);
+# made at run time, so typed Any (as ``Block.idx``)
+_codes: Callable[..., Any] = namedtuple
+FOUND: Any = _codes("FindingCodes", [x.name for x in Finding], module=__name__)(
+    *(int(x) for x in Finding)
 )
-SATURATION = 100
+
 # default plausibility bounds of measurements, as multiples of the URDF's limits
 MEASURED_TORQUE_FACTOR, MEASURED_VELOCITY_FACTOR = 3.0, 2.0
 
@@ -189,38 +240,27 @@ class RobotGuard(Block):
         return clamp_to_effort(self.f, self.n, tau)
 
     def stop_for(self, tick: int, code: int, age_ticks: int) -> SafetyStop:
-        """The SafetyStop that words a finding of the compiled checks."""
-        if code == SATURATION:
-            return SafetyStop(
-                f"tick {tick}: {self.name}: a motor torque has been at its effort limit for "
-                f"{self.saturation_stop_ticks} ticks in a row (unstable loop or blocked joint)"
-            )
-        if code == STALE:
-            return SafetyStop(
-                f"tick {tick}: {self.name} feedback stale for {age_ticks} ticks (sensor dropout)"
-            )
-        j, x = self.joint, self.value
-        what = {
-            ANGLE: lambda: f"angle {x:.4g} rad outside [{self.lo[j]:g}, {self.hi[j]:g}]",
-            SPEED: lambda: f"speed {x:.4g} rad/s above {self.vmax[j]:g}",
-            TRACKING: self._tracking_reason,
-            TORQUE_NAN: lambda: f"commanded torque is {x}",
-            TORQUE_LIMIT: lambda: f"torque {x:.4g} N m above {self.emax[j]:g}",
-            MEASURED_ANGLE: lambda: f"angle is {x}",
-            MEASURED_SPEED: lambda: f"speed is {x}",
-            MEASURED_TORQUE: lambda: f"measured torque is {x}",
-            IMPLAUSIBLE_TORQUE: lambda: (
-                f"measured torque {x:.4g} N m is implausible (above {self.tau_ext_max[j]:.4g}: "
-                "a sensor fault? safety.measured_torque_limit_nm)"
-            ),
-            IMPLAUSIBLE_SPEED: lambda: (
-                f"measured speed {x:.4g} rad/s is implausible (above "
-                f"{self.v_measured_max[j]:.4g}: a sensor fault? "
-                "safety.measured_velocity_limit_rad_s)"
-            ),
-        }[code]()
-        joint_name = self.limits.joint_names[j]
-        return SafetyStop(f"tick {tick}: {self.name} joint {j} ({joint_name}): {what}")
+        """The SafetyStop that words a finding of the compiled checks (``Finding``)."""
+        finding = Finding(code)
+        text = finding.text.format(**self.wording(age_ticks, finding.joint))
+        if finding.joint:
+            j = self.joint
+            text = f"{self.name} joint {j} ({self.limits.joint_names[j]}): {text}"
+        return SafetyStop(f"tick {tick}: {text}")
+
+    def wording(self, age_ticks: int, joint: bool) -> dict[str, Any]:
+        """What a finding's text may name: the robot, the offending value ``x``, the counts and
+        tolerances, and (a joint's finding) that joint's limits."""
+        out: dict[str, Any] = {
+            "robot": self.name, "x": self.value, "age_ticks": age_ticks,
+            "tolerance": self.tolerance, "tracking_ticks": self.tracking_ticks,
+            "saturation_stop_ticks": self.saturation_stop_ticks,
+        }  # fmt: skip
+        if joint:
+            j = self.joint
+            out.update({name: getattr(self, name)[j] for name in
+                        ("lo", "hi", "vmax", "emax", "tau_ext_max", "v_measured_max")})  # fmt: skip
+        return out
 
     def check_workspace(self, tick: int, q: np.ndarray) -> None:
         """The tool frame inside its workspace box (forward kinematics at the measured q)."""
@@ -232,13 +272,6 @@ class RobotGuard(Block):
                     f"tick {tick}: {self.name} tool frame '{self.model.ee_frame}' at {name} = "
                     f"{x:.4g} m, outside its workspace [{lower:g}, {upper:g}] m"
                 )
-
-    def _tracking_reason(self) -> str:
-        return (
-            f"does not follow its commanded acceleration (off by more than "
-            f"{self.tolerance:g} rad/s^2 for {self.tracking_ticks} ticks: saturated or "
-            "blocked actuator)"
-        )
 
 
 @jit
@@ -254,7 +287,7 @@ def measured_fault(
     f: np.ndarray, i: np.ndarray, n: int, q: np.ndarray, v: np.ndarray, tau_ext: np.ndarray
 ) -> int:
     """The first non-finite measurement (angle, speed, torque), then the first implausible one
-    (torque, speed beyond the plausibility bounds), or OK. One pass without slices in the
+    (torque, speed beyond the plausibility bounds), or FOUND.OK. One pass without slices in the
     common case (every tick of every site runs it); the finding's wording only on a fault."""
     Rg = RobotGuard.idx
     t0, v0 = Rg.TAU_EXT_MAX * n, Rg.V_MEASURED_MAX * n
@@ -264,7 +297,7 @@ def measured_fault(
             math.isfinite(q[j]) and -f[t0 + j] <= tj <= f[t0 + j] and -f[v0 + j] <= vj <= f[v0 + j]
         ):
             return _measured_finding(f, i, n, q, v, tau_ext)  # (a NaN fails the comparisons)
-    return OK
+    return FOUND.OK
 
 
 @jit
@@ -274,20 +307,20 @@ def _measured_finding(
     Rg = RobotGuard.idx
     j = _first_non_finite(q, n)
     if j >= 0:
-        return _found(f, i, n, MEASURED_ANGLE, j, q[j])
+        return _found(f, i, n, FOUND.MEASURED_ANGLE, j, q[j])
     j = _first_non_finite(v, n)
     if j >= 0:
-        return _found(f, i, n, MEASURED_SPEED, j, v[j])
+        return _found(f, i, n, FOUND.MEASURED_SPEED, j, v[j])
     j = _first_non_finite(tau_ext, n)
     if j >= 0:
-        return _found(f, i, n, MEASURED_TORQUE, j, tau_ext[j])
+        return _found(f, i, n, FOUND.MEASURED_TORQUE, j, tau_ext[j])
     tmax, vmax = vec(f, Rg.TAU_EXT_MAX, n), vec(f, Rg.V_MEASURED_MAX, n)
     for j in range(n):
         if not -tmax[j] <= tau_ext[j] <= tmax[j]:
-            return _found(f, i, n, IMPLAUSIBLE_TORQUE, j, tau_ext[j])
+            return _found(f, i, n, FOUND.IMPLAUSIBLE_TORQUE, j, tau_ext[j])
         if not -vmax[j] <= v[j] <= vmax[j]:
-            return _found(f, i, n, IMPLAUSIBLE_SPEED, j, v[j])
-    return OK
+            return _found(f, i, n, FOUND.IMPLAUSIBLE_SPEED, j, v[j])
+    return FOUND.OK
 
 
 @jit
@@ -360,7 +393,7 @@ def guard_check(
     a_cmd: np.ndarray,
 ) -> int:
     """One robot's checks; saturates tau_cmd in place (int ``saturated``: whether it did). Returns
-    the finding (joint and value in the block) or OK."""
+    the finding (joint and value in the block) or FOUND.OK."""
     Rg = RobotGuard.idx
     track = i[Rg.TRACKING_TICKS] > 0
     i[Rg.SATURATED] = 0
@@ -368,7 +401,7 @@ def guard_check(
         i[Rg.TRACKING_VALID] = 0  # no fresh velocity: nothing to compare
         track = False
         if age_ticks >= i[Rg.STALE_TICKS]:
-            return STALE
+            return FOUND.STALE
     lo, hi, vmax, emax = vec(f, Rg.LO, n), vec(f, Rg.HI, n), vec(f, Rg.VMAX, n), vec(f, Rg.EMAX, n)
     prev_v, prev_a, run = vec(f, Rg.PREV_V, n), vec(f, Rg.PREV_A, n), vec(f, Rg.RUN, n)
     compare = track and i[Rg.TRACKING_VALID] != 0
@@ -377,23 +410,23 @@ def guard_check(
     for j in range(n):
         qj, vj = q[j], v[j]
         if not lo[j] <= qj <= hi[j]:
-            return _found(f, i, n, ANGLE, j, qj)
+            return _found(f, i, n, FOUND.ANGLE, j, qj)
         if not -vmax[j] <= vj <= vmax[j]:
-            return _found(f, i, n, SPEED, j, vj)
+            return _found(f, i, n, FOUND.SPEED, j, vj)
         if compare:
             error = (vj - prev_v[j]) * inv_dt - prev_a[j]
             if error > tol or error < -tol:
                 run[j] += 1.0
                 if run[j] >= i[Rg.TRACKING_TICKS]:
-                    return _found(f, i, n, TRACKING, j, error)
+                    return _found(f, i, n, FOUND.TRACKING, j, error)
             else:
                 run[j] = 0.0
         c = tau_cmd[j]
         if not math.isfinite(c):  # first: an inf passes torque_limits: off's infinite limit
-            return _found(f, i, n, TORQUE_NAN, j, c)
+            return _found(f, i, n, FOUND.TORQUE_NAN, j, c)
         if not -emax[j] <= c <= emax[j]:
             if i[Rg.STOP_ON_TORQUE]:
-                return _found(f, i, n, TORQUE_LIMIT, j, c)
+                return _found(f, i, n, FOUND.TORQUE_LIMIT, j, c)
             tau_cmd[j] = emax[j] if c > 0 else -emax[j]
             i[Rg.SATURATED] = 1
     if track:
@@ -401,7 +434,7 @@ def guard_check(
             prev_v[j] = v[j]
             prev_a[j] = a_cmd[j]
         i[Rg.TRACKING_VALID] = 1
-    return OK
+    return FOUND.OK
 
 
 @jit
@@ -416,20 +449,20 @@ def guard_site(
     if not i[Rg.ENABLED]:
         for j in range(n):
             if not math.isfinite(tau_cmd[j]):
-                return _found(f, i, n, TORQUE_NAN, j, tau_cmd[j])
-        return OK
+                return _found(f, i, n, FOUND.TORQUE_NAN, j, tau_cmd[j])
+        return FOUND.OK
     code = guard_check(f, i, n, q, v, age_ticks, tau_cmd, a_cmd)
-    if code != OK:
+    if code != FOUND.OK:
         return code
     if i[Rg.SATURATED]:
         i[Rg.SATURATED_TICKS] += 1
         i[Rg.SATURATED_RUN] += 1
         limit = i[Rg.SATURATION_STOP_TICKS]
         if limit and i[Rg.SATURATED_RUN] >= limit:
-            return SATURATION
+            return FOUND.SATURATION
     else:
         i[Rg.SATURATED_RUN] = 0
-    return OK
+    return FOUND.OK
 
 
 def check_all(

@@ -28,7 +28,7 @@ from teleop_rt.com.channel import ChannelMonitor
 from teleop_rt.com.link import InProcessLink, Link
 from teleop_rt.com.port import WAVE
 from teleop_rt.config import SessionConfig
-from teleop_rt.declarations import OVERRUN_DEFAULT
+from teleop_rt.declarations import OVERRUN_DEFAULT, PORT_LOG, SITES
 from teleop_rt.errors import ConfigError, SafetyStop
 from teleop_rt.flat import Block, Packed
 from teleop_rt.lockstep import (
@@ -57,11 +57,8 @@ class ChannelView:
     """The two-port's signals under the paper's names, from the two sites' ports and the
     session's monitor (what the log's /channel topic holds)."""
 
-    SOURCES = {  # name -> (owner, field)
-        "omega_c": ("hsi", "flow"), "tau_c": ("hsi", "effort"),
-        "omega_t": ("to", "flow"), "tau_t": ("to", "effort"),
-        "u_l": ("hsi", "wave_out"), "v_l": ("hsi", "wave_in"),
-        "u_r": ("to", "wave_in"), "v_r": ("to", "wave_out"),
+    SOURCES = {  # name -> (owner, field): the ports' variables under their symbols (PORT_LOG)
+        **{x.log_name(site): (site, x.source) for site in SITES for x in PORT_LOG if x.symbols},
         "power": ("monitor", "power"), "energy": ("monitor", "energy"),
         "total_energy": ("monitor", "total_energy"),
         "min_total_energy": ("monitor", "min_total_energy"),
@@ -416,6 +413,10 @@ class _SessionRun(LoopHooks):
         self.session.step()
         if self._observer is not None:
             self._observer(self.session)
+
+    def tick(self) -> Callable[[], None]:
+        # without an observer the loop calls the session's step itself: one call less a tick
+        return self.session.step if self._observer is None else self.step
 
     def bring_to_rest(self, clock: TickClock) -> str:
         return self.session._bring_to_rest(clock)

@@ -34,3 +34,26 @@ def test_the_config_loads_no_implementation() -> None:
     done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True,
                           text=True)  # fmt: skip
     assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_the_channel_defaults_are_the_declared_ones() -> None:
+    import inspect
+
+    from teleop_rt.com.port import Port
+    from teleop_rt.config import ChannelSpec
+
+    assert ChannelSpec().mode == d.DEFAULT_MODE in d.MODES
+    assert ChannelSpec().wave_reconstruction == d.DEFAULT_RECONSTRUCTION
+    defaults = inspect.signature(Port.__init__).parameters
+    assert defaults["mode"].default == d.MODES[d.DEFAULT_MODE]
+    assert defaults["reconstruction"].default == d.RECONSTRUCTIONS[d.DEFAULT_RECONSTRUCTION]
+
+
+def test_both_writer_processes_share_one_control_block() -> None:
+    # the MCAP log's writer and the CAN log's read the same declared words
+    from teleop_rt.hal.can.canlog import CONTROL
+    from teleop_rt.recording.writer import CONTROL_BYTES
+
+    words = (d.PUBLISHED, d.CLOSED, d.CONSUMED, d.HEARTBEAT, d.STATUS, d.ERRNO, d.START_NS)
+    assert sorted(words) == list(range(len(words))) and len(words) <= d.CONTROL_WORDS
+    assert CONTROL.size == CONTROL_BYTES == 8 * d.CONTROL_WORDS

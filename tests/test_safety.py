@@ -222,3 +222,37 @@ def test_the_plausibility_bounds_are_configurable() -> None:
     stopped = Session(config.load(PAPER, tight)).run()
     assert stopped.safety_stop and stopped.ticks == 100
     assert "to joint 1 (elbow): measured torque 5 N m is implausible" in stopped.stopped_early
+
+
+def test_each_finding_is_declared_once_and_the_kernels_return_its_code() -> None:
+    """The finding codes (safety.Finding): distinct, below the sites' own (from 200), the
+    kernels' constants (FOUND) the same numbers, and what a compiled check returns is the
+    code whose declared wording the stop carries."""
+    from teleop_rt.mapping import PRESENCE_LOST
+    from teleop_rt.safety import FOUND, Finding, guard_check
+    from teleop_rt.task_limits import TOOL_FORCE
+
+    assert FOUND._asdict() == {x.name: int(x) for x in Finding}
+    assert all(type(code) is int for code in FOUND)  # (numba folds ints, not enum members)
+    assert max(Finding) < min(PRESENCE_LOST, TOOL_FORCE)
+    guard = supervisor(torque_limits="stop").guards["hsi"]
+    guard.joint, guard.value = 1, 4.0
+    for finding in Finding:  # every finding's wording takes only what the guard gives it
+        if finding is not Finding.OK:
+            text = str(guard.stop_for(3, finding, 2))
+            assert text.startswith("tick 3: hsi") and "{" not in text, text
+            assert ("hsi joint 1 (elbow): " in text) == finding.joint, text
+    n = guard.n
+    cases = (  # (q, v, age, tau) -> the finding
+        ([0.0, 9.0], [0.0, 0.0], 0, [0.0, 0.0], Finding.ANGLE),
+        ([0.0, 0.0], [0.0, 0.0], guard.stale_ticks, [0.0, 0.0], Finding.STALE),
+        ([0.0, 0.0], [0.0, 0.0], 0, [0.0, 1e9], Finding.TORQUE_LIMIT),
+        ([0.0, 0.0], [0.0, 0.0], 0, [0.0, 0.0], Finding.OK),
+    )
+    for q, v, age, tau, expected in cases:
+        code = guard_check(guard.f, guard.i, n, np.array(q), np.array(v), age, np.array(tau),
+                           np.zeros(n))  # fmt: skip
+        assert code == expected, (code, expected)
+        if expected.joint and expected is not Finding.OK:
+            assert guard.joint == 1
+            assert expected.name.lower().split("_")[0] in str(guard.stop_for(0, code, age))

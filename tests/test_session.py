@@ -120,3 +120,23 @@ def test_stiff_wall_without_the_filter_rings_up_at_short_delay() -> None:
     reason = guarded.stopped_early
     assert guarded.safety_stop and ("effort limit" in reason or "does not follow" in reason)
     assert guarded.ticks < 6000
+
+
+def test_the_loop_calls_the_sessions_step_itself_unless_observed() -> None:
+    """Without an observer the loop's tick is the session's own step (no Python call of the
+    run's in between); with one, each tick steps the session, then calls it. Both runs give
+    the same state."""
+    from teleop_rt.session import _SessionRun
+
+    plain = Session(config.load(PAPER, ["duration_s=0.02"]))
+    tick = _SessionRun(plain, None, None).tick()
+    assert getattr(tick, "__self__", None) is plain
+    assert getattr(tick, "__func__", None) is Session.step
+    seen: list[int] = []
+    observed = Session(config.load(PAPER, ["duration_s=0.02"]))
+    run = _SessionRun(observed, None, lambda s: seen.append(s.tick))
+    assert run.tick() == run.step
+    plain.run()
+    observed.run(observer=lambda s: seen.append(s.tick))
+    assert seen == list(range(1, plain.tick + 1)) and observed.tick == plain.tick == 20
+    assert np.array_equal(plain.packed.f, observed.packed.f)

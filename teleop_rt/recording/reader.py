@@ -26,9 +26,10 @@ from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.records import Attachment, Channel, Header, Metadata, Schema
 
+from teleop_rt.declarations import SITES
 from teleop_rt.errors import TeleopError, quote
 from teleop_rt.inputs import check_regular
-from teleop_rt.recording.schema import CDR_HEADER, SCHEMA_VERSION, SITES, LogLayout, Topic
+from teleop_rt.recording.schema import CDR_HEADER, SCHEMA_VERSION, LogLayout, Topic
 
 if TYPE_CHECKING:
     from teleop_rt.config import SessionConfig

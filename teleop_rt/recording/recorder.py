@@ -41,6 +41,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
+from teleop_rt.declarations import (
+    CLOSED,
+    CONSUMED,
+    ERRNO,
+    HEARTBEAT,
+    PUBLISHED,
+    START_NS,
+    STATUS,
+    WRITE_FAILED,
+)
 from teleop_rt.errors import RecordingFailure, TeleopError
 from teleop_rt.flat import jit
 from teleop_rt.loop import StopSignals
@@ -48,15 +58,7 @@ from teleop_rt.mapping import JOINT, frame_rotation
 from teleop_rt.recording.scene import scene_spec, shift_sources
 from teleop_rt.recording.schema import MAPPED_FIELDS, SCHEMA_VERSION, LogLayout
 from teleop_rt.recording.writer import (
-    CLOSED,
-    CONSUMED,
     CONTROL_BYTES,
-    ERRNO,
-    HEARTBEAT,
-    PUBLISHED,
-    START_NS,
-    STATUS,
-    WRITE_FAILED,
     writer_main,
 )
 from teleop_rt.version import software_version
@@ -502,21 +504,6 @@ def _mapped_source(site, name: str) -> tuple[Any, str]:
     return (site.mapping, "tau_mapped") if torque_mapped else (site.signals, "tau")
 
 
-ROBOT_SOURCES = {
-    "q": "feedback.q", "v": "feedback.v", "tau_ext": "feedback.tau_ext",
-    "tau_cmd": "computed_torque.tau", "a_ref": "controller.out",
-    # MAPPED_STATE (a mapped layout, schema 3)
-    "gain": "mapping.gain", "coupled": "mapping.coupled", "inputs": "mapping.inputs",
-}  # fmt: skip
-WORLD_SOURCES = {
-    "operator_reference_m": "reference",
-    "operator_reference_velocity_m_s": "reference_velocity",
-    "operator_force_n": "force",
-    "environment_force_n": "force",
-    "in_contact": "contacts",
-}
-
-
 MAPPED_NAMES = {name for name, _ in MAPPED_FIELDS}
 
 
@@ -541,13 +528,12 @@ def robot_columns(packed, site, topic) -> list[int]:
     """Where the fields of a robot's topic (/hsi or /to) sit in ``packed``, column by column."""
     out: list[int] = []
     for field in topic.fields[2:]:
-        if field.name in ROBOT_SOURCES:
-            owner, name = ROBOT_SOURCES[field.name].split(".")
-            block = getattr(site, owner)
-        elif field.name in MAPPED_NAMES:
+        if field.name in MAPPED_NAMES:  # (its block depends on the site's map)
             block, name = _mapped_source(site, field.name)
-        else:
-            block, name = site.world, WORLD_SOURCES[field.name]
+        else:  # the site's block and field the schema names (schema.ROBOT_FIELDS, the world's)
+            assert field.source is not None
+            owner, name = field.source
+            block = getattr(site, owner)
         first = packed.index_of(block, name)
         out += range(first, first + field.count)
     return out

@@ -50,9 +50,11 @@ Besides the messages a log holds (so that it describes itself):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+
+from teleop_rt.declarations import LINK_LOG, PORT_LOG, Logged, port_symbol
 
 CDR_HEADER = b"\x00\x01\x00\x00"  # CDR, little endian, no options
 # 2: /channel has the ports' balances and the energy the protection removed; 3: a mapped
@@ -67,6 +69,8 @@ class Field:
     ros_type: str  # "uint64", "int64", "float64", "uint8"
     length: int | None  # None for a scalar, else the size of a fixed array
     doc: str = ""
+    # (owner, field) of the block field it logs, where it is declared so (``Logged``)
+    source: tuple[str, str] | None = field(default=None, compare=False)
 
     @property
     def count(self) -> int:
@@ -136,22 +140,31 @@ MAPPED_STATE = (
     ("inputs", "uint8", "the live inputs this tick's map read: 1 clutch pressed, 2 present"),
 )
 
+# a robot's per-joint fields: (name, doc, (the site's block, its field))
 ROBOT_FIELDS = (
-    ("q", "joint angles, rad"),
-    ("v", "joint velocities, rad/s"),
-    ("tau_ext", "measured torque the outside applies to the robot, N m"),
-    ("tau_cmd", "commanded motor torque, N m"),
-    ("a_ref", "reference acceleration times the virtual mass (controller output), N m"),
+    ("q", "joint angles, rad", ("feedback", "q")),
+    ("v", "joint velocities, rad/s", ("feedback", "v")),
+    ("tau_ext", "measured torque the outside applies to the robot, N m", ("feedback", "tau_ext")),
+    ("tau_cmd", "commanded motor torque, N m", ("computed_torque", "tau")),
+    ("a_ref", "reference acceleration times the virtual mass (controller output), N m",
+     ("controller", "out")),
 )
 
 
-# a site's port under the paper's names: (flow, effort, wave_out, wave_in) per side
-PORT_NAMES = {"hsi": ("omega_c", "tau_c", "u_l", "v_l"), "to": ("omega_t", "tau_t", "v_r", "u_r")}
-PEER_NAMES = {"hsi": ("tau_t", "v_r"), "to": ("omega_c", "u_l")}  # what the peer's packet holds
-# the packet's other vectors (integrals and cumulative energies), logged as they are: what a
-# replay needs to hand the port the packet the site used (teleop_rt.com.port.Packet)
-PACKET_EXTRAS = ("wave_sum", "x_sum", "wave_energy", "e_in", "e_out")
-SITES = ("hsi", "to")
+
+def _logged(declared: tuple[Logged, ...], site: str, n: int, version: int) -> list[Field]:
+    """The fields of a site's declared signals (``teleop_rt.declarations.Logged``) a log of
+    schema ``version`` holds."""
+    return [
+        Field(x.log_name(site), x.ros_type, n if x.per_joint else None, x.log_doc(site),
+              (x.owner, x.source))
+        for x in declared if x.since <= version
+    ]  # fmt: skip
+
+
+def _symbols(*fields: tuple[str, str]) -> list[str]:
+    """The paper's symbols of (site, port field) pairs (the /channel topic's names)."""
+    return [port_symbol(site, source) for site, source in fields]
 
 
 @dataclass(frozen=True)
@@ -192,19 +205,24 @@ class LogLayout:
             (
                 *_common(),
                 *self._robot(self.joints_hsi),
-                Field("operator_reference_m", "float64", 3, "hand reference, world frame"),
-                Field("operator_reference_velocity_m_s", "float64", 3, ""),
-                Field("operator_force_n", "float64", 3, "operator force on the HSI tool"),
+                Field("operator_reference_m", "float64", 3, "hand reference, world frame",
+                      ("world", "reference")),
+                Field("operator_reference_velocity_m_s", "float64", 3, "",
+                      ("world", "reference_velocity")),
+                Field("operator_force_n", "float64", 3, "operator force on the HSI tool",
+                      ("world", "force")),
             ),
         )
-        contact = [Field("in_contact", "uint8", e, "per environment element")] if e else []
+        contact = [Field("in_contact", "uint8", e, "per environment element",
+                         ("world", "contacts"))] if e else []  # fmt: skip
         to = Topic(
             "/to",
             "teleop_rt/msg/ToTick",
             (
                 *_common(),
                 *self._robot(self.joints_to),
-                Field("environment_force_n", "float64", 3, "environment force on the TO tool"),
+                Field("environment_force_n", "float64", 3, "environment force on the TO tool",
+                      ("world", "force")),
                 *contact,
             ),
         )
@@ -213,8 +231,10 @@ class LogLayout:
             "teleop_rt/msg/ChannelTick",
             (
                 *_common(),
-                *_joint(["omega_c", "tau_c", "omega_t", "tau_t"], n, "port variables (eq 8)"),
-                *_joint(["u_l", "v_l", "u_r", "v_r"], n, "waves (eq 9), as used this tick"),
+                *_joint(_symbols(("hsi", "flow"), ("hsi", "effort"), ("to", "flow"),
+                                 ("to", "effort")), n, "port variables (eq 8)"),
+                *_joint(_symbols(("hsi", "wave_out"), ("hsi", "wave_in"), ("to", "wave_in"),
+                                 ("to", "wave_out")), n, "waves (eq 9), as used this tick"),
                 *_joint(["power", "energy"], n, "W and J per joint (eq 7, 8)"),
                 Field("total_energy", "float64", None, "J, all joints"),
                 Field("balance_hsi", "float64", None, "J received minus emitted at the HSI port"),
@@ -238,50 +258,22 @@ class LogLayout:
 
     def _robot(self, joints: int) -> list[Field]:
         """A robot's fields: per joint, then (a mapped layout) of the channel's size."""
-        robot = [Field(name, "float64", joints, doc) for name, doc in ROBOT_FIELDS]
+        robot = [Field(name, "float64", joints, doc, source) for name, doc, source in ROBOT_FIELDS]
         mapped = [Field(name, "float64", self.n, doc) for name, doc in MAPPED_FIELDS]
-        state = [Field(name, kind, None, doc) for name, kind, doc in MAPPED_STATE]
+        state = [Field(name, kind, None, doc, ("mapping", name))
+                 for name, kind, doc in MAPPED_STATE]  # fmt: skip
         state = state if self.version >= 3 else []
         return robot + (mapped + state if self.mapped else [])
 
     def _site_topics(self) -> tuple[Topic, Topic]:
-        n, side = self.n, self.site
-        flow, effort, out, into = PORT_NAMES[side]
+        n, side, version = self.n, self.site, self.version
         port = Topic(
             "/port",
             f"teleop_rt/msg/{side.capitalize()}PortTick",
-            (
-                *_common(),
-                Field(flow, "float64", n, "port flow, rad/s"),
-                Field(effort, "float64", n, "port effort, N m"),
-                Field(out, "float64", n, "the wave this port sends (eq 9)"),
-                Field(into, "float64", n, "the wave received, after the optional filter"),
-                *_joint(["power", "energy"], n, "into the channel at this port, W and J"),
-                Field("total_energy", "float64", None, "J, all joints"),
-                Field("balance", "float64", None, "J received minus emitted (< 0: active)"),
-                Field("removed", "float64", n, "J removed by the protection"),
-            ),
+            (*_common(), *_logged(PORT_LOG, side, n, version)),
         )
-        peer_x, peer_wave = PEER_NAMES[side]
         link = Topic(
-            "/link",
-            "teleop_rt/msg/LinkTick",
-            (
-                *_common(),
-                Field("sender_tick", "int64", None, "the peer's tick of the packet used; -1: none"),
-                Field("arrival_tick", "int64", None, "this site's tick it arrived at; -1: none"),
-                Field("one_way_delay_us", "float64", None, "sent to arrived, one host only"),
-                Field("x", "float64", n, f"the packet's port input ({peer_x})"),
-                Field("wave", "float64", n, f"the packet's wave ({peer_wave}), before filtering"),
-                *(
-                    Field(name, "float64", n, "the packet's (teleop_rt.com.port.Packet)")
-                    for name in PACKET_EXTRAS
-                ),  # fmt: skip
-                Field("peer_energy", "float64", None, "energy through the peer's port, J"),
-                Field("valid", "uint8", None, "1: the peer's packet due was there; 0: zeros"),
-                *([Field("engaged", "uint8", None, "the packet's engaged: the HSI's coupling")]
-                  if self.version >= 3 else []),  # fmt: skip
-            ),
+            "/link", "teleop_rt/msg/LinkTick", (*_common(), *_logged(LINK_LOG, side, n, version))
         )
         return port, link
 

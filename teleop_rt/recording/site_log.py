@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, cast
 import numpy as np
 
 from teleop_rt.com.zenoh_link import Arrival, shared_parts
+from teleop_rt.declarations import SITES
 from teleop_rt.flat import Packed
 from teleop_rt.recording.recorder import (
     DEFAULT_LOG_DIR,
@@ -38,23 +39,12 @@ from teleop_rt.recording.recorder import (
     robot_columns,
 )
 from teleop_rt.recording.scene import scene_spec, shift_sources
-from teleop_rt.recording.schema import PACKET_EXTRAS, PORT_NAMES, LogLayout
+from teleop_rt.recording.schema import LogLayout
 from teleop_rt.site import Site
 
 if TYPE_CHECKING:
     from teleop_rt.recording.live import LiveAddress
     from teleop_rt.session import Session
-
-PORT_SOURCES = ("flow", "effort", "wave_out", "wave_in", "power", "energy", "total_energy",
-                "balance", "limited")  # fmt: skip
-LINK_SOURCES = {
-    "sender_tick": ("arrival", "sender_tick"), "arrival_tick": ("arrival", "arrival_tick"),
-    "one_way_delay_us": ("arrival", "one_way_delay_us"), "x": ("rx", "x"),
-    "wave": ("rx", "wave"), "peer_energy": ("rx", "energy"), "valid": ("arrival", "valid"),
-    "engaged": ("rx", "engaged"),
-    **{name: ("rx", name) for name in PACKET_EXTRAS},
-}  # fmt: skip
-
 
 class SiteLogSource:
     """What the recorder reads of a site that runs alone. Building it packs the site's blocks
@@ -82,12 +72,12 @@ class SiteLogSource:
                            mapped=bool(site.mapping.active))  # fmt: skip
         robot, port, link = layout.topics[:3]
         out = robot_columns(self.packed, site, robot)
-        for field, attr in zip(port.fields[2:], PORT_SOURCES, strict=True):
-            out += self._columns(site.port, attr, field.count)
-        for field in link.fields[2:]:
-            owner, attr = LINK_SOURCES[field.name]
-            block = self.arrival if owner == "arrival" else site.rx
-            out += self._columns(block, attr, field.count)
+        # /port and /link: each field from the block field it is declared to log (Logged)
+        owners = {"port": site.port, "packet": site.rx, "arrival": self.arrival}
+        for field in (*port.fields[2:], *link.fields[2:]):
+            assert field.source is not None  # (every field of these topics is declared so)
+            owner, attr = field.source
+            out += self._columns(owners[owner], attr, field.count)
         # to the session's helpers this is a session: cfg, n, dt, tick, the site under its name
         as_session = cast("Session", self)
         shifts = shift_sources(as_session) if n_env else np.zeros(0, dtype=np.int64)
@@ -139,7 +129,7 @@ def default_pair_base(name: str, directory: Path | None = None) -> Path:
     directory = DEFAULT_LOG_DIR if directory is None else directory
     base = default_log_path(name, directory)
     i = 1
-    while any(site_log_path(base, s).exists() for s in PORT_NAMES):
+    while any(site_log_path(base, s).exists() for s in SITES):
         base = default_log_path(f"{name}-{i}", directory)
         i += 1
     return base

@@ -33,6 +33,7 @@ import numpy as np
 from teleop_rt.com.link import Link
 from teleop_rt.com.port import Packet
 from teleop_rt.com.zenoh_link import Arrival, shared_parts
+from teleop_rt.declarations import port_symbol
 from teleop_rt.errors import ConfigError
 from teleop_rt.loop import TickClock
 from teleop_rt.recording.reader import LogData, read_log, require_ticks
@@ -43,7 +44,7 @@ from teleop_rt.recording.replay import (
     replay_operator,
     take_logged_inputs,
 )
-from teleop_rt.recording.schema import PACKET_EXTRAS, PORT_NAMES
+from teleop_rt.recording.schema import LogLayout
 from teleop_rt.recording.site_log import site_log_path, site_recorder
 from teleop_rt.runner import LoopHooks, LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest
@@ -52,10 +53,21 @@ COMPARED = ("/port",)  # with the robot's topic: what a replay without overrides
 
 
 class LoggedLink(Link):
-    """The peer's packets from a site's log: at tick k the one the site used at tick k."""
+    """The peer's packets from a site's log: at tick k the one the site used at tick k, each
+    packet field the log's /link declares to hold (``teleop_rt.declarations.LINK_LOG``) handed
+    back as it was logged."""
 
-    def __init__(self, link: np.ndarray, site: Site, arrival: Arrival | None) -> None:
+    def __init__(
+        self, link: np.ndarray, site: Site, arrival: Arrival | None, layout: LogLayout
+    ) -> None:
         self.rows, self.site, self.arrival = link, site, arrival
+        topic = next(t for t in layout.topics if t.name == "/link")
+        fields = [(f.name, f.source) for f in topic.fields[2:] if f.source is not None]
+        self.vectors = [(name, attr) for name, (owner, attr) in fields
+                        if owner == "packet" and attr in Packet.VECTORS]  # fmt: skip
+        self.numbers = [(name, attr, attr in Packet.INTS) for name, (owner, attr) in fields
+                        if owner == "packet" and attr not in Packet.VECTORS]  # fmt: skip
+        self.arrivals = [(name, attr) for name, (owner, attr) in fields if owner == "arrival"]
         # the HSI's coupling state each packet carried (schema 3): a TO that followed a live
         # clutch follows it again (an older log's packets said nothing of it: coupled)
         self.engaged = "engaged" in (link.dtype.names or ())
@@ -66,21 +78,21 @@ class LoggedLink(Link):
     def receive(self, side: int, into: Packet) -> None:
         row = self.rows[self.site.tick]
         if row["valid"]:
-            into.x[:] = row["x"]
-            into.wave[:] = row["wave"]
-            for name in PACKET_EXTRAS:
-                getattr(into, name)[:] = row[name]
-            into.energy = float(row["peer_energy"])
+            for name, attr in self.vectors:
+                getattr(into, attr)[:] = row[name]
+            for name, attr, is_int in self.numbers:  # (a scalar is a float, an Int an int)
+                setattr(into, attr, int(row[name]) if is_int else float(row[name]))
             into.tick = into.seq = int(row["sender_tick"])
             into.valid = 1
-            into.engaged = int(row["engaged"]) if self.engaged else 1
+            if not self.engaged:
+                into.engaged = 1
         else:  # as the playout hands out a packet that is not there: zeros
             into.f[:] = 0.0
             into.i[:] = 0
         a = self.arrival
         if a is not None:  # the replay's log holds the same /link
-            a.sender_tick, a.arrival_tick = float(row["sender_tick"]), float(row["arrival_tick"])
-            a.one_way_delay_us, a.valid = float(row["one_way_delay_us"]), float(row["valid"])
+            for name, attr in self.arrivals:
+                setattr(a, attr, float(row[name]))
 
     def end_tick(self, side: int) -> None:
         pass
@@ -110,7 +122,8 @@ def build_site_replay(data: LogData, overrides: list[str]) -> Site:
 def run_site_replay(site: Site, data: LogData, recorder) -> dict:
     """Run the site tick-locked against the logged packets; its summary (a dict)."""
     cfg = site.cfg
-    link = LoggedLink(data.topics["/link"], site, recorder.session.arrival if recorder else None)
+    arrival = recorder.session.arrival if recorder else None
+    link = LoggedLink(data.topics["/link"], site, arrival, data.layout)
     run = _ReplayRun(site, link, data, logged_inputs(data))
     run_loop(run, data.ticks, cfg.dt, [site.backend], recorder=recorder)
     assert run.summary is not None  # (finish runs however the loop ends)
@@ -161,7 +174,7 @@ class _ReplayRun(LoopHooks):
 def site_figures(data: LogData) -> dict:
     """A site log's own figures (see the module's doc)."""
     robot, port = data.topics[f"/{data.site}"], data.topics["/port"]
-    flow, effort = PORT_NAMES[data.site][:2]
+    flow, effort = (port_symbol(data.site, x) for x in ("flow", "effort"))
     if data.site == "hsi":
         error = robot["tau_ext"] - port[effort]  # tau_h - tau_c
     else:

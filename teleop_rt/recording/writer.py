@@ -50,6 +50,17 @@ import foxglove
 import numpy as np
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
+from teleop_rt.declarations import (
+    CLOSED,
+    CONSUMED,
+    CONTROL_WORDS,
+    ERRNO,
+    HEARTBEAT,
+    PUBLISHED,
+    START_NS,
+    STATUS,
+    WRITE_FAILED,
+)
 from teleop_rt.process_name import set_process_name
 from teleop_rt.recording.schema import CDR_HEADER, LogLayout
 
@@ -57,9 +68,7 @@ if TYPE_CHECKING:
     from teleop_rt.recording.live import LiveAddress, LiveServer
     from teleop_rt.recording.scene import SceneSpec
 
-CONTROL_BYTES = 64
-PUBLISHED, CLOSED, CONSUMED, HEARTBEAT, STATUS, ERRNO, START_NS = range(7)
-WRITE_FAILED = 1
+CONTROL_BYTES = 8 * CONTROL_WORDS
 PROCESS_NAME = "teleop-rt-log"  # the writer's name in ps / top / /proc/PID/comm
 PROFILE = "ros2"
 BATCH_ROWS = 4096

@@ -28,6 +28,16 @@ from typing import Any
 
 import can
 
+from teleop_rt.declarations import (
+    CLOSED,
+    CONSUMED,
+    CONTROL_WORDS,
+    ERRNO,
+    HEARTBEAT,
+    PUBLISHED,
+    STATUS,
+    WRITE_FAILED,
+)
 from teleop_rt.errors import ConfigError
 from teleop_rt.process_name import set_process_name
 
@@ -38,9 +48,7 @@ CHANNELS = {"hsi": 0, "to": 1}
 RECORD = struct.Struct("<dIBBBx64s")
 EXTENDED, RX, ERROR, REMOTE, FD, BRS, ESI = (1 << k for k in range(7))
 CAPACITY = 1 << 15  # records (2.6 MB): 1.6 s of the 20 000 frames a second of two robots
-PUBLISHED, CLOSED, CONSUMED, HEARTBEAT, STATUS, ERRNO = range(6)
-CONTROL = struct.Struct("@8q")
-WRITE_FAILED = 1
+CONTROL = struct.Struct(f"@{CONTROL_WORDS}q")  # the writer's control words (declarations)
 PROCESS_NAME = "teleop-rt-can"
 POLL_S = 0.005
 BATCH = 1024  # records written between two reports of progress
@@ -81,7 +89,7 @@ class CanLog:
         buf = self.shm.buf
         assert buf is not None  # (None only once the mapping is closed)
         self.buf: memoryview = buf
-        CONTROL.pack_into(self.buf, 0, 0, 0, 0, 0, 0, 0, 0, 0)
+        CONTROL.pack_into(self.buf, 0, *[0] * CONTROL_WORDS)
         self._word = struct.Struct("@q")
         self.published = 0
         self._consumed = 0
