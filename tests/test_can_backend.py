@@ -213,6 +213,26 @@ def test_a_lost_heartbeat_stops_within_3_ticks_of_its_timeout(started) -> None:
     assert_stopped_safely(backend)
 
 
+def test_a_stopped_heartbeat_stays_stopped_over_an_nmt_change(started) -> None:
+    """A SYNC after an NMT command is answered from a fresh sample (no plant step): the lasting
+    faults of the tick still hold there, so the drive whose heartbeat was stopped sends none
+    (before, that answer cleared the silence for one SYNC, and a heartbeat due then went out)."""
+    backend = started("can.heartbeat_timeout_ms=1000")  # the master does not stop meanwhile
+    emu = backend.emulator
+    run_ticks(backend, 10)
+    emu.inject(Fault("stop_heartbeat", 1))
+    emu.sent = []
+    start_node_1 = can.Message(arbitration_id=0x000, data=bytes([0x01, 1]), is_extended_id=False)
+    drive = emu.by_node[1]
+    for _ in range(30):  # 3 heartbeat periods (10 ms)
+        if emu.time_us + emu.period_us - drive.last_heartbeat_us >= drive.heartbeat_us:
+            emu.handle(start_node_1)  # before the SYNC its heartbeat is due at: an NMT change
+        run_ticks(backend, 1)
+    beats = [cob for cob, _ in emu.sent if cob in (0x701, 0x702)]
+    assert beats.count(0x702) == 3  # the other drive's, every 10 ms
+    assert 0x701 not in beats
+
+
 def test_a_bus_error_is_a_safe_stop(started) -> None:
     backend = started()
     run_ticks(backend, 3)
@@ -712,6 +732,25 @@ def test_heartbeats_are_wall_clock_times_when_ticks_are_slow(free_running) -> No
             time.sleep(SLOW_TICK_S)
             run_ticks(backend, 1)
     assert backend.tick - start < 50, info.value  # 150 ms at >= 10 ms a tick: about 15
+
+
+def test_a_stopped_heartbeat_stays_stopped_while_no_sync_comes(free_running) -> None:
+    """Between SYNCs the free-running emulator's drives send their heartbeats by the wall clock
+    (ticks slower than the heartbeat period, or none at all): a drive whose heartbeat was
+    stopped stays silent there too, the other's goes on. (Before, that path sent both: with
+    ticks of 10 ms on a loaded host the test above saw the loss after 106 ticks, or never.)"""
+    backend = free_running()
+    emu = backend.emu
+    run_ticks(backend, 5)
+    with emu._lock:
+        emu.inject(Fault("stop_heartbeat", 2))
+        emu.sent = []
+    time.sleep(0.12)  # no tick: 6 heartbeat periods (20 ms), within the drives' 200 ms watch
+    with emu._lock:
+        beats = [cob for cob, _ in emu.sent if cob in (0x701, 0x702)]
+        emu.sent = None
+    assert 0x701 in beats, beats  # the wall-clock path ran
+    assert 0x702 not in beats, beats
 
 
 # --- frames stay on this host -------------------------------------------------------------

@@ -596,7 +596,9 @@ class DriveEmulator:
         if advance:
             for d in self.drives:
                 d.advance_state()
-        active = self._active_faults() if advance else []
+        # without advance the world tick stays: its lasting faults still hold (a drive told to
+        # stop its heartbeat stays silent over an NMT change), its one-shots have fired
+        active = self._active_faults(one_shots=advance)
         for kind, d in active:
             self._fire(kind, [d] if kind != "error_frame" else [])
         dropped = {id(d) for kind, d in active if kind == "drop_tpdo"}
@@ -659,7 +661,9 @@ class DriveEmulator:
         if kind == "error_frame":  # SocketCAN's layout: controller problem, RX error passive
             self.send(0x004, b"\x00\x10" + bytes(6), error_frame=True)
 
-    def _active_faults(self) -> list[tuple[str, EmulatedDrive]]:
+    def _active_faults(self, one_shots: bool = True) -> list[tuple[str, EmulatedDrive]]:
+        """The (kind, drive) pairs of the faults active at the world tick; the one-shots due
+        are taken off the list (``one_shots=False``: left out and kept)."""
         if not self.faults:
             return []
         k = self.world_tick
@@ -668,7 +672,7 @@ class DriveEmulator:
             at = f.at_tick
             assert at is not None  # inject() schedules faults with their tick
             if f.kind in _ONE_SHOT:
-                on = k == at
+                on = one_shots and k == at
             else:
                 on = at <= k and (f.ticks is None or k < at + f.ticks)
             if on:
@@ -713,7 +717,8 @@ class DriveEmulator:
                     last_wall = now
                     for d in self.drives:
                         d.advance_state()  # e.g. FAULT REACTION ACTIVE -> FAULT
-                        d.heartbeat(self.heartbeat_clock_us(), False)
+                        # a drive whose heartbeat is stopped stays silent between SYNCs too
+                        d.heartbeat(self.heartbeat_clock_us(), id(d) in self._silent)
                         d.watch_master(self.heartbeat_clock_us())
 
 
