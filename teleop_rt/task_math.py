@@ -8,13 +8,17 @@ tool Jacobian, its smallest singular value, and the exponential and logarithm of
   J. Dyn. Sys. Meas. Control 1986): J# = J^T (J J^T + l^2 I)^-1. A = J J^T + l^2 I is
   symmetric positive definite for any J once l > 0, so its Cholesky factor L (A = L L^T)
   exists and row j of J# is the solution y of A y = J[:, j] (A symmetric), two triangular
-  solves per joint, all joints' in one sweep over L (their divisions overlap).
+  solves per joint, all joints' in one sweep over L (their chains of operations overlap), each
+  row's division by L's diagonal a product with its reciprocal (kept in L's place).
 * **Its smallest singular value**: sigma_min(J)^2 = lambda_min(A) - l^2. lambda_min(A) is found
   by inverse iteration (the power method on A^-1, with the Cholesky factor already at hand),
-  started from the previous tick's vector: J moves little in a tick, so a few steps track it.
-  The Rayleigh quotient u^T A u = |L^T u|^2 of a unit u is never below lambda_min(A) and errs
-  by the square of the vector's error (Golub & Van Loan, Matrix Computations, 4th ed. 2013,
-  sec. 8.2), so the figure is a slight over-estimate at worst, never an under-estimate.
+  one step per call (in the same sweep as J#'s rows), started from the previous tick's vector:
+  J moves little in a tick, so the steps of successive ticks track it. The figure is the
+  Rayleigh quotient of the step's result y = A^-1 u (u unit), y^T A y / y^T y = u . y / |y|^2
+  = |z|^2 / |y|^2 (z = L^-1 u, the forward solve's intermediate: no product with A or L^T). A
+  Rayleigh quotient is never below lambda_min(A) and errs by the square of the vector's error
+  (Golub & Van Loan, Matrix Computations, 4th ed. 2013, sec. 8.2), so the figure is a slight
+  over-estimate at worst, never an under-estimate (to rounding).
 * **SO(3)**: exp by Rodrigues' formula, R = I + (sin t / t) [w]x + ((1 - cos t) / t^2) [w]x^2
   (t = |w|). log inverts it: tr R = 1 + 2 cos t and R - R^T = 2 sin t [u]x give t = atan2(sin t,
   cos t) and w = t / (2 sin t) vee(R - R^T). Near t = pi, sin t vanishes and the axis comes from
@@ -32,7 +36,6 @@ import numpy as np
 
 from teleop_rt.flat import jit
 
-DLS_ITERATIONS = 2  # inverse-iteration steps per tick (warm-started: enough to track J)
 NEAR_PI_COS = -0.9  # cos t below this (t > 2.69 rad): log's axis from the symmetric part
 
 
@@ -41,65 +44,63 @@ def dls_inverse(
     f: np.ndarray, jac: np.ndarray, n: int, m: int, damping2: float, inv: int, work: int
 ) -> float:  # fmt: skip
     """J# = J^T (J J^T + l^2 I)^-1 of J = jac[:m, :n] into f[inv:] (n x m, row-major), with
-    the Cholesky factor at f[work:] (m x m) and the inverse iteration's vector after it (m,
-    kept from call to call); returns sigma_min(J)^2 (see the module's docstring)."""
+    the Cholesky factor at f[work:] (m x m, its diagonal stored as reciprocals) and the inverse
+    iteration's vector after it (m, kept from call to call); returns sigma_min(J)^2 (see the
+    module's docstring)."""
     for j in range(n):  # J^T into J#'s place (its rows are solved in place below)
+        b = inv + j * m
         for a in range(m):
-            f[inv + j * m + a] = jac[a, j]
+            f[b + a] = jac[a, j]
     for r in range(m):  # A's lower triangle, from that copy (flat: cheaper than jac[r, j])
         for c in range(r + 1):
             s = damping2 if r == c else 0.0
             for j in range(n):
                 s += f[inv + j * m + r] * f[inv + j * m + c]
             f[work + r * m + c] = s
-    for c in range(m):  # A = L L^T, in place
-        d = f[work + c * m + c]
+    for c in range(m):  # A = L L^T, in place; 1 / L_cc on the diagonal (products, not divisions)
+        cc = work + c * m
+        d = f[cc + c]
         for p in range(c):
-            d -= f[work + c * m + p] * f[work + c * m + p]
-        d = math.sqrt(d)
-        f[work + c * m + c] = d
+            d -= f[cc + p] * f[cc + p]
+        d = 1.0 / math.sqrt(d)
+        f[cc + c] = d
         for r in range(c + 1, m):
-            s = f[work + r * m + c]
-            for p in range(c):
-                s -= f[work + r * m + p] * f[work + c * m + p]
-            f[work + r * m + c] = s / d
-    # row j of J# is A^-1 J[:, j]: all n rows, and the inverse iteration's first step, are
-    # solved in one sweep over L's rows, so their independent chains of divisions overlap
-    # (one right-hand side at a time waits on each division: 1.7 times the time at m = n = 6).
-    # Each element's arithmetic, in its order, is that of solving them one at a time.
-    u = work + m * m
-    for step in range(DLS_ITERATIONS):
-        last = n if step == 0 else 0  # the right-hand sides: J#'s rows (first step), then u
-        for r in range(m):  # L z = b
             rr = work + r * m
-            d = f[rr + r]
-            for k in range(last + 1):
-                at = u if k == last else inv + k * m
-                s = f[at + r]
-                for p in range(r):
-                    s -= f[rr + p] * f[at + p]
-                f[at + r] = s / d
-        for r in range(m - 1, -1, -1):  # L^T y = z
-            d = f[work + r * m + r]
-            for k in range(last + 1):
-                at = u if k == last else inv + k * m
-                s = f[at + r]
-                for p in range(r + 1, m):
-                    s -= f[work + p * m + r] * f[at + p]
-                f[at + r] = s / d
-        norm = 0.0
-        for a in range(m):
-            norm += f[u + a] * f[u + a]
-        norm = math.sqrt(norm)
-        for a in range(m):
-            f[u + a] /= norm
-    rayleigh = 0.0  # u^T A u = |L^T u|^2
-    for c in range(m):
-        s = 0.0
-        for r in range(c, m):
-            s += f[work + r * m + c] * f[u + r]
-        rayleigh += s * s
-    return rayleigh - damping2
+            s = f[rr + c]
+            for p in range(c):
+                s -= f[rr + p] * f[cc + p]
+            f[rr + c] = s * d
+    # row j of J# is A^-1 J[:, j]: all n rows and the inverse iteration's step (k = n: the
+    # vector u) are solved in one sweep over L's rows, so their chains of operations overlap
+    u = work + m * m
+    for r in range(m):  # L z = b
+        rr = work + r * m
+        d = f[rr + r]
+        for k in range(n + 1):
+            at = u if k == n else inv + k * m
+            s = f[at + r]
+            for p in range(r):
+                s -= f[rr + p] * f[at + p]
+            f[at + r] = s * d
+    zz = 0.0  # |z|^2 = u^T A^-1 u = u . y
+    for a in range(m):
+        zz += f[u + a] * f[u + a]
+    for r in range(m - 1, -1, -1):  # L^T y = z
+        d = f[work + r * m + r]
+        for k in range(n + 1):
+            at = u if k == n else inv + k * m
+            s = f[at + r]
+            for p in range(r + 1, m):
+                s -= f[work + p * m + r] * f[at + p]
+            f[at + r] = s * d
+    yy = 0.0
+    for a in range(m):
+        yy += f[u + a] * f[u + a]
+    scale = 1.0 / math.sqrt(yy)
+    for a in range(m):
+        f[u + a] *= scale
+    # the Rayleigh quotient of y = A^-1 u: y^T A y / y^T y = u . y / |y|^2 = |z|^2 / |y|^2
+    return zz / yy - damping2
 
 
 @jit

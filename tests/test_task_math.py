@@ -89,3 +89,20 @@ def test_the_smallest_singular_value_converges_from_above(m: int, n: int) -> Non
     estimates = [dls_inverse(f, jac, n, m, lam**2, 0, n * m) for _ in range(30)]
     assert min(estimates) >= true**2 * (1 - 1e-12)
     assert np.sqrt(estimates[-1]) == pytest.approx(true, rel=1e-12)
+
+
+@pytest.mark.parametrize("m, n", [(3, 6), (6, 6), (6, 9)])
+def test_each_call_returns_the_rayleigh_quotient_of_its_step(m: int, n: int) -> None:
+    """One call is one inverse-iteration step from the kept vector u: it returns the Rayleigh
+    quotient of y = A^-1 u, y^T A y / y^T y - l^2 (numpy's, to 1e-12 relative; cond(A) ~ 10 here:
+    J well away from a singular pose), and keeps y / |y| for the next call."""
+    jac = RNG.normal(size=(m, n))
+    lam = 1e-3
+    a = jac @ jac.T + lam**2 * np.eye(m)
+    f = dls(jac, lam)[2]
+    for _ in range(3):
+        u = f[n * m + m * m :].copy()
+        y = np.linalg.solve(a, u)
+        sigma2 = dls_inverse(f, jac, n, m, lam**2, 0, n * m)
+        assert sigma2 + lam**2 == pytest.approx(y @ a @ y / (y @ y), rel=1e-12)
+        np.testing.assert_allclose(f[n * m + m * m :], y / np.linalg.norm(y), rtol=0, atol=1e-12)
