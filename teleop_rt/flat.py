@@ -77,6 +77,18 @@ def jit_inline(func: Callable[..., Any]) -> Any:
     return locked(_njit_inline(func), COMPILE_LOCK)
 
 
+def compiled_for(kernel: Any, *args: Any) -> Callable[..., Any]:
+    """``kernel``'s compiled code for the types of ``args`` (loaded or compiled now), to call
+    per tick in place of ``kernel``: a numba dispatcher works out each argument's type on
+    every call (about 0.9k instructions per array here, twice what the call itself costs),
+    the compiled entry point takes the arguments as typed here. Call it only with arguments
+    of these types (the bound buffers, Pinocchio's float64 results): it does not check them.
+    With ``NUMBA_DISABLE_JIT=1``, ``kernel`` itself."""
+    if not hasattr(kernel, "overloads"):
+        return cast(Callable[..., Any], kernel)
+    return cast(Callable[..., Any], kernel.compile(tuple(kernel.typeof_pyval(a) for a in args)))
+
+
 @jit_inline
 def vec(f: np.ndarray, k: int, n: int) -> np.ndarray:
     """Vector k of a block's float buffer (a view; compiled code only)."""

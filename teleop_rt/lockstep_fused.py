@@ -5,12 +5,17 @@ compiled calls and four backend method calls (the stages' order is ``teleop_rt.t
 lock-step one, the plants' read and write in place of the backends'):
 
     sense_and_prepare:  both plants' sensors; lockstep_before
-    (Python)            RNEA of each controller model
+    (Python)            RNEA of each controller model, into its data.tau
     finish_and_command: lockstep_after; when safe, both plants' motor torques
-    (Python)            ABA of each plant
+    (Python)            ABA of each plant, into its data.ddq
     integrate:          both plants' Euler steps
     (Python)            the tool Jacobian of each plant
     next_ticks:         both plants' loads at the next tick
+
+Four compiled calls is the least the Pinocchio calls between them allow. Each is bound once
+(``teleop_rt.flat.compiled_for``: the compiled entry point, not the dispatcher, with every
+argument fixed but the Jacobians), and the kernels read Pinocchio's results where Pinocchio
+leaves them (``data.tau``, ``data.ddq``: views taken once), not the copies its calls return.
 
 It is the same arithmetic in the same order as ``read`` / ``write`` of two ``SimBackend``s, so
 a session gives bit-identical results either way. The plants' blocks follow the session's own
@@ -23,12 +28,13 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from functools import partial
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
 
 from teleop_rt.control import ComputedTorque
-from teleop_rt.flat import Block, floats_of, ints_of, jit, vec
+from teleop_rt.flat import Block, compiled_for, floats_of, ints_of, jit, vec
 from teleop_rt.hal.base import Backend
 from teleop_rt.hal.sim import SimBackend, command, euler_step, next_tick, sense
 from teleop_rt.lockstep import (
@@ -49,25 +55,27 @@ class FusedPlants(ABC):
     """Two backends' periods run inside a lock-step session's tick kernels: the same
     arithmetic as both backends' ``read`` and ``write``, in fewer calls. The session packs
     ``blocks`` after its own blocks (``SESSION_BLOCKS``) and calls ``bind``; then per tick
-    ``before`` in place of both reads and the lock-step's first kernel, ``after`` in place of
-    its second (and, without a finding, the writes' commands), and ``advance`` for the rest of
-    the writes."""
+    ``before`` in place of both reads and the lock-step's first kernel, ``after`` (once the
+    controller models' RNEA is in ``rnea``) in place of its second (and, without a finding,
+    the writes' commands), and ``advance`` for the rest of the writes."""
 
     blocks: list[Block]
 
     @abstractmethod
     def bind(
-        self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray, port_n: int | None = None
+        self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray,
+        rnea: tuple[np.ndarray, np.ndarray], port_n: int | None = None,
     ) -> None:  # fmt: skip
-        """The packed buffers and the session's offsets (all blocks), once packed; ``port_n``:
-        the channel's size where it is not the joints' (a task-space channel)."""
+        """The packed buffers and the session's offsets (all blocks), once packed; ``rnea``:
+        where each controller model's RNEA lands (its Pinocchio ``data.tau``, HSI's and TO's);
+        ``port_n``: the channel's size where it is not the joints' (a task-space channel)."""
 
     @abstractmethod
     def before(self) -> int:
         """Both reads and the lock-step's first half; the finding (0: none)."""
 
     @abstractmethod
-    def after(self, rnea_h: np.ndarray, rnea_t: np.ndarray) -> int:
+    def after(self) -> int:
         """The lock-step's second half and, without a finding, both motor commands."""
 
     @abstractmethod
@@ -128,9 +136,10 @@ def integrate(
 @jit
 def next_ticks(
     f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, split: int,
-    jac_h: np.ndarray, x_h: np.ndarray, jac_t: np.ndarray, x_t: np.ndarray,
+    x_h: np.ndarray, x_t: np.ndarray, jac_h: np.ndarray, jac_t: np.ndarray,
 ) -> None:  # fmt: skip
-    """Both plants' time and loads at the next tick, their tools at x with Jacobians jac."""
+    """Both plants' time and loads at the next tick, their tools at x with Jacobians jac (the
+    tick's one argument not bound once: Pinocchio's Jacobian call returns a new array)."""
     next_tick(f, i, o[2 * SESSION_BLOCKS : 2 * split], n, jac_h, x_h)
     next_tick(f, i, o[2 * split :], n, jac_t, x_t)
 
@@ -144,7 +153,8 @@ class FusedSimPair(FusedPlants):
         self.n = plant_h.n  # the plants' joints
 
     def bind(
-        self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray, port_n: int | None = None
+        self, f: np.ndarray, i: np.ndarray, offsets: np.ndarray,
+        rnea: tuple[np.ndarray, np.ndarray], port_n: int | None = None,
     ) -> None:  # fmt: skip
         plant_h, plant_t = self.plants
         first = SESSION_BLOCKS
@@ -153,32 +163,40 @@ class FusedSimPair(FusedPlants):
         assert offsets.size == 2 * end, "the plants' blocks must close the session's buffers"
         plant_h.rebind(f, i, offsets[2 * first : 2 * split])
         plant_t.rebind(f, i, offsets[2 * split : 2 * end])
-        self._args = (f, i, offsets, self.n, split)
-        at = link_at(offsets)
+        n, at = self.n, link_at(offsets)
         m = self.n if port_n is None else port_n  # the port's size (in task space: 2)
-        # the per-tick calls bound once: a partial of a compiled function costs next to
-        # nothing beyond the call itself (a method that unpacks _args costs a Python frame)
-        self.before = partial(sense_and_prepare, f, i, offsets, at, m, split, self.n)  # type: ignore[method-assign]
-        self.after = partial(finish_and_command, f, i, offsets, m, split, self.n)  # type: ignore[method-assign]
+        rnea_h, rnea_t = rnea
+        a_h, a_t = plant_h.plant.data.ddq, plant_t.plant.data.ddq  # (where ABA leaves a)
+        x_h, x_t = plant_h._x, plant_t._x
         # load (or, on a fresh install, compile) the four kernels now, on scratch copies
-        n, zeros, jac, x = self.n, np.zeros(self.n), np.zeros((6, self.n)), np.zeros(3)
-        sf, si = f.copy(), i.copy()
+        sf, si, jac = f.copy(), i.copy(), np.zeros((6, n))
         sense_and_prepare(sf, si, offsets, at, m, split, n)
-        finish_and_command(sf, si, offsets, m, split, n, zeros, zeros)
-        integrate(sf, si, offsets, n, split, zeros, zeros)
-        next_ticks(sf, si, offsets, n, split, jac, x, jac, x)
+        finish_and_command(sf, si, offsets, m, split, n, rnea_h, rnea_t)
+        integrate(sf, si, offsets, n, split, a_h, a_t)
+        next_ticks(sf, si, offsets, n, split, x_h, x_t, jac, jac)
+        # the per-tick calls bound once, every argument but the Jacobians fixed (a partial of
+        # a compiled entry point costs next to nothing beyond the call itself)
+        args: tuple[Any, ...] = (f, i, offsets, at, m, split, n)
+        self.before = partial(compiled_for(sense_and_prepare, *args), *args)  # type: ignore[method-assign]
+        args = (f, i, offsets, m, split, n, rnea_h, rnea_t)
+        self.after = partial(compiled_for(finish_and_command, *args), *args)  # type: ignore[method-assign]
+        args = (f, i, offsets, n, split, a_h, a_t)
+        self._integrate = partial(compiled_for(integrate, *args), *args)
+        args = (f, i, offsets, n, split, x_h, x_t)
+        self._next_ticks = partial(compiled_for(next_ticks, *args, jac, jac), *args)
+        self._aba = (plant_h._pin, plant_t._pin)
+        self._jac = (plant_h.jacobian_call, plant_t.jacobian_call)
 
     def before(self) -> int:  # (replaced by a partial at bind)
         raise RuntimeError("bind first")
 
-    def after(self, rnea_h: np.ndarray, rnea_t: np.ndarray) -> int:  # (replaced at bind)
+    def after(self) -> int:  # (replaced at bind)
         raise RuntimeError("bind first")
 
     def advance(self) -> None:
-        plant_h, plant_t = self.plants
-        f, i, o, n, split = self._args
-        integrate(f, i, o, n, split, pin.aba(*plant_h._pin), pin.aba(*plant_t._pin))
-        next_ticks(
-            f, i, o, n, split,
-            plant_h._jacobian(), plant_h._x, plant_t._jacobian(), plant_t._x,
-        )  # fmt: skip
+        (pin_h, pin_t), ((jac_h, tool_h), (jac_t, tool_t)) = self._aba, self._jac
+        aba = pin.aba
+        aba(*pin_h)  # (into each plant's data.ddq, which integrate reads)
+        aba(*pin_t)
+        self._integrate()
+        self._next_ticks(jac_h(*tool_h), jac_t(*tool_t))

@@ -18,7 +18,8 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from functools import partial
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pinocchio as pin
@@ -30,7 +31,7 @@ from teleop_rt.com.port import WAVE
 from teleop_rt.config import SessionConfig
 from teleop_rt.declarations import OVERRUN_DEFAULT, PORT_LOG, SITES
 from teleop_rt.errors import ConfigError, SafetyStop
-from teleop_rt.flat import Block, Packed
+from teleop_rt.flat import Block, Packed, compiled_for
 from teleop_rt.lockstep import (
     SESSION_BLOCKS,
     PairState,
@@ -212,16 +213,23 @@ class Session:
         hsi.bind(p, 0)
         to.bind(p, len(hsi.blocks))
         self._buffers = (p.f, p.i, p.offsets, self.n)
-        self._at = link_at(p.offsets)
+        self._at = at = link_at(p.offsets)
         self._pin = (hsi._pin, to._pin)
+        # where each controller model's RNEA lands (Pinocchio's data.tau, viewed once): the
+        # second kernel reads it there, not from the copy pin.rnea returns
+        rnea = (hsi.model.data.tau, to.model.data.tau)
         # load (or, on a fresh install, compile) the kernels now, on scratch copies of the
-        # state, not at the first deadline
+        # state, not at the first deadline; then bound to the buffers (``compiled_for``)
         f, i, o, n = self._buffers
-        lockstep_before(f.copy(), i.copy(), o, self._at, n)
-        lockstep_after(f.copy(), i.copy(), o, n, np.zeros(hsi.n), np.zeros(to.n))
+        lockstep_before(f.copy(), i.copy(), o, at, n)
+        lockstep_after(f.copy(), i.copy(), o, n, *rnea)
+        args: tuple[Any, ...] = (f, i, o, at, n)
+        self._before = partial(compiled_for(lockstep_before, *args), *args)
+        args = (f, i, o, n, *rnea)
+        self._after = partial(compiled_for(lockstep_after, *args), *args)
         self._pair_plants = pair
         if pair is not None:
-            pair.bind(p.f, p.i, p.offsets, self.n)
+            pair.bind(p.f, p.i, p.offsets, rnea, self.n)
             self.fused = True
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
@@ -256,34 +264,33 @@ class Session:
     def step(self) -> None:
         """One control tick of both sites: read, link, ports, controllers, computed torque,
         safety, write. With ``fused`` the reads and writes are the backends' own compiled
-        pieces inside the lock-step kernels (``teleop_rt.lockstep_fused``)."""
-        hsi, to = self.hsi, self.to
+        pieces inside the lock-step kernels (``teleop_rt.lockstep_fused``). The kernels are
+        bound to the session's buffers once (``_pack``); RNEA leaves its torque in each
+        controller model's ``data.tau``, where the second kernel reads it."""
         if not self.compiled_link:
             self._step_over(self.link)
             return
-        f, i, o, n = self._buffers
         pair = self._pair_plants if self.fused else None  # (fused: the pair is there)
         if pair is not None:
             code = pair.before()
         else:
+            hsi, to = self.hsi, self.to
             try:
                 hsi.backend.read()  # into hsi.feedback
             except SafetyStop as exc:
                 raise self._read_to_after(exc) from None
             to.backend.read()
-            code = lockstep_before(f, i, o, self._at, n)
+            code = self._before()
         if code:
             raise self._stop_for(code)
-        (model_h, data_h, q_h, v_h, a_h), (model_t, data_t, q_t, v_t, a_t) = self._pin
-        rnea_h = pin.rnea(model_h, data_h, q_h, v_h, a_h)
-        rnea_t = pin.rnea(model_t, data_t, q_t, v_t, a_t)
+        pin_h, pin_t = self._pin
+        pin.rnea(*pin_h)  # (into data.tau: the result pin.rnea returns is a copy of it)
+        pin.rnea(*pin_t)
         for site in self._boxed:  # (forward kinematics: only sites with a workspace box)
             site.tick = self.tick
             site.check_workspace()
-        if pair is not None:  # only without a finding do the plants take the torques
-            code = pair.after(rnea_h, rnea_t)
-        else:
-            code = lockstep_after(f, i, o, n, rnea_h, rnea_t)
+        # only without a finding do the plants take the torques
+        code = self._after() if pair is None else pair.after()
         if code:
             raise self._stop_for(code)
         if pair is not None:

@@ -17,6 +17,9 @@ packs their blocks with its own and calls these kernels (``SimBackend.rebind``).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import numpy as np
 import pinocchio as pin
 
@@ -269,6 +272,13 @@ class SimBackend(Backend):
         # Pinocchio's arguments, looked up once: the state's views and the tool's placement
         self._pin = (plant.model, plant.data, state.q, state.v, state.tau)
         self._tool = (plant.model, plant.data, state.q, plant.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)
+        # the tool's Jacobian as (call, its arguments): Pinocchio's call itself where what it
+        # returns is the (6, n) Jacobian as it is (a fused session calls it per tick)
+        direct = self._cartesian and self.n > 1
+        call: tuple[Callable[..., np.ndarray], tuple[Any, ...]] = (
+            (pin.computeFrameJacobian, self._tool) if direct else (self._jacobian, ())
+        )
+        self.jacobian_call = call
 
     @property
     def compiled_common_case(self) -> bool:

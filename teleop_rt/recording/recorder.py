@@ -34,6 +34,7 @@ import signal
 import struct
 import time
 from dataclasses import dataclass
+from functools import partial
 from multiprocessing.shared_memory import SharedMemory
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -52,7 +53,7 @@ from teleop_rt.declarations import (
     WRITE_FAILED,
 )
 from teleop_rt.errors import RecordingFailure, TeleopError
-from teleop_rt.flat import jit
+from teleop_rt.flat import compiled_for, jit
 from teleop_rt.loop import StopSignals
 from teleop_rt.mapping import JOINT, frame_rotation
 from teleop_rt.recording.scene import scene_spec, shift_sources
@@ -208,10 +209,11 @@ class Recorder:
         self.ring.fill(0.0)  # its pages now, not as page faults on the tick path
         self.gather = parts.gather
         self.shifts = parts.shifts  # for the 3D scene only (ring_width)
-        fill_row(
-            np.zeros(width), session.packed.f, session.packed.i, self.gather, self.shifts, 0, 0.0,
-            0, 0, False,
-        )  # load (or compile) the kernel now
+        # the hot-path kernel, loaded (or compiled) now and bound to the ring and the session's
+        # buffers: per tick only the row's count, the tick and the timing go in
+        args = (self.ring, session.packed.f, session.packed.i, self.gather, self.shifts, session.dt)
+        fill_row(np.zeros((1, width)), *args[1:], 0, 0, 0, 0, False)
+        self._fill = partial(compiled_for(fill_row, *args, 0, 0, 0, 0, False), *args)
         self.published = 0
         self._consumed_known = 0
         # what did not reach the log: rows dropped, their tick ranges (preallocated: the
@@ -269,7 +271,7 @@ class Recorder:
             process.join(5.0)
         shm = getattr(self, "shm", None)
         if shm is not None:
-            self.buf = self.ring = self.ctrl = None  # type: ignore[assignment]  # released with the mapping: unused after
+            self.buf = self.ring = self.ctrl = self._fill = None  # type: ignore[assignment]  # released with the mapping: unused after
             with contextlib.suppress(OSError, BufferError):
                 shm.close()
             with contextlib.suppress(OSError):
@@ -296,7 +298,7 @@ class Recorder:
         if self.process.exitcode is None:
             self.process.kill()
             self.process.join()
-        self.buf = self.ring = self.ctrl = None  # type: ignore[assignment]  # released with the mapping: unused after
+        self.buf = self.ring = self.ctrl = self._fill = None  # type: ignore[assignment]  # released with the mapping: unused after
         self.shm.close()
         self.shm.unlink()
         self.path.unlink()  # created empty by this recorder; nothing was written
@@ -331,11 +333,7 @@ class Recorder:
             if self.stop_on_loss:
                 raise RecordingFailure(self.failure)
             return
-        fill_row(
-            self.ring[i % self.capacity], s.packed.f, s.packed.i, self.gather, self.shifts, k,
-            k * s.dt,
-            compute_ns, lateness_ns, missed,
-        )  # fmt: skip
+        self._fill(i, k, compute_ns, lateness_ns, missed)
         self.published = i + 1
         self._count.pack_into(self.buf, PUBLISHED * 8, i + 1)
 
@@ -438,7 +436,7 @@ class Recorder:
             except KeyboardInterrupt:  # a second Ctrl-C: the user will not wait
                 self._end_writer("a second interrupt while the log was being finished")
         finally:
-            self.buf = self.ring = self.ctrl = None  # type: ignore[assignment]  # released with the mapping: unused after
+            self.buf = self.ring = self.ctrl = self._fill = None  # type: ignore[assignment]  # released with the mapping: unused after
             self.shm.close()
             self.shm.unlink()
         return self.status()
@@ -541,23 +539,26 @@ def robot_columns(packed, site, topic) -> list[int]:
 
 @jit
 def fill_row(
-    row: np.ndarray,
+    ring: np.ndarray,
     f: np.ndarray,
     i: np.ndarray,
     gather: np.ndarray,
     shifts: np.ndarray,
+    dt: float,
+    published: int,
     tick: int,
-    t: float,
     compute_ns: int,
     lateness_ns: int,
     missed: bool,
 ) -> None:
-    """One ring row (``LogLayout.ring_width``): tick, time, the signals at the packed
-    positions ``gather`` (``Packed.index_of``: >= 0 in ``f``, -1 - k for ``i[k]``), the timing
-    columns, then the environment's shifts at the positions ``shifts`` (0 where the position
-    is -1)."""
+    """Ring row ``published`` modulo the ring's rows (``LogLayout.ring_width`` wide): tick,
+    time (tick dt), the signals at the packed positions ``gather`` (``Packed.index_of``: >= 0
+    in ``f``, -1 - k for ``i[k]``), the timing columns, then the environment's shifts at the
+    positions ``shifts`` (0 where the position is -1). The ring is indexed here, not sliced
+    in Python: a row's view would be an object made per tick."""
+    row = ring[published % ring.shape[0]]
     row[0] = tick
-    row[1] = t
+    row[1] = tick * dt
     for c in range(gather.size):
         g = gather[c]
         row[2 + c] = f[g] if g >= 0 else float(i[-1 - g])
