@@ -45,6 +45,8 @@ MARKS_BY_FILE = {
     "test_can_session.py": ("can",),
     "test_can_tools.py": ("can",),
     "test_live.py": ("realtime",),
+    "test_keys.py": ("realtime",),  # a pseudo-terminal's keys during a real-time run
+    "test_can_inputs.py": ("can",),  # the clutch and presence bits of emulated CAN drives
     "test_missed_deadlines.py": ("realtime",),
     "test_recording_failures.py": ("realtime",),
     "test_reproduce_paper.py": ("slow",),
@@ -59,6 +61,14 @@ MARKS_BY_TEST = {
     "test_recording.py::test_a_hard_kill_leaves_a_readable_log": ("realtime",),
     "test_early_stop.py::test_sigterm_before_the_first_tick_leaves_a_log_or_none": ("realtime",),
     "test_closed_output.py::test_a_site_keeps_its_exit_code": ("zenoh", "realtime"),
+    "test_keys.py::test_two_sites_with_the_keys_replay_the_tos_log_bit_for_bit": ("zenoh",),
+    "test_zenoh_attacks.py::test_reflected_and_sequence_jumping_packets_are_rejected_by_reason": (
+        "realtime",
+    ),
+    "test_zenoh_sites.py::test_a_killed_parent_leaves_no_site_running": ("zenoh", "realtime"),
+    "test_site_logs.py::test_run_link_zenoh_refuses_a_log_pair_that_exists": ("realtime",),
+    "test_two_sites.py::test_a_can_robot_against_a_simulated_one": ("can",),
+    "test_backend_lifecycle.py::test_a_can_session_ends_with_both_robots_unconfigured": ("can",),
     "test_late_packets.py::test_a_site_log_with_late_packets_used_replays_bit_for_bit": (
         "zenoh",
         "realtime",
@@ -68,9 +78,7 @@ MARKS_BY_TEST = {
     "test_cli.py::test_bode_piped_is_not_cut_at_80_columns": ("slow",),
     "test_heterogeneous_pairs.py::test_a_pair_stays_passive_under_every_impairment": ("slow",),
     "test_task_space_3d.py::test_a_3d_pair_stays_passive_under_every_impairment": ("slow",),
-    "test_posture.py::test_a_pair_with_the_posture_stays_passive_under_every_impairment": (
-        "slow",
-    ),
+    "test_posture.py::test_a_pair_with_the_posture_stays_passive_under_every_impairment": ("slow",),
     "test_frames.py::test_a_turned_scaled_pair_stays_passive_under_every_impairment": ("slow",),
     "test_frames.py::test_a_turned_offset_3d_pair_stays_passive_under_every_impairment": ("slow",),
     "test_cli.py::test_console_script_check": ("slow",),

@@ -7,6 +7,7 @@ prose line is over 100 characters (the generated reports excepted)."""
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib.util
 import re
 import shlex
@@ -23,7 +24,10 @@ DOCS = sorted([ROOT / "README.md", *(ROOT / "docs").glob("*.md")])
 # written by tools/reproduce_paper.py, network_study.py (--codec: codec_study.py, --acceptance:
 # transparency_study.py): one line per paragraph
 GENERATED = {
-    "paper_reproduction.md", "network_study.md", "codec_study.md", "transparency_under_loss.md"
+    "paper_reproduction.md",
+    "network_study.md",
+    "codec_study.md",
+    "transparency_under_loss.md",
 }
 # pages a sibling branch adds (issue 25's index links them ahead of the merge); once a page
 # exists its links are checked like any other
@@ -183,15 +187,62 @@ def test_the_fast_subset_deselects_exactly_the_marked_tests() -> None:
 
     def collect(*extra: str) -> set[str]:
         out = subprocess.run(
-            [sys.executable, "-m", "pytest", "--collect-only", "-p", "no:cacheprovider",
-             *extra, str(ROOT / "tests")],
-            capture_output=True, text=True, cwd=ROOT, check=True,
+            [
+                sys.executable,
+                "-m",
+                "pytest",
+                "--collect-only",
+                "-p",
+                "no:cacheprovider",
+                *extra,
+                str(ROOT / "tests"),
+            ],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            check=True,
         ).stdout
         return {ln for ln in out.split("\n") if "::" in ln}
 
     everything, fast = collect(), collect("-m", expression)
     marked = collect("-m", " or ".join(sorted(markers)))
     assert fast and marked and fast | marked == everything and not fast & marked
+
+
+# what in a test's (or its fixture's) source needs a marker to stay out of the fast subset
+NEEDS = {"realtime": ('"--realtime"',), "zenoh": ('"--link", "zenoh"', "link.kind=zenoh")}
+
+
+def needing(path: Path, marker: str) -> set[str]:
+    """The tests of ``path`` whose body, or a same-module fixture they take, contains what
+    ``marker`` stands for (NEEDS)."""
+    tree = ast.parse(path.read_text())
+    source = path.read_text()
+    functions = [n for n in tree.body if isinstance(n, ast.FunctionDef)]
+
+    def uses(node: ast.FunctionDef) -> bool:
+        text = ast.get_source_segment(source, node) or ""
+        return any(s in text for s in NEEDS[marker])
+
+    fixtures = {n.name for n in functions if not n.name.startswith("test_") and uses(n)}
+    return {n.name for n in functions if n.name.startswith("test_")
+            and (uses(n) or fixtures & {a.arg for a in n.args.args})}  # fmt: skip
+
+
+@pytest.mark.parametrize("marker", sorted(NEEDS))
+def test_a_test_that_runs_in_real_time_or_over_zenoh_carries_its_marker(marker: str) -> None:
+    """A test that starts a real-time run or two sites over Zenoh is marked (tests/conftest.py),
+    so the README's fast subset does not wait on the wall clock or on two processes."""
+    out = subprocess.run(
+        [sys.executable, "-m", "pytest", "--collect-only", "-p", "no:cacheprovider",
+         "-m", marker, str(ROOT / "tests")],
+        capture_output=True, text=True, cwd=ROOT, check=True,
+    ).stdout  # fmt: skip
+    marked = {ln.split("[")[0] for ln in out.split("\n") if "::" in ln}
+    missing = [f"{path.name}::{name}" for path in sorted((ROOT / "tests").glob("test_*.py"))
+               for name in sorted(needing(path, marker))
+               if f"tests/{path.name}::{name}" not in marked]  # fmt: skip
+    assert not missing, f"not marked {marker}: {missing}"
 
 
 LINK = re.compile(r"\]\(([^)\s]+)\)")
