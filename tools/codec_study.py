@@ -168,6 +168,14 @@ def ratio(a: float, b: float) -> float:
     return a / b if b and math.isfinite(a) and math.isfinite(b) else math.nan
 
 
+def _changes(on: dict, off: dict) -> str:
+    """A table's reduction and the changes of T_p, T_tau, stiffness and mass of ``on``
+    against ``off`` (the same row without the codec), as cells."""
+    cells = [f"{100 * on['red_hsi']:.1f} / {100 * on['red_to']:.1f} %"]
+    cells += [_pct(ratio(on[k], off[k]) - 1) for k in ("t_p", "t_tau", "stiffness", "mass")]
+    return " | ".join(cells) + " "
+
+
 def _pct(x: float) -> str:
     return "n/a" if not math.isfinite(x) else f"{100 * x:+.1f} %"
 
@@ -406,11 +414,7 @@ def report(
     for row in spl:
         on, off = row["on"], row["off"]
         lines.append(f"| {row['config']} | {row['channel']} | {row['variant']} | "
-                     f"{100 * on['red_hsi']:.1f} / {100 * on['red_to']:.1f} % | "
-                     f"{_pct(ratio(on['t_p'], off['t_p']) - 1)} | "
-                     f"{_pct(ratio(on['t_tau'], off['t_tau']) - 1)} | "
-                     f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)} | "
-                     f"{_pct(ratio(on['mass'], off['mass']) - 1)} |")  # fmt: skip
+                     + _changes(on, off) + "|")  # fmt: skip
     energy_head = ["", "## TDPA's energy deadband (channel.deadband.exchange_j, 10 %)", "",
                    "A site also sends once that much energy has crossed its port since its "
                    "last packet (docs/codec.md); changes against TDPA without codec at the "
@@ -423,11 +427,7 @@ def report(
     for row in ene:
         on, off = row["on"], row["off"]
         lines.append(f"| {row['config']} | {row['delay']} | {row['variant']} | "
-                     f"{100 * on['red_hsi']:.1f} / {100 * on['red_to']:.1f} % | "
-                     f"{_pct(ratio(on['t_p'], off['t_p']) - 1)} | "
-                     f"{_pct(ratio(on['t_tau'], off['t_tau']) - 1)} | "
-                     f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)} | "
-                     f"{_pct(ratio(on['mass'], off['mass']) - 1)} | "
+                     + _changes(on, off) + "| "
                      f"{1e3 * off['rms_p']:.2f} -> {1e3 * on['rms_p']:.2f} | "
                      f"{off['rms_tau']:.3f} -> {on['rms_tau']:.3f} | "
                      f"{on['min_energy']:.2g} | {on['min_balance']:.2g} |")  # fmt: skip
