@@ -229,20 +229,39 @@ def needing(path: Path, marker: str) -> set[str]:
             and (uses(n) or fixtures & {a.arg for a in n.args.args})}  # fmt: skip
 
 
+def declared_marks(file: str, function: str) -> set[str]:
+    """The markers tests/conftest.py gives ``function`` of ``file`` (the suite declares its
+    markers there, by file and by test, not in the test files)."""
+    from tests.conftest import MARKS_BY_FILE, MARKS_BY_TEST, SLOW_TESTS
+
+    marks = {*MARKS_BY_FILE.get(file, ()), *MARKS_BY_TEST.get(f"{file}::{function}", ())}
+    return marks | ({"slow"} if function in SLOW_TESTS.get(file, ()) else set())
+
+
 @pytest.mark.parametrize("marker", sorted(NEEDS))
 def test_a_test_that_runs_in_real_time_or_over_zenoh_carries_its_marker(marker: str) -> None:
     """A test that starts a real-time run or two sites over Zenoh is marked (tests/conftest.py),
     so the README's fast subset does not wait on the wall clock or on two processes."""
-    out = subprocess.run(
-        [sys.executable, "-m", "pytest", "--collect-only", "-p", "no:cacheprovider",
-         "-m", marker, str(ROOT / "tests")],
-        capture_output=True, text=True, cwd=ROOT, check=True,
-    ).stdout  # fmt: skip
-    marked = {ln.split("[")[0] for ln in out.split("\n") if "::" in ln}
     missing = [f"{path.name}::{name}" for path in sorted((ROOT / "tests").glob("test_*.py"))
                for name in sorted(needing(path, marker))
-               if f"tests/{path.name}::{name}" not in marked]  # fmt: skip
+               if marker not in declared_marks(path.name, name)]  # fmt: skip
     assert not missing, f"not marked {marker}: {missing}"
+
+
+def test_every_marked_test_exists() -> None:
+    """A marker declared for a test that is not there (renamed, a typo) marks nothing: refused."""
+    from tests.conftest import MARKS_BY_FILE, MARKS_BY_TEST, SLOW_TESTS
+
+    def functions(file: str) -> set[str]:
+        path = ROOT / "tests" / file
+        tree = ast.parse(path.read_text()) if path.exists() else ast.Module(body=[])
+        return {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
+
+    named = [key.split("::") for key in MARKS_BY_TEST]
+    named += [[file, f] for file, fs in SLOW_TESTS.items() for f in fs]
+    missing = [f"{file}::{f}" for file, f in named if f not in functions(file)]
+    missing += [file for file in MARKS_BY_FILE if not (ROOT / "tests" / file).exists()]
+    assert not missing, missing
 
 
 LINK = re.compile(r"\]\(([^)\s]+)\)")
