@@ -297,38 +297,6 @@ class Mapping(Block):
         self.active = int(self.active or live != 0 or follow)
 
 
-X, Q_MAPPED, TAU_MAPPED, INDEX_OFFSET = (
-    Mapping.x.k, Mapping.q_mapped.k, Mapping.tau_mapped.k, Mapping.index_offset.k
-)  # fmt: skip
-M_ALPHA, M_BETA, M_RAMP, M_LIMIT, M_DT, M_GAIN = (
-    Mapping.motion_scale.k, Mapping.force_scale.k, Mapping.ramp_step.k, Mapping.step_limit.k,
-    Mapping.dt.k, Mapping.gain.k,
-)  # fmt: skip
-M_ACTIVE, M_SIDE, M_CLUTCH_COUNT, M_ABSENT_COUNT, M_TIMEOUT = (
-    Mapping.active.k, Mapping.side.k, Mapping.clutch_count.k, Mapping.absent_count.k,
-    Mapping.timeout_ticks.k,
-)  # fmt: skip
-M_CLUTCH_AT, M_ABSENT_AT, M_COUPLED, M_ENGAGEMENTS = (
-    Mapping.clutch_at.k, Mapping.absent_at.k, Mapping.coupled.k, Mapping.engagements.k
-)  # fmt: skip
-M_SPACE, M_KIN_AT, M_JOINTS = Mapping.space.k, Mapping.kin_at.k, Mapping.joints.k
-M_LIVE, M_LIVE_AWAY, M_INPUTS = Mapping.live.k, Mapping.live_away.k, Mapping.inputs.k
-M_FOLLOW, M_PEER_ENGAGED = Mapping.follow.k, Mapping.peer_engaged.k
-M_LIMITS, M_WALLS, M_SPEED_LIMIT, M_FORCE_LIMIT, M_SPEED_CAP, M_MIN_SPEED_CAP = (
-    Mapping.limits.k, Mapping.walls.k, Mapping.speed_limit.k, Mapping.force_limit.k,
-    Mapping.speed_cap.k, Mapping.min_speed_cap.k,
-)  # fmt: skip
-M_PEAK_SPEED, M_PEAK_FORCE, M_MAX_PENETRATION, M_MAX_WALL_FORCE = (
-    Mapping.peak_tool_speed.k, Mapping.peak_tool_force.k, Mapping.max_penetration.k,
-    Mapping.max_wall_force.k,
-)  # fmt: skip
-M_SPEED_LIMITED, M_WALL_TICKS = Mapping.speed_limited.k, Mapping.wall_ticks.k
-M_TASK, M_WORK_AT, M_ROT_AT, M_ORIENTATION_GAIN, M_DLS_TICKS, M_MIN_SINGULAR = (
-    Mapping.task.k, Mapping.work_at.k, Mapping.rot_at.k, Mapping.orientation_gain.k,
-    Mapping.dls_ticks.k, Mapping.min_singular.k,
-)  # fmt: skip
-M_FRAMED, M_FRAME_AT = Mapping.framed.k, Mapping.frame_at.k
-N_MAPPING_VECTORS, N_MAPPING_SCALARS = len(Mapping.VECTORS), len(Mapping.SCALARS)
 
 
 @jit
@@ -352,48 +320,50 @@ def mapping_engage(
     """This tick's coupling gain r from the script and the live ``inputs`` (the feedback's,
     those ``live`` names); PRESENCE_LOST when the operator has been away too long (at the
     HSI), else 0. ``effort``: the torque r multiplies (its ramp's limit)."""
-    s = N_MAPPING_VECTORS * n
-    tail = s + N_MAPPING_SCALARS
-    clutches, absences = i[M_CLUTCH_COUNT], i[M_ABSENT_COUNT]
-    clutched = _inside(f, i, tail, clutches, M_CLUTCH_AT, tick) > 0
-    away = _inside(f, i, tail + 2 * clutches, absences, M_ABSENT_AT, tick)
-    live = i[M_LIVE]
-    i[M_INPUTS] = inputs & live
+    Mi = Mapping.idx
+    s = Mi.N_VECTORS * n
+    tail = s + Mi.N_SCALARS
+    clutches, absences = i[Mi.CLUTCH_COUNT], i[Mi.ABSENT_COUNT]
+    clutched = _inside(f, i, tail, clutches, Mi.CLUTCH_AT, tick) > 0
+    away = _inside(f, i, tail + 2 * clutches, absences, Mi.ABSENT_AT, tick)
+    live = i[Mi.LIVE]
+    i[Mi.INPUTS] = inputs & live
     if live & INPUT_CLUTCH and inputs & INPUT_CLUTCH:
         clutched = True
-    if i[M_FOLLOW] and not i[M_PEER_ENGAGED]:  # the HSI decoupled, as its packet said
+    if i[Mi.FOLLOW] and not i[Mi.PEER_ENGAGED]:  # the HSI decoupled, as its packet said
         clutched = True
     if live & INPUT_PRESENT and not inputs & INPUT_PRESENT:
-        i[M_LIVE_AWAY] += 1  # (counted like the script's: 1 on the first tick away)
+        i[Mi.LIVE_AWAY] += 1  # (counted like the script's: 1 on the first tick away)
     else:
-        i[M_LIVE_AWAY] = 0
-    away = max(away, i[M_LIVE_AWAY])
-    if i[M_SIDE] == HSI and i[M_TIMEOUT] >= 0 and away > i[M_TIMEOUT]:
+        i[Mi.LIVE_AWAY] = 0
+    away = max(away, i[Mi.LIVE_AWAY])
+    if i[Mi.SIDE] == HSI and i[Mi.TIMEOUT_TICKS] >= 0 and away > i[Mi.TIMEOUT_TICKS]:
         return PRESENCE_LOST
     coupled = not clutched and away == 0
-    r = f[s + M_GAIN]
+    r = f[s + Mi.GAIN]
     if not coupled:
         r = 0.0
     elif r < 1.0:
-        step, peak = f[s + M_RAMP], 0.0
+        step, peak = f[s + Mi.RAMP_STEP], 0.0
         for j in range(n):
             peak = max(peak, abs(effort[j]))
-        if peak * step > f[s + M_LIMIT]:
-            step = f[s + M_LIMIT] / peak
+        if peak * step > f[s + Mi.STEP_LIMIT]:
+            step = f[s + Mi.STEP_LIMIT] / peak
         r = min(1.0, r + step)
-    if coupled and not i[M_COUPLED]:
-        i[M_ENGAGEMENTS] += 1
-    i[M_COUPLED] = 1 if coupled else 0
-    f[s + M_GAIN] = r
+    if coupled and not i[Mi.COUPLED]:
+        i[Mi.ENGAGEMENTS] += 1
+    i[Mi.COUPLED] = 1 if coupled else 0
+    f[s + Mi.GAIN] = r
     return 0
 
 
 @jit
 def hsi_map_input(f: np.ndarray, n: int, q: np.ndarray, v: np.ndarray) -> None:
     """The HSI's port input r v_h into x; the indexing offset and the mapped position."""
-    s = N_MAPPING_VECTORS * n
-    r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
-    x, q_mapped, offset = vec(f, X, n), vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
+    Mi = Mapping.idx
+    s = Mi.N_VECTORS * n
+    r, alpha, dt = f[s + Mi.GAIN], f[s + Mi.MOTION_SCALE], f[s + Mi.DT]
+    x, q_mapped, offset = vec(f, Mi.X, n), vec(f, Mi.Q_MAPPED, n), vec(f, Mi.INDEX_OFFSET, n)
     for j in range(n):
         x[j] = r * v[j]
         offset[j] += (1.0 - r) * v[j] * dt
@@ -403,9 +373,10 @@ def hsi_map_input(f: np.ndarray, n: int, q: np.ndarray, v: np.ndarray) -> None:
 @jit
 def to_map_input(f: np.ndarray, n: int, tau_e: np.ndarray) -> None:
     """beta tau_e into tau_mapped (before the gain: its ramp limits by it); r of it into x."""
-    s = N_MAPPING_VECTORS * n
-    beta = f[s + M_BETA]
-    tau_mapped = vec(f, TAU_MAPPED, n)
+    Mi = Mapping.idx
+    s = Mi.N_VECTORS * n
+    beta = f[s + Mi.FORCE_SCALE]
+    tau_mapped = vec(f, Mi.TAU_MAPPED, n)
     for j in range(n):
         tau_mapped[j] = beta * tau_e[j]
 
@@ -414,9 +385,10 @@ def to_map_input(f: np.ndarray, n: int, tau_e: np.ndarray) -> None:
 def to_map_output(f: np.ndarray, n: int, q: np.ndarray, omega_t: np.ndarray) -> None:
     """The TO's indexing offset (the channel's motion it did not follow while r < 1) and its
     indexed position q_t + offset."""
-    s = N_MAPPING_VECTORS * n
-    r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
-    q_mapped, offset = vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
+    Mi = Mapping.idx
+    s = Mi.N_VECTORS * n
+    r, alpha, dt = f[s + Mi.GAIN], f[s + Mi.MOTION_SCALE], f[s + Mi.DT]
+    q_mapped, offset = vec(f, Mi.Q_MAPPED, n), vec(f, Mi.INDEX_OFFSET, n)
     for j in range(n):
         offset[j] += (1.0 - r) * alpha * omega_t[j] * dt
         q_mapped[j] = q[j] + offset[j]
@@ -425,9 +397,10 @@ def to_map_output(f: np.ndarray, n: int, q: np.ndarray, omega_t: np.ndarray) -> 
 @jit
 def to_map_gain(f: np.ndarray, n: int) -> None:
     """x = r beta tau_e, after ``mapping_engage`` set r."""
-    s = N_MAPPING_VECTORS * n
-    r = f[s + M_GAIN]
-    x, tau_mapped = vec(f, X, n), vec(f, TAU_MAPPED, n)
+    Mi = Mapping.idx
+    s = Mi.N_VECTORS * n
+    r = f[s + Mi.GAIN]
+    x, tau_mapped = vec(f, Mi.X, n), vec(f, Mi.TAU_MAPPED, n)
     for j in range(n):
         x[j] = r * tau_mapped[j]
 
@@ -439,7 +412,8 @@ def map_kinematics(f: np.ndarray, i: np.ndarray, jac: np.ndarray, x: np.ndarray)
     pose), their damped least-squares inverse J# = J^T (J J^T + l^2 I)^-1 and the tool's
     position (of ``x``), for the next tick's map; the DLS's report. The same J# maps flow in
     and effort out, so the map stays lossless whatever l does to accuracy."""
-    k, n, m = i[M_KIN_AT], i[M_JOINTS], i[M_TASK]
+    Mi = Mapping.idx
+    k, n, m = i[Mi.KIN_AT], i[Mi.JOINTS], i[Mi.TASK]
     jj, inv, pos = k, k + m * n, k + 2 * m * n
     for a in range(m):
         for j in range(n):
@@ -448,7 +422,7 @@ def map_kinematics(f: np.ndarray, i: np.ndarray, jac: np.ndarray, x: np.ndarray)
         f[pos + a] = x[a]
     damping = DLS_DAMPING_M * DLS_DAMPING_M
     if m > TASK:  # (Cholesky: teleop_rt.task_math)
-        sigma2 = dls_inverse(f, jac, n, m, damping, inv, i[M_WORK_AT])
+        sigma2 = dls_inverse(f, jac, n, m, damping, inv, i[Mi.WORK_AT])
     else:  # the plane: A = J J^T + l^2 I (2 x 2), then J# = J^T A^-1
         a00 = a01 = a11 = 0.0
         for j in range(n):
@@ -464,11 +438,11 @@ def map_kinematics(f: np.ndarray, i: np.ndarray, jac: np.ndarray, x: np.ndarray)
         for j in range(n):
             f[inv + j * TASK] = jac[0, j] * b00 + jac[1, j] * b01
             f[inv + j * TASK + 1] = jac[0, j] * b01 + jac[1, j] * b11
-    s = N_MAPPING_VECTORS * m
+    s = Mi.N_VECTORS * m
     sigma = math.sqrt(max(sigma2, 0.0))
-    f[s + M_MIN_SINGULAR] = min(f[s + M_MIN_SINGULAR], sigma)
+    f[s + Mi.MIN_SINGULAR] = min(f[s + Mi.MIN_SINGULAR], sigma)
     if sigma < DLS_ACTIVE_SINGULAR:
-        i[M_DLS_TICKS] += 1
+        i[Mi.DLS_TICKS] += 1
 
 
 @jit
@@ -477,7 +451,8 @@ def map_orientation(f: np.ndarray, i: np.ndarray, rot: np.ndarray) -> None:
     orientation's coordinates for T_p, log(R R0^T) (rad, world axes: the rotation since the
     start; their difference between the sites is the orientation error to first order, and
     exact for rotations about one axis)."""
-    at, pos = i[M_ROT_AT], i[M_KIN_AT] + 2 * POSE_DIM * i[M_JOINTS]
+    Mi = Mapping.idx
+    at, pos = i[Mi.ROT_AT], i[Mi.KIN_AT] + 2 * POSE_DIM * i[Mi.JOINTS]
     for a in range(3):
         for b in range(3):
             f[at + 3 * a + b] = rot[a, b]
@@ -490,15 +465,17 @@ def map_tool(f: np.ndarray, i: np.ndarray, jac: np.ndarray, x: np.ndarray, rot: 
     """Task space, after each tick's torques: ``map_kinematics`` and, in the pose,
     ``map_orientation`` (``rot``: the tool's rotation), in one compiled call (each call from
     Python costs a few hundred ns)."""
+    Mi = Mapping.idx
     map_kinematics(f, i, jac, x)
-    if i[M_SPACE] == POSE:
+    if i[Mi.SPACE] == POSE:
         map_orientation(f, i, rot)
 
 
 @jit
 def start_orientation(f: np.ndarray, i: np.ndarray) -> None:
     """POSE, at the start pose (after ``map_orientation``): R0 = R_ref = R, the coordinates 0."""
-    at, pos = i[M_ROT_AT], i[M_KIN_AT] + 2 * POSE_DIM * i[M_JOINTS]
+    Mi = Mapping.idx
+    at, pos = i[Mi.ROT_AT], i[Mi.KIN_AT] + 2 * POSE_DIM * i[Mi.JOINTS]
     for a in range(9):
         f[at + 9 + a] = f[at + 18 + a] = f[at + a]
     for a in range(3):
@@ -521,9 +498,10 @@ def to_orientation_step(
     axis, d/dt (R_ref R^T) = -(R_ref R^T) [omega]x gives de/dt = -K e: a first-order approach at
     the rate K (Siciliano's closed-loop inverse kinematics, Robotica 1990, on SO(3)). Decoupled
     (g = 0), R_ref stands still and the TO holds its orientation."""
-    at, nj = i[M_ROT_AT], i[M_JOINTS]
-    inv = i[M_KIN_AT] + POSE_DIM * nj
-    gain = f[N_MAPPING_VECTORS * POSE_DIM + M_ORIENTATION_GAIN]
+    Mi = Mapping.idx
+    at, nj = i[Mi.ROT_AT], i[Mi.JOINTS]
+    inv = i[Mi.KIN_AT] + POSE_DIM * nj
+    gain = f[Mi.N_VECTORS * POSE_DIM + Mi.ORIENTATION_GAIN]
     if gain > 0.0:
         e = at + 36  # (the second scratch: its first 3 floats)
         times_transposed(f, at + 18, at, at + 27)
@@ -544,12 +522,13 @@ def hsi_plane_input(
     """Task space at the HSI: omega_c = r J v_h; the indexing offset and the indexed tool
     position alpha (x_h - offset); the operator's force J#^T tau_h (for T_tau). ``n``: the
     port's size, the task's dimension; the robot's joints are the block's ``joints``."""
-    s, k = N_MAPPING_VECTORS * n, i[M_KIN_AT]
-    nj = i[M_JOINTS]
+    Mi = Mapping.idx
+    s, k = Mi.N_VECTORS * n, i[Mi.KIN_AT]
+    nj = i[Mi.JOINTS]
     jj, inv, pos = k, k + n * nj, k + 2 * n * nj
-    r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
-    x, q_mapped, offset = vec(f, X, n), vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
-    force = vec(f, TAU_MAPPED, n)
+    r, alpha, dt = f[s + Mi.GAIN], f[s + Mi.MOTION_SCALE], f[s + Mi.DT]
+    x, q_mapped, offset = vec(f, Mi.X, n), vec(f, Mi.Q_MAPPED, n), vec(f, Mi.INDEX_OFFSET, n)
+    force = vec(f, Mi.TAU_MAPPED, n)
     for a in range(n):
         xd = 0.0
         fa = 0.0
@@ -568,8 +547,9 @@ def hsi_plane_render(
     error: np.ndarray,
 ) -> None:  # fmt: skip
     """Task space at the HSI: C1's error tau_h - r J^T F_c."""
-    s, jj, nj = N_MAPPING_VECTORS * n, i[M_KIN_AT], i[M_JOINTS]
-    r = f[s + M_GAIN]
+    Mi = Mapping.idx
+    s, jj, nj = Mi.N_VECTORS * n, i[Mi.KIN_AT], i[Mi.JOINTS]
+    r = f[s + Mi.GAIN]
     for j in range(nj):
         rendered = 0.0
         for a in range(n):
@@ -580,10 +560,11 @@ def hsi_plane_render(
 @jit
 def to_plane_input(f: np.ndarray, i: np.ndarray, n: int, tau_e: np.ndarray) -> None:
     """Task space at the TO: the environment's force beta J#^T tau_e into tau_mapped."""
-    nj = i[M_JOINTS]
-    s, inv = N_MAPPING_VECTORS * n, i[M_KIN_AT] + n * nj
-    beta = f[s + M_BETA]
-    force = vec(f, TAU_MAPPED, n)
+    Mi = Mapping.idx
+    nj = i[Mi.JOINTS]
+    s, inv = Mi.N_VECTORS * n, i[Mi.KIN_AT] + n * nj
+    beta = f[s + Mi.FORCE_SCALE]
+    force = vec(f, Mi.TAU_MAPPED, n)
     for a in range(n):
         fa = 0.0
         for j in range(nj):
@@ -601,12 +582,13 @@ def to_plane_output(
     tool position x_t + offset. Framed: the flow turned into the TO's frame first (R omega_t,
     each 3-vector of a twist by R), and the position T_p compares R^T (x_t - offset) (the
     pose's orientation coordinates R^T log(R_t R_t0^T)) + index offset, the HSI's frame."""
-    s, k, nj = N_MAPPING_VECTORS * n, i[M_KIN_AT], i[M_JOINTS]
+    Mi = Mapping.idx
+    s, k, nj = Mi.N_VECTORS * n, i[Mi.KIN_AT], i[Mi.JOINTS]
     inv, pos = k + n * nj, k + 2 * n * nj
-    r, alpha, dt = f[s + M_GAIN], f[s + M_ALPHA], f[s + M_DT]
+    r, alpha, dt = f[s + Mi.GAIN], f[s + Mi.MOTION_SCALE], f[s + Mi.DT]
     g = r * alpha
-    q_mapped, offset = vec(f, Q_MAPPED, n), vec(f, INDEX_OFFSET, n)
-    framed, fr, d = i[M_FRAMED] != 0, i[M_FRAME_AT], frame_dim(n)
+    q_mapped, offset = vec(f, Mi.Q_MAPPED, n), vec(f, Mi.INDEX_OFFSET, n)
+    framed, fr, d = i[Mi.FRAMED] != 0, i[Mi.FRAME_AT], frame_dim(n)
     w = fr + d * d + d
     flow = omega_t
     if framed:  # the flow in the TO's frame, R omega_t, into the scratch
@@ -617,7 +599,7 @@ def to_plane_output(
         for a in range(n):
             v_ref += f[inv + j * n + a] * flow[a]
         error[j] = g * v_ref - v[j]
-    if i[M_SPACE] == POSE:
+    if i[Mi.SPACE] == POSE:
         to_orientation_step(f, i, g * dt, flow, error)
     for a in range(n):
         offset[a] += (1.0 - r) * alpha * omega_t[a] * dt
@@ -722,10 +704,11 @@ def to_frame_force(f: np.ndarray, i: np.ndarray, n: int) -> None:
     """Framed, at the TO, after its force is complete (``to_plane_input``, the virtual walls):
     tau_mapped = R^T (beta F_e), the force in the HSI's frame (the port's; the pose: both the
     wrench's force and its torque turned by R^T)."""
-    if not i[M_FRAMED]:
+    Mi = Mapping.idx
+    if not i[Mi.FRAMED]:
         return
-    force = vec(f, TAU_MAPPED, n)
-    frame_turn(f, i[M_FRAME_AT], frame_dim(n), n, force, TAU_MAPPED * n, True)
+    force = vec(f, Mi.TAU_MAPPED, n)
+    frame_turn(f, i[Mi.FRAME_AT], frame_dim(n), n, force, Mi.TAU_MAPPED * n, True)
 
 
 def mapping_for(cfg: SessionConfig, joints: int, side: int) -> Mapping:

@@ -38,25 +38,7 @@ import numpy as np
 
 from teleop_rt.flat import jit, vec
 from teleop_rt.mapping import (
-    M_ALPHA,
-    M_BETA,
-    M_FORCE_LIMIT,
-    M_GAIN,
-    M_JOINTS,
-    M_KIN_AT,
-    M_MAX_PENETRATION,
-    M_MAX_WALL_FORCE,
-    M_MIN_SPEED_CAP,
-    M_PEAK_FORCE,
-    M_PEAK_SPEED,
-    M_SPEED_CAP,
-    M_SPEED_LIMIT,
-    M_SPEED_LIMITED,
-    M_WALL_TICKS,
-    M_WALLS,
-    N_MAPPING_VECTORS,
     TASK,
-    TAU_MAPPED,
     WALL_FLOATS,
     Mapping,
 )
@@ -69,14 +51,15 @@ def to_tool_sense(f: np.ndarray, i: np.ndarray, n: int, v: np.ndarray) -> int:
     """After ``to_plane_input`` (tau_mapped = beta J#^T tau_e): the force limit on the
     measured |J#^T tau_e| (TOOL_FORCE, else 0), then the virtual walls' forces,
     tau_mapped -= beta F_w."""
-    s, k, nj = N_MAPPING_VECTORS * n, i[M_KIN_AT], i[M_JOINTS]
-    beta = f[s + M_BETA]
-    force = vec(f, TAU_MAPPED, n)
+    Mi = Mapping.idx
+    s, k, nj = Mi.N_VECTORS * n, i[Mi.KIN_AT], i[Mi.JOINTS]
+    beta = f[s + Mi.FORCE_SCALE]
+    force = vec(f, Mi.TAU_MAPPED, n)
     measured = math.hypot(force[0], force[1]) / beta
-    f[s + M_PEAK_FORCE] = max(f[s + M_PEAK_FORCE], measured)
-    if measured > f[s + M_FORCE_LIMIT]:
+    f[s + Mi.PEAK_TOOL_FORCE] = max(f[s + Mi.PEAK_TOOL_FORCE], measured)
+    if measured > f[s + Mi.FORCE_LIMIT]:
         return TOOL_FORCE
-    walls = i[M_WALLS]
+    walls = i[Mi.WALLS]
     if walls == 0:
         return 0
     jj, pos = k, k + 4 * nj
@@ -93,23 +76,24 @@ def to_tool_sense(f: np.ndarray, i: np.ndarray, n: int, v: np.ndarray) -> int:
         if depth <= 0.0:
             continue
         push = f[at + 4] * depth - f[at + 5] * (xd * nx + yd * ny)  # k p + d dp/dt
-        f[s + M_MAX_PENETRATION] = max(f[s + M_MAX_PENETRATION], depth)
+        f[s + Mi.MAX_PENETRATION] = max(f[s + Mi.MAX_PENETRATION], depth)
         if push <= 0.0:
             continue
         pushed = True
-        f[s + M_MAX_WALL_FORCE] = max(f[s + M_MAX_WALL_FORCE], push)
+        f[s + Mi.MAX_WALL_FORCE] = max(f[s + Mi.MAX_WALL_FORCE], push)
         force[0] -= beta * push * nx  # the TO pushes the wall with -F_w
         force[1] -= beta * push * ny
     if pushed:
-        i[M_WALL_TICKS] += 1
+        i[Mi.WALL_TICKS] += 1
     return 0
 
 
 @jit
 def to_speed_ceiling(f: np.ndarray, n: int) -> None:
     """After ``mapping_engage``: r = min(r, the speed limit's ceiling)."""
-    s = N_MAPPING_VECTORS * n
-    f[s + M_GAIN] = min(f[s + M_GAIN], f[s + M_SPEED_CAP])
+    Mi = Mapping.idx
+    s = Mi.N_VECTORS * n
+    f[s + Mi.GAIN] = min(f[s + Mi.GAIN], f[s + Mi.SPEED_CAP])
 
 
 @jit
@@ -118,19 +102,20 @@ def to_speed_limit(
 ) -> None:  # fmt: skip
     """After the TO's flow omega_t arrived: the next tick's ceiling v_max / (alpha |omega_t|)
     (at most 1), and the tool's speed |J v| for the summary."""
-    s, k, nj = N_MAPPING_VECTORS * n, i[M_KIN_AT], i[M_JOINTS]
-    wanted = f[s + M_ALPHA] * math.hypot(omega_t[0], omega_t[1])
-    limit = f[s + M_SPEED_LIMIT]
+    Mi = Mapping.idx
+    s, k, nj = Mi.N_VECTORS * n, i[Mi.KIN_AT], i[Mi.JOINTS]
+    wanted = f[s + Mi.MOTION_SCALE] * math.hypot(omega_t[0], omega_t[1])
+    limit = f[s + Mi.SPEED_LIMIT]
     cap = 1.0 if wanted <= limit else limit / wanted
-    f[s + M_SPEED_CAP] = cap
+    f[s + Mi.SPEED_CAP] = cap
     if cap < 1.0:
-        i[M_SPEED_LIMITED] += 1
-        f[s + M_MIN_SPEED_CAP] = min(f[s + M_MIN_SPEED_CAP], cap)
+        i[Mi.SPEED_LIMITED] += 1
+        f[s + Mi.MIN_SPEED_CAP] = min(f[s + Mi.MIN_SPEED_CAP], cap)
     xd = yd = 0.0
     for j in range(nj):
         xd += f[k + j] * v[j]
         yd += f[k + nj + j] * v[j]
-    f[s + M_PEAK_SPEED] = max(f[s + M_PEAK_SPEED], math.hypot(xd, yd))
+    f[s + Mi.PEAK_TOOL_SPEED] = max(f[s + Mi.PEAK_TOOL_SPEED], math.hypot(xd, yd))
 
 
 def tool_limits_figures(mapping: Mapping) -> dict | None:

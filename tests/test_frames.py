@@ -13,8 +13,6 @@ import pytest
 from teleop_rt import config
 from teleop_rt.errors import ConfigError
 from teleop_rt.mapping import (
-    M_GAIN,
-    N_MAPPING_VECTORS,
     PLANE,
     POSE,
     POSITION,
@@ -127,8 +125,9 @@ def test_the_kernel_maps_flow_by_r_and_force_by_r_transposed() -> None:
     tau_e, omega_t, v = np.array([0.7, -1.1, 0.4]), np.array([0.03, -0.02]), np.zeros(3)
 
     def mapped(frame: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, ...]:
+        Mi = Mapping.idx
         m = Mapping(TASK, TO, 1e-3, ALPHA, BETA, space=PLANE, joints=3, frame=frame)
-        m.f[N_MAPPING_VECTORS * TASK + M_GAIN] = 0.75
+        m.f[Mi.N_VECTORS * TASK + Mi.GAIN] = 0.75
         map_kinematics(m.f, m.i, jac, tool)
         to_plane_input(m.f, m.i, TASK, tau_e)
         to_frame_force(m.f, m.i, TASK)
@@ -214,8 +213,9 @@ def test_the_3d_kernel_turns_each_half_of_the_twist_by_r_and_of_the_wrench_by_r_
     space, gain, dt = (POSITION, 0.75, 1e-3) if m == 3 else (POSE, 0.75, 1e-3)
 
     def mapped(frame: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, ...]:
+        Mi = Mapping.idx
         mp = Mapping(m, TO, dt, ALPHA, BETA, space=space, joints=nj, frame=frame)
-        mp.f[N_MAPPING_VECTORS * m + M_GAIN] = gain
+        mp.f[Mi.N_VECTORS * m + Mi.GAIN] = gain
         map_kinematics(mp.f, mp.i, jac, tool)
         if space == POSE:
             map_orientation(mp.f, mp.i, r_start)

@@ -31,6 +31,7 @@ KERNEL_MODULES = (
     "teleop_rt/site_tick.py", "teleop_rt/transparency_tick.py", "teleop_rt/world.py",
     "teleop_rt/com/port.py", "teleop_rt/com/codec.py", "teleop_rt/com/channel.py",
     "teleop_rt/com/wire.py", "teleop_rt/com/link.py", "teleop_rt/com/playout.py",
+    "teleop_rt/mapping.py", "teleop_rt/task_limits.py",
 )  # fmt: skip
 
 

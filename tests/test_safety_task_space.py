@@ -18,7 +18,7 @@ import pytest
 from teleop_rt import config
 from teleop_rt.com.port import TO
 from teleop_rt.errors import ConfigError
-from teleop_rt.mapping import PLANE, TASK, TAU_MAPPED, Mapping, map_kinematics
+from teleop_rt.mapping import PLANE, TASK, Mapping, map_kinematics
 from teleop_rt.report import tool_limits_text
 from teleop_rt.session import Session
 from teleop_rt.task_limits import to_tool_sense
@@ -79,6 +79,7 @@ def test_a_virtual_wall_pushes_k_times_its_penetration_plus_d_times_its_rate() -
     """The kernel against F_w = max(0, k p + d dp/dt) n, p the depth beyond the wall along
     its unit normal: added to the TO's task-space force as -beta F_w (the TO pushes the wall);
     nothing outside the wall, nothing while the clamp holds (leaving faster than k p / d)."""
+    Mi = Mapping.idx
     k, d, beta = 2000.0, 30.0, 5.0
     normal = np.array([3.0, 4.0]) / 5.0  # (given as 3, 4: the kernel normalises it)
     m = Mapping(TASK, TO, 1e-3, force_scale=beta, space=PLANE, joints=2,
@@ -91,7 +92,7 @@ def test_a_virtual_wall_pushes_k_times_its_penetration_plus_d_times_its_rate() -
         x = np.array([0.1, 0.2, 0.0]) - depth * np.append(normal, 0.0)
         map_kinematics(m.f, m.i, jac, x)
         before = np.array([1.5, -2.0])
-        m.f[TAU_MAPPED * TASK : TAU_MAPPED * TASK + 2] = before
+        m.f[Mi.TAU_MAPPED * TASK : Mi.TAU_MAPPED * TASK + 2] = before
         assert to_tool_sense(m.f, m.i, TASK, v) == 0
         if depth == 1e-5:
             assert k * depth + d * rate < 0  # the case: the clamp holds
