@@ -216,8 +216,8 @@ NEEDS = {"realtime": ('"--realtime"',), "zenoh": ('"--link", "zenoh"', "link.kin
 def needing(path: Path, marker: str) -> set[str]:
     """The tests of ``path`` whose body, or a same-module fixture they take, contains what
     ``marker`` stands for (NEEDS)."""
-    tree = ast.parse(path.read_text())
     source = path.read_text()
+    tree = ast.parse(source)
     functions = [n for n in tree.body if isinstance(n, ast.FunctionDef)]
 
     def uses(node: ast.FunctionDef) -> bool:
