@@ -137,3 +137,15 @@ def test_the_config_s_time_constant_reaches_both_ports() -> None:
     assert session.hsi.port.wave_drift_rate == session.to.port.wave_drift_rate == 0.5
     with pytest.raises(ValueError, match="> 0 s"):
         make_port(TO, "wave", [1.5], 1, DT, None, "reflected", None, 0.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(schedule=schedules(150), how=st.sampled_from(["corrected", "reflected"]),
+       time_s=st.floats(0.002, 10.0), filter_hz=st.sampled_from([None, 30.0]))  # fmt: skip
+def test_the_ports_are_passive_at_any_pay_back_time_constant(schedule, how, time_s,
+                                                             filter_hz) -> None:  # fmt: skip
+    """The bound, not the pay-back's gain, keeps the ports passive: any time constant."""
+    harness = Harness("wave", how, 1, filter_hz)
+    harness.ports = [make_port(side, "wave", [1.5], 1, DT, filter_hz, how, None, time_s)
+                     for side in (HSI, TO)]  # fmt: skip
+    assert drive(harness, schedule) >= PASSIVE_J
