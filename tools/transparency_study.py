@@ -249,11 +249,11 @@ def t_tau_prefix_floor(task: str, net: Net, channel: str,
     """The causal floor of T_tau on a network whose delay is constant until a step
     (``delay_step``), and the step's time, s. Until the step every packet has the delay before
     it, so a causal channel's run is, tick for tick, its run on the constant-delay link: no
-    packet tells it the step is coming (the same inputs, the same operator script: the run is
-    as long as the row's, ``seconds``, as the script depends on it). T_tau being
-    a sum of non-negative terms, the row's T_tau is at least that run's T_tau up to the step,
-    whatever the channel does after it (sound for this channel; ``tests/test_transparency_floor``
-    checks the identity bit for bit)."""
+    packet tells it the step is coming (the same inputs and operator script: that run is as
+    long as the row's, ``seconds``, as the script depends on it). T_tau being a sum of
+    non-negative terms, the row's T_tau is at least that run's up to the step, whatever the
+    channel does after it (sound for this channel; tests/test_transparency_floor.py checks the
+    identity bit for bit)."""
     if net.impairment is None or "delay_step" not in net.impairment:
         raise ValueError(f"{net.label}: no delay step, no prefix floor")
     before = {k: v for k, v in net.impairment.items() if k != "delay_step"}
