@@ -31,6 +31,7 @@ from teleop_rt.declarations import (
     DEFAULT_RECONSTRUCTION,
     MAX_DELAY_MS,
     PLAYOUT_DEFAULT,
+    WAVE_DRIFT_TIME_S,
     ChannelMode,
     Playout,
     Reconstruction,
@@ -201,6 +202,10 @@ class ChannelSpec(Strict):
     # integral (the wave integral without the bound). With no loss all six compute the same.
     # With the deadband codec: reflected (the default) or bounded, the two it keeps passive.
     wave_reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION
+    # corrected's and reflected's drift correction: the wave integral's debt is paid back with
+    # this time constant, s (longer: less of the pay-back felt after a delay step down, more
+    # position lost meanwhile; docs/transparency_under_loss.md, "s36")
+    wave_drift_time_s: PositiveFloat = WAVE_DRIFT_TIME_S
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # docs/passivity.md). None, the default, switches it off.

@@ -28,6 +28,11 @@ DEFAULT_RECONSTRUCTION: Reconstruction = "reflected"
 # the stiff wall at D = 1 ms within 5 %, docs/codec.md); bounded (the honest bound alone)
 CODEC_RECONSTRUCTIONS: tuple[Reconstruction, ...] = ("reflected", "bounded")
 CODEC_RECONSTRUCTION: Reconstruction = CODEC_RECONSTRUCTIONS[0]
+# ``corrected`` and ``reflected`` pay the wave integral's debt back with this time constant, s
+# (channel.wave_drift_time_s): shorter, less position lost (T_p); longer, less of the pay-back
+# felt (T_tau: after a delay step down it replays the samples the playout skipped;
+# docs/transparency_under_loss.md)
+WAVE_DRIFT_TIME_S = 0.25
 
 # what the channel couples (channel.space; teleop_rt.mapping): joint j to joint j, or the tools
 # in task space, each robot through its own Jacobian: the plane (x, y), 3-D position (x, y, z),

@@ -82,3 +82,18 @@ def test_a_lost_packet_is_never_known(tmp_path: Path) -> None:
         sum(k * k for k in range(d)) + (n - d) // 2 * (d * d + (d + 1) ** 2)
     )
     assert floor(ImpairmentSpec(trace=path), d, "fixed", n) == pytest.approx(closed, rel=1e-12)
+
+
+@pytest.mark.parametrize("channel", ["reflected", "zero"])
+def test_before_a_delay_step_the_run_is_the_constant_delay_link_s(channel: str) -> None:
+    """T_tau's prefix floor: free-space sweeps, 40 ms stepping down to 8 ms at 1 s (newest,
+    D = 2 ms): up to the step the run is, tick for tick, the constant-40 ms link's, so its T_tau
+    there is the floor's bit for bit, and the whole run's is at least that."""
+    down = {"delay_ms": 40, "delay_step": {"at_s": 1.0, "delay_ms": 8}}
+    step = ts.Net("step", "newest", 2, down)
+    row = ts.run("free-space sweeps", step, channel, 2.0)
+    floor_tau, at_s = ts.t_tau_prefix_floor("free-space sweeps", step, channel, 2.0)
+    assert floor_tau == row["t_tau_so_far"][round(at_s / row["dt"]) - 1]
+    assert 0.0 < floor_tau < row["t_tau"]
+    with pytest.raises(ValueError, match="no delay step"):
+        ts.t_tau_prefix_floor("free-space sweeps", ts.Net("clean", "newest", 2), channel)

@@ -15,7 +15,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from teleop_rt import config
-from teleop_rt.com.port import TO
+from teleop_rt.com.channel import make_port
+from teleop_rt.com.port import HSI, TO
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
 from tests.test_passive_channels import PASSIVE_J, SWEEP, Harness, drive, schedules
@@ -99,3 +100,52 @@ def test_the_measured_sawtooth_case(how: str, tmp_path) -> None:
     else:
         assert not s.safety_stop and s.stopped_early is None, s.stopped_early
         assert s.t_p_total < 0.5  # rad^2 s (zero wave: 2.1 when it stopped)
+
+
+def paid_back(how: str, time_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """A free TO (tau_t = 0, no filter) after a 0.3 s outage of the HSI -> TO direction, the
+    drift correction's time constant ``time_s``: the TO's debt after each tick, and whether
+    its protection acted in that tick (the bound's cut breaks the geometric decay)."""
+    harness = Harness("wave", how, 1, None)
+    harness.ports = [make_port(side, "wave", [1.5], 1, DT, None, how, None, time_s)
+                     for side in (HSI, TO)]  # fmt: skip
+    debts, acted = [], []
+    for k in range(2500):
+        omega = 0.5 * np.sin(2 * np.pi * 0.5 * k * DT)
+        before = int(harness.ports[TO].acted)
+        harness.step(k, (np.full(1, omega), np.zeros(1)), (20, 20), (False, 200 <= k < 500))
+        debts.append(float(harness.ports[TO].debt[0]))
+        acted.append(int(harness.ports[TO].acted) > before)
+    return np.array(debts), np.array(acted)
+
+
+@pytest.mark.parametrize("how", ["corrected", "reflected"])
+@pytest.mark.parametrize("time_s", [0.25, 2.0])
+def test_the_debt_is_paid_back_at_the_channel_s_time_constant(how: str, time_s: float) -> None:
+    """Closed form: with consecutive packets the wave used is the sample plus debt / T, so the
+    debt left after each packet is d (1 - dt / T): geometric, at the configured T."""
+    debts, acted = paid_back(how, time_s)
+    free = np.nonzero(~acted[1:] & (np.arange(1, debts.size) > 600))[0] + 1  # uncut ticks
+    assert free.size > 1000 and np.all(np.abs(debts[free - 1]) > 1e-6)  # the outage's motion
+    ratio = debts[free] / debts[free - 1]
+    assert np.allclose(ratio, 1.0 - DT / time_s, rtol=0.0, atol=1e-9), (ratio.min(), ratio.max())
+
+
+def test_the_config_s_time_constant_reaches_both_ports() -> None:
+    cfg = config.load(CONFIGS / "free_space.yaml", ["channel.wave_drift_time_s=2.0"])
+    session = Session(cfg)
+    assert session.hsi.port.wave_drift_rate == session.to.port.wave_drift_rate == 0.5
+    with pytest.raises(ValueError, match="> 0 s"):
+        make_port(TO, "wave", [1.5], 1, DT, None, "reflected", None, 0.0)
+
+
+@settings(max_examples=60, deadline=None)
+@given(schedule=schedules(150), how=st.sampled_from(["corrected", "reflected"]),
+       time_s=st.floats(0.002, 10.0), filter_hz=st.sampled_from([None, 30.0]))  # fmt: skip
+def test_the_ports_are_passive_at_any_pay_back_time_constant(schedule, how, time_s,
+                                                             filter_hz) -> None:  # fmt: skip
+    """The bound, not the pay-back's gain, keeps the ports passive: any time constant."""
+    harness = Harness("wave", how, 1, filter_hz)
+    harness.ports = [make_port(side, "wave", [1.5], 1, DT, filter_hz, how, None, time_s)
+                     for side in (HSI, TO)]  # fmt: skip
+    assert drive(harness, schedule) >= PASSIVE_J

@@ -208,6 +208,7 @@ def run(task: str, net: Net, channel: str, seconds: float | None = None) -> dict
     session = Session(cfg)
     force: list[float] = []
     q_log: list[np.ndarray] = []
+    t_tau: list[float] = []  # T_tau so far, after each tick
     hold = None
     if name == "stiff_wall":
         geo = experiment.experiment_geometry(cfg)
@@ -217,6 +218,7 @@ def run(task: str, net: Net, channel: str, seconds: float | None = None) -> dict
     def observe(s: Session) -> None:
         hsi = s.hsi  # the q_h the session's eq 18 sums
         q_log.append((hsi.mapping.q_mapped if hsi.mapping.active else hsi.feedback.q).copy())
+        t_tau.append(float(s.metrics.t_tau.sum()))
         if hold is not None and hold[0] <= s.tick - 1 < hold[1]:
             force.append(float(-world.force[:2] @ geo.wall_normal))
 
@@ -236,9 +238,29 @@ def run(task: str, net: Net, channel: str, seconds: float | None = None) -> dict
         "force_n": float(np.mean(force)) if force else math.nan,
         "wall_s": wall_s,
         "q_h": np.array(q_log),
+        "t_tau_so_far": np.array(t_tau),
         "spec": cfg.link.impairment,
         "dt": cfg.dt,
     }
+
+
+def t_tau_prefix_floor(task: str, net: Net, channel: str,
+                       seconds: float | None = None) -> tuple[float, float]:  # fmt: skip
+    """The causal floor of T_tau on a network whose delay is constant until a step
+    (``delay_step``), and the step's time, s. Until the step every packet has the delay before
+    it, so a causal channel's run is, tick for tick, its run on the constant-delay link: no
+    packet tells it the step is coming (the same inputs and operator script: that run is as
+    long as the row's, ``seconds``, as the script depends on it). T_tau being a sum of
+    non-negative terms, the row's T_tau is at least that run's up to the step, whatever the
+    channel does after it (sound for this channel; tests/test_transparency_floor.py checks the
+    identity bit for bit)."""
+    if net.impairment is None or "delay_step" not in net.impairment:
+        raise ValueError(f"{net.label}: no delay step, no prefix floor")
+    before = {k: v for k, v in net.impairment.items() if k != "delay_step"}
+    at_s = float(net.impairment["delay_step"]["at_s"])
+    constant = Net(f"{net.label}, before the step", net.playout, net.d_ms, before)
+    row = run(task, constant, channel, seconds)
+    return float(row["t_tau_so_far"][round(at_s / row["dt"]) - 1]), at_s
 
 
 def verdict(task: str, net: Net, row: dict, clean: dict) -> list[str]:

@@ -46,11 +46,15 @@ stays passive when the network varies its delay, loses, duplicates or reorders p
                ``HOLD_TICKS`` ticks of silence, and what it had left of the budget with it.
   ``corrected`` ``bounded`` with position-drift compensation: the wave integral's debt (the
                peer's integral minus the one used: what an outage lost or the bound cut) is
-               kept and paid back at ``1 / WAVE_DRIFT_TIME_S`` on the waves used, within the
+               kept and paid back at ``1 / wave_drift_time_s`` on the waves used, within the
                same honest budget (wave integrals with position correction, Niemeyer &
                Slotine, IJRR 2004; position tracking with wave variables, Chopra, Spong,
                Hirche & Buss, ACC 2003). With no loss the debt is exactly 0: ``bounded`` bit
-               for bit.
+               for bit. The time constant (default ``WAVE_DRIFT_TIME_S``) is the drift
+               correction's gain: the pay-back replays what the port missed (after a delay
+               step down, the samples the playout skipped) and, in free space, the TO's
+               catch-up comes back to the HSI as a wave the operator feels; a longer one
+               trades T_p for T_tau (docs/transparency_under_loss.md, "s36").
   ``reflected`` ``corrected`` with energy reflection: the two-port needs only the sum over
                both directions, sum(u_l^2 - u_r^2) + sum(v_r^2 - v_l^2) >= 0, not each
                direction's. In a static push a port takes almost no net power (the wave it uses
@@ -98,6 +102,7 @@ from teleop_rt.declarations import (
     REFLECTED,
     TDPA,
     WAVE,
+    WAVE_DRIFT_TIME_S,
     ZERO,
     require_delay_ticks,
 )
@@ -106,7 +111,6 @@ from teleop_rt.flat import Block, Int, Scalar, Vector, jit, vec
 HSI, TO = 0, 1  # a port's side
 CATCH_UP = 10  # the most missed packets the wave integral catches up in one tick
 HOLD_TICKS = 10  # TDPA holds the peer's last value this long through a gap, then zero
-WAVE_DRIFT_TIME_S = 0.25  # ``corrected``: the time constant it pays the integral's debt back in
 
 
 class Packet(Block):
@@ -166,7 +170,7 @@ class Port(Block):
     min_balance = Scalar("its running minimum, J")
     alpha = Scalar("received-wave low-pass coefficient", param=True)
     drift_rate = Scalar("TDPA's position-drift compensation at the TO, 1/s (0: off)", param=True)
-    wave_drift_rate = Scalar("``corrected``: 1 / WAVE_DRIFT_TIME_S, 1/s", param=True)
+    wave_drift_rate = Scalar("``corrected``: 1 / wave_drift_time_s, 1/s", param=True)
     dt = Scalar(param=True)
     side = Int("HSI or TO", param=True)
     mode = Int("DIRECT, WAVE or TDPA", param=True)
@@ -232,6 +236,7 @@ class Port(Block):
         filter_hz: float | None = None,
         reconstruction: int = RECONSTRUCTIONS[DEFAULT_RECONSTRUCTION],
         drift_time_s: float | None = None,
+        wave_drift_time_s: float = WAVE_DRIFT_TIME_S,
     ) -> None:
         b = [float(x) for x in wave_impedance]
         if mode == WAVE and any(not x > 0 for x in b):
@@ -244,8 +249,10 @@ class Port(Block):
         if drift_time_s is not None and not drift_time_s > 0:
             raise ValueError("the drift compensation's time constant must be > 0 s")
         self.drift_rate = 1.0 / drift_time_s if drift_time_s and side == TO else 0.0
+        if not wave_drift_time_s > 0:
+            raise ValueError("the wave drift correction's time constant must be > 0 s")
         drifts = reconstruction in (CORRECTED, REFLECTED)
-        self.wave_drift_rate = 1.0 / WAVE_DRIFT_TIME_S if drifts else 0.0
+        self.wave_drift_rate = 1.0 / wave_drift_time_s if drifts else 0.0
         if mode == WAVE:
             self.b[:] = b
             self.sqrt_2b[:] = [math.sqrt(2.0 * x) for x in b]
