@@ -102,7 +102,7 @@ HOW = st.sampled_from(CODEC_RECONSTRUCTIONS)
        filter_hz=st.sampled_from([None, 30.0]), max_ticks=st.sampled_from([1, 5, 50]),
        predictions=st.tuples(PREDICTION, PREDICTION), how=HOW,
        exchange_j=st.sampled_from([0.0, 1e-5, 1e-3]),
-       exchange_weber=st.sampled_from([0.0, 0.05, 1.0]))  # fmt: skip
+       exchange_weber=st.sampled_from([0.0, 0.1, 1.0]))  # fmt: skip
 def test_ports_with_the_codec_are_passive_for_any_delays_losses_and_inputs(
     schedule, mode, filter_hz, max_ticks, predictions, how, exchange_j, exchange_weber
 ) -> None:
@@ -370,10 +370,11 @@ def test_sessions_with_the_codec_stay_passive_under_impairments(mode: str, impai
     for path in (CONFIGS / "stiff_wall.yaml", CONFIGS / "free_space.yaml"):
         sets = ["duration_s=6", "channel.delay_ms=2", "link.playout=newest",
                 f"channel.mode={mode.split('+')[0]}", "channel.codec=deadband"]  # fmt: skip
-        if "+exchange" in mode:
-            sets += ["channel.deadband.exchange_j=3e-5", "channel.deadband.prediction_hsi=linear"]
-        if mode.endswith("+weber"):
-            sets.append("channel.deadband.exchange_weber=0.05")
+        if "+exchange" in mode:  # (with Weber's rule: the setting docs/codec.md measures best)
+            weber = mode.endswith("+weber")
+            sets += [f"channel.deadband.exchange_j={2e-5 if weber else 3e-5}",
+                     "channel.deadband.prediction_hsi=linear",
+                     f"channel.deadband.exchange_weber={0.1 if weber else 0.0}"]  # fmt: skip
         if path.stem == "free_space":
             sets.append("operator.waypoints=" + json.dumps(SWEEP[:6]))
         s = session(path, sets, CLASSES[impairment])
@@ -533,6 +534,25 @@ def test_the_energy_deadband_keeps_the_stiff_walls_felt_stiffness_at_one_tick() 
     assert held["stiffness"] / off["stiffness"] - 1 < -0.25
     assert abs(on["stiffness"] / off["stiffness"] - 1) <= 0.1
     assert min(on["red_hsi"], on["red_to"]) >= 0.8
+    assert min(on["min_energy"], on["min_balance"]) >= PASSIVE_J
+
+
+@pytest.mark.slow
+def test_webers_rule_on_the_energy_step_saves_85_percent_on_foam_at_one_tick() -> None:
+    """TDPA at D = 1 ms on foam: the energy deadband's fixed step sends all through the
+    contact (foam's damping passes a steady flow; measured 71.5 / 71.9 % with 3e-5 J);
+    Weber's rule on it (tools/codec_study.py's setting: 2e-5 J, w 0.1) saves >= 85 % each
+    way (measured 86.2 / 87.1 %) and keeps the felt stiffness within 10 % (+1.0 %)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    import codec_study as cs
+
+    base = ["channel.mode=tdpa", "channel.delay_ms=1"]
+    off = cs.run("foam", [*base, *cs.codec_sets(None)])
+    fixed = cs.run("foam", [*base, *cs.codec_sets(0.1), *cs.EXCHANGE])
+    on = cs.run("foam", [*base, *cs.codec_sets(0.1), *cs.TDPA_VARIANTS[cs.WEBER_LABEL]])
+    assert max(fixed["red_hsi"], fixed["red_to"]) < 0.75
+    assert min(on["red_hsi"], on["red_to"]) >= 0.85
+    assert abs(on["stiffness"] / off["stiffness"] - 1) <= 0.1
     assert min(on["min_energy"], on["min_balance"]) >= PASSIVE_J
 
 

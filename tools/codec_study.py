@@ -261,12 +261,14 @@ def energy(quick: bool) -> list[dict]:
 
 # part 6, TDPA's rows with every energy setting, the contact-onset stiffness next to the
 # study's (docs/codec.md, "TDPA's stiff wall"): label -> overrides with the codec
-WEBER_E = 0.05
-WEBER_LABEL = f"... with Weber's rule on it, {WEBER_E:g}"
+# (Weber's rule with a smaller fixed step: measured best over the nine rows, docs/codec.md)
+WEBER_STEP_J, WEBER_E = 2e-5, 0.1
+WEBER_LABEL = f"{WEBER_STEP_J:g} J, Weber's rule {WEBER_E:g}"
 TDPA_VARIANTS = {
     "the default codec": (),
     "energy deadband 3e-05 J": EXCHANGE,
-    WEBER_LABEL: (*EXCHANGE, f"channel.deadband.exchange_weber={WEBER_E:g}"),
+    WEBER_LABEL: (f"channel.deadband.exchange_j={WEBER_STEP_J:g}", *EXCHANGE[1:],
+                  f"channel.deadband.exchange_weber={WEBER_E:g}"),
 }
 
 
@@ -493,9 +495,10 @@ def report(
     tdpa = tdpa or []
     lines += ["", "## TDPA: every energy setting, and the stiffness at the onset of contact "
               f"({WEBER:.0%})", "",
-              "Changes against TDPA without codec at the same D. Onset: the felt stiffness "
-              f"fitted over the first {ONSET_S:g} s of contact only (docs/codec.md, \"TDPA's "
-              "stiff wall\"); felt stiffness (JND about 20 %) in K N/m without -> with.", "",
+              "Changes against TDPA without codec at the same D; every energy setting with the "
+              "linear reconstruction from the HSI. Onset: the felt stiffness fitted over the "
+              f"first {ONSET_S:g} s of contact only (docs/codec.md, \"TDPA's stiff wall\"), "
+              "N/m without -> with.", "",
               "| config | D (ms) | codec | reduction | T_p | T_tau | stiffness | mass | "
               "onset stiffness | onset K (N/m) | RMS T_p (mrad) | RMS T_tau (N m) | "
               "min two-port energy (J) | min port balance (J) |",
