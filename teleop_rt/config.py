@@ -171,6 +171,10 @@ class DeadbandSpec(Strict):
     # its last packet (the energy deadband of teleop_rt.com.codec; docs/codec.md measures it at
     # D = 1 ms, where the hold's lag costs felt stiffness); 0: off
     exchange_j: NonNegFloat = 0.0
+    # ... and that step grows by this fraction of the energy crossed over the last
+    # codec.EXCHANGE_WINDOW_TICKS (Weber's rule on the energy: a steady flow, foam's damping,
+    # sends a packet per fraction of the window); 0: the fixed step
+    exchange_weber: NonNegFloat = 0.0
 
     @model_validator(mode="after")
     def _intervals(self) -> DeadbandSpec:
@@ -179,6 +183,8 @@ class DeadbandSpec(Strict):
                 f"min_interval_ticks = {self.min_interval_ticks} is above max_interval_ticks "
                 f"= {self.max_interval_ticks}"
             )
+        if self.exchange_weber > 0 and not self.exchange_j > 0:
+            raise ValueError("exchange_weber grows the energy step exchange_j: set exchange_j > 0")
         return self
 
 

@@ -450,7 +450,8 @@ def port_for(cfg: SessionConfig, n: int, side: int) -> Port:
         mine, peers = (of_hsi, of_to) if side == HSI else (of_to, of_hsi)
         codec.configure(port, getattr(db, f"weber_{own}"), getattr(db, f"floor_{own}"),
                         db.min_interval_ticks, db.max_interval_ticks,
-                        db.velocity_gain_s_per_rad, mine, peers, db.exchange_j)  # fmt: skip
+                        db.velocity_gain_s_per_rad, mine, peers, db.exchange_j,
+                        db.exchange_weber)  # fmt: skip
     return port
 
 

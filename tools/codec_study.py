@@ -113,6 +113,7 @@ def run(name: str, sets: list[str], duration_s: float | None = None) -> dict:
     # through the origin over the ticks in contact
     stiffness = float(f_n[touch] @ pen_h[touch] / (pen_h[touch] @ pen_h[touch])) \
         if touch.sum() > 20 else math.nan  # fmt: skip
+    onset = onset_stiffness(pen_h, f_n, touch, round(ONSET_S / cfg.dt))
     first = t[np.flatnonzero(pen_t > 0)[0]] if (pen_t > 0).any() else math.inf
     wps = cfg.operator.waypoints
     free = t < min(wps[1].t_s if len(wps) > 1 else math.inf, first)
@@ -130,6 +131,7 @@ def run(name: str, sets: list[str], duration_s: float | None = None) -> dict:
         "rms_p": math.sqrt(summary.t_p_total / (k * cfg.dt)),
         "rms_tau": math.sqrt(summary.t_tau_total / (k * cfg.dt)),
         "stiffness": stiffness,
+        "onset_stiffness": onset,
         "mass": mass,
         "min_energy": float(summary.min_channel_energy_j),
         "min_balance": min(ch["hsi"]["min_balance_j"], ch["to"]["min_balance_j"]),
@@ -139,6 +141,26 @@ def run(name: str, sets: list[str], duration_s: float | None = None) -> dict:
         "rate_to": c["to"]["rate_hz"] if c else 1.0 / cfg.dt,
         "codec": c,
     }
+
+
+# the felt stiffness over the first contact (docs/codec.md, "TDPA's stiff wall"): what a
+# person judges a hard surface by is its response at the onset of contact (rate-hardness:
+# Lawrence, Pao, Dougherty, Salada & Pavlou, IEEE Trans. Robot. Autom. 16(4), 2000), and
+# TDPA's wall, with no position feedback, gives way within a second of it
+ONSET_S = 0.5
+
+
+def onset_stiffness(pen_h: np.ndarray, f_n: np.ndarray, touch: np.ndarray, ticks: int) -> float:
+    """The operator's force against the HSI's penetration, least squares through the origin,
+    over the ticks in contact within ``ticks`` of the first (nan: fewer than 20 such)."""
+    if not touch.any():
+        return math.nan
+    m = touch.copy()
+    first = int(np.flatnonzero(touch)[0])
+    m[:first], m[first + ticks:] = False, False
+    if m.sum() <= 20:
+        return math.nan
+    return float(f_n[m] @ pen_h[m] / (pen_h[m] @ pen_h[m]))
 
 
 @contextlib.contextmanager
@@ -237,6 +259,40 @@ def energy(quick: bool) -> list[dict]:
     return rows
 
 
+# part 6, TDPA's rows with every energy setting, the contact-onset stiffness next to the
+# study's (docs/codec.md, "TDPA's stiff wall"): label -> overrides with the codec
+# (Weber's rule with a smaller fixed step: measured best over the nine rows, docs/codec.md)
+WEBER_STEP_J, WEBER_E = 2e-5, 0.1
+WEBER_LABEL = f"{WEBER_STEP_J:g} J, Weber's rule {WEBER_E:g}"
+TDPA_VARIANTS = {
+    "the default codec": (),
+    "energy deadband 3e-05 J": EXCHANGE,
+    WEBER_LABEL: (f"channel.deadband.exchange_j={WEBER_STEP_J:g}", *EXCHANGE[1:],
+                  f"channel.deadband.exchange_weber={WEBER_E:g}"),
+}
+
+
+def tdpa_rows(quick: bool) -> list[dict]:
+    rows = []
+    names = ("stiff_wall",) if quick else tuple(CONFIGS)
+    delays = (20,) if quick else DELAYS_MS
+    dur = 2.0 if quick else None
+    for name in names:
+        for d in delays:
+            base = ["channel.mode=tdpa", f"channel.delay_ms={d}"]
+            off = run(name, [*base, *codec_sets(None)], dur)
+            for label, extra in TDPA_VARIANTS.items():
+                on = run(name, [*base, *codec_sets(WEBER), *extra], dur)
+                rows.append({"config": name, "delay": d, "channel": f"tdpa ({label})",
+                             "variant": label, "on": on, "off": off})  # fmt: skip
+                print(f"tdpa {name} {d} ms {label}: reduction {on['red_hsi']:.3f}/"
+                      f"{on['red_to']:.3f}, stiffness "
+                      f"{_pct(ratio(on['stiffness'], off['stiffness']) - 1)}, at the onset "
+                      f"{_pct(ratio(on['onset_stiffness'], off['onset_stiffness']) - 1)}",
+                      flush=True)  # fmt: skip
+    return rows
+
+
 def curve(quick: bool) -> dict:
     out: dict = {}
     webers = (0.05, 0.2) if quick else CURVE
@@ -260,9 +316,12 @@ def passivity(quick: bool) -> list[dict]:
     for name in ("paper_experiment", "stiff_wall"):
         for sweep, value in classes.items():
             case = make_case(sweep, value)
-            # (TDPA with the energy deadband too: it only adds packets)
-            for ch, sets in [*CHANNELS.items(), ("tdpa, energy deadband",
-                                                 (*CHANNELS["tdpa"], *EXCHANGE))]:
+            # (TDPA with the energy deadband too, and with Weber's rule on it: they only add
+            # packets)
+            for ch, sets in [*CHANNELS.items(),
+                             ("tdpa, energy deadband", (*CHANNELS["tdpa"], *EXCHANGE)),
+                             ("tdpa, energy deadband, Weber",
+                              (*CHANNELS["tdpa"], *TDPA_VARIANTS[WEBER_LABEL]))]:
                 r = run(name, [*sets, *case.overrides(), *codec_sets(WEBER)],
                         2.0 if quick else None)  # fmt: skip
                 rows.append({"config": name, "case": case.label, "sweep": sweep, "channel": ch,
@@ -339,7 +398,7 @@ def misses(acc: list[dict]) -> str:
 
 def report(
     acc: list[dict], cur: dict, pas: list[dict], spl: list[dict], out: Path, quick: bool,
-    ene: list[dict] | None = None,
+    ene: list[dict] | None = None, tdpa: list[dict] | None = None,
 ) -> Path:
     ene = ene or []
     lines = ["# The deadband codec, measured", "",
@@ -433,12 +492,32 @@ def report(
                      f"{on['min_energy']:.2g} | {on['min_balance']:.2g} |")  # fmt: skip
     if ene:
         lines += ["", "Missed with the energy deadband: " + misses(ene)]
+    tdpa = tdpa or []
+    lines += ["", "## TDPA: every energy setting, and the stiffness at the onset of contact "
+              f"({WEBER:.0%})", "",
+              "Changes against TDPA without codec at the same D; every energy setting with the "
+              "linear reconstruction from the HSI. Onset: the felt stiffness fitted over the "
+              f"first {ONSET_S:g} s of contact only (docs/codec.md, \"TDPA's stiff wall\"), "
+              "N/m without -> with.", "",
+              "| config | D (ms) | codec | reduction | T_p | T_tau | stiffness | mass | "
+              "onset stiffness | onset K (N/m) | RMS T_p (mrad) | RMS T_tau (N m) | "
+              "min two-port energy (J) | min port balance (J) |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"] if tdpa else []
+    for row in tdpa:
+        on, off = row["on"], row["off"]
+        lines.append(f"| {row['config']} | {row['delay']} | {row['variant']} | "
+                     + _changes(on, off) + "| "
+                     f"{_pct(ratio(on['onset_stiffness'], off['onset_stiffness']) - 1)} | "
+                     f"{off['onset_stiffness']:.0f} -> {on['onset_stiffness']:.0f} | "
+                     f"{1e3 * off['rms_p']:.2f} -> {1e3 * on['rms_p']:.2f} | "
+                     f"{off['rms_tau']:.3f} -> {on['rms_tau']:.3f} | "
+                     f"{on['min_energy']:.2g} | {on['min_balance']:.2g} |")  # fmt: skip
     path = out / "codec_study.md"
     path.write_text("\n".join(lines) + "\n")
     return path
 
 
-PARTS = ("acceptance", "curve", "passivity", "split", "energy")
+PARTS = ("acceptance", "curve", "passivity", "split", "energy", "tdpa")
 
 
 def parse_rows(text: str) -> tuple[set[tuple[str, int, str]], str | None]:
@@ -485,9 +564,10 @@ def main(argv: list[str] | None = None) -> int:
     pas = passivity(args.quick) if "passivity" in parts else []
     spl = split(args.quick) if "split" in parts else []
     ene = energy(args.quick) if "energy" in parts else []
+    tdp = tdpa_rows(args.quick) if "tdpa" in parts else []
     if cur:
         plot_curve(cur, out / "figures" / "codec_curve.png")
-    print(f"report: {report(acc, cur, pas, spl, out, args.quick, ene)}")
+    print(f"report: {report(acc, cur, pas, spl, out, args.quick, ene, tdp)}")
     return 0
 
 

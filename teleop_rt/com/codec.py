@@ -75,6 +75,13 @@ energy it declared. What keeps that passive is the port's own rule, unchanged:
   delay; the codec's holds drove a sustained oscillation there whose passivity-controller
   cuts drifted the TO out of the wall). Free motion and a settled push cross little energy
   and keep the deadband's intervals. It only adds packets: passive as before.
+  With ``exchange_weber`` w (off by default; our own, after Weber's law as the deadband
+  itself applies it: Hinterseer & Steinbach 2006) the step grows by w times the NET energy
+  that crossed the port over the last ``EXCHANGE_WINDOW_TICKS`` (a low-pass of E_in - E_out
+  per tick): a steady flow one way (foam's damping in a push) then sends a packet per
+  w N ticks or so instead of per step, while an oscillation's energy, which goes back and
+  forth and nets about zero, keeps the fixed step (the stiff wall's limit cycle at D = 1 ms;
+  the gross flow as the reference brings it back: measured, docs/codec.md). A trigger only.
 
 Past the maximum interval the peer should have sent: the tick is a loss (``expired``) and the
 port's own loss rule applies (the bounded hold, TDPA's hold then zero); the peer timeout
@@ -109,6 +116,9 @@ AHEAD_FRACTION, AHEAD_TICKS = 0.4, 8
 # the impaired link, Zenoh), which bounds the hold's lag (measured on the stiff wall at
 # D = 1 ms: 7 ticks -5 % felt stiffness at 85.6 % reduction, 8 ticks -10 %; docs/codec.md)
 REFLECT_HOLD_TICKS = 7
+# TDPA's energy deadband with ``exchange_weber``: the window its reference flow is low-passed
+# over (the step grows by exchange_weber times the energy crossed in about this many ticks)
+EXCHANGE_WINDOW_TICKS = 100
 ENERGY_STEP_J = 1e-4  # TDPA: a port whose E_in grew by this since its last packet sends
 CODECS = {"none": NONE, "deadband": DEADBAND}
 # TDPA: the reconstruction pays the peer's integral back (its position, or its torque's
@@ -125,7 +135,7 @@ PREDICTIONS_BY_MODE = {"wave": ("linear", "hold"), "tdpa": ("hold", "linear")}
 def configure(
     port: Port, weber: float, floor: float, min_ticks: int, max_ticks: int,
     velocity_gain: float = 0.0, prediction: str = "linear", peer_prediction: str | None = None,
-    exchange_j: float = 0.0,
+    exchange_j: float = 0.0, exchange_weber: float = 0.0,
 ) -> None:  # fmt: skip
     """Switch the deadband codec on at ``port`` (its own signal's Weber fraction and floor;
     ``prediction``: how the peer reconstructs this port's packets between them, 'linear' or
@@ -137,6 +147,8 @@ def configure(
         raise ValueError("the deadband needs 0 < weber < 1, floor >= 0, velocity_gain >= 0")
     if not exchange_j >= 0.0 or (exchange_j > 0.0 and int(port.mode) == WAVE):
         raise ValueError("the codec's exchange_j is >= 0 J, and only for TDPA")
+    if not exchange_weber >= 0.0 or (exchange_weber > 0.0 and not exchange_j > 0.0):
+        raise ValueError("the codec's exchange_weber is >= 0, and needs exchange_j > 0")
     if not 1 <= min_ticks <= max_ticks:
         raise ValueError("the codec's intervals need 1 <= min_ticks <= max_ticks")
     if port.delay_ticks < 1:
@@ -147,6 +159,8 @@ def configure(
     port.codec_reserve, port.codec_room_ticks = RESERVE, ROOM_TICKS
     port.codec_energy_step = ENERGY_STEP_J
     port.codec_exchange_step = exchange_j
+    port.codec_exchange_weber = exchange_weber
+    port.codec_flow_alpha = 1.0 / EXCHANGE_WINDOW_TICKS
     port.codec_predict = PREDICTIONS[prediction]
     port.codec_rx_predict = PREDICTIONS[peer_prediction]
     port.codec_sum_rate = 1.0 / SUM_TIME_S
@@ -317,6 +331,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
     reserve, room_ticks = f[s + Pt.CODEC_RESERVE], f[s + Pt.CODEC_ROOM_TICKS]
     step = f[s + Pt.CODEC_ENERGY_STEP]
     exchange = f[s + Pt.CODEC_EXCHANGE_STEP]
+    exchange_weber, alpha = f[s + Pt.CODEC_EXCHANGE_WEBER], f[s + Pt.CODEC_FLOW_ALPHA]
     # with a look-ahead of A ticks the peer's room at its playout of this tick includes the
     # energy declared by any packet sent in the next A ticks: this tick's true wave energy,
     # if one goes out within A + 1 ticks of the last
@@ -336,7 +351,17 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
         if not wave and exchange > 0.0:
             # energy crossing the port either way: the contact the peer's hold lags (docs/codec.md)
             crossed_j = tx[Pk.E_IN * n + j] + tx[Pk.E_OUT * n + j]
-            if crossed_j - f[Pt.CODEC_E_CROSSED * n + j] > exchange:
+            # Weber's rule on the energy step: it grows with the NET energy flowing through
+            # the port over the last window (the low-passed E_in - E_out per tick, over alpha),
+            # so that a steady flow one way (foam's damping) sends a packet per fraction of a
+            # window; an oscillation's energy goes back and forth, nets ~0 and keeps the step
+            net = tx[Pk.E_IN * n + j] - tx[Pk.E_OUT * n + j]
+            flow = f[Pt.CODEC_FLOW * n + j]
+            flow += alpha * (net - f[Pt.CODEC_CROSSED_LAST * n + j] - flow)
+            f[Pt.CODEC_FLOW * n + j] = flow
+            f[Pt.CODEC_CROSSED_LAST * n + j] = net
+            grown = exchange + exchange_weber * abs(flow) / alpha
+            if crossed_j - f[Pt.CODEC_E_CROSSED * n + j] > grown:
                 short = True
         if wave and not reflects:
             # would the peer's bound cut the held wave this tick (the room declared so far)?

@@ -191,6 +191,9 @@ class Port(Block):
     codec_rx_sum = Vector("TDPA: dt times the sum of the peer's values as reconstructed here")
     codec_debt = Vector("TDPA: the peer's x integral minus the one reconstructed, not yet paid")
     codec_e_crossed = Vector("TDPA: E_in + E_out of this port at its last packet sent, J")
+    codec_flow = Vector("TDPA: energy crossing the port (in or out) per tick, low-passed over "
+                        "codec.EXCHANGE_WINDOW_TICKS, J (the Weber rule's reference)")
+    codec_crossed_last = Vector("TDPA: E_in + E_out of this port a tick ago, J")
     codec_ahead = Vector("the wave energy the peer declared in its newest packet that has "
                          "arrived but is not due yet, J (the link's look-ahead; 0: none)")
     codec_weber = Scalar("Weber fraction of the deadband", param=True)
@@ -201,6 +204,9 @@ class Port(Block):
     codec_energy_step = Scalar("TDPA: E_in grown by this since sent sends, J (0: off)", param=True)
     codec_exchange_step = Scalar("TDPA: energy crossed (in or out) since sent that sends, J "
                                  "(0: off)", param=True)
+    codec_exchange_weber = Scalar("TDPA: the energy step grows by this fraction of the energy "
+                                  "crossed over the last window (0: a fixed step)", param=True)
+    codec_flow_alpha = Scalar("TDPA: the flow's low-pass coefficient, 1 / window", param=True)
     codec_predict = Scalar("1: the peer extrapolates this port's packets (linear); 0: holds",
                            param=True)  # fmt: skip
     codec_rx_predict = Scalar("the same for this port's reconstruction of the peer's", param=True)
