@@ -10,7 +10,8 @@ and read the medians, not the maxima):
 2. the Pinocchio floor: the per-tick Pinocchio calls alone (2 RNEA, 2 ABA, 2 frame Jacobians);
 3. the full simulated tick (both models, controllers, channel, both plants) without and with
    recording, the log writer process's CPU per tick (and its fixed start and close cost) and
-   the log's bytes per tick, and the controller-side tick (what runs against hardware: read,
+   the log's bytes per tick, beside its floors (the SDK's log calls alone, a bare fork and
+   exit of this process), and the controller-side tick (what runs against hardware: read,
    models, controllers, channel, safety, write; the feedback replayed from a simulated run);
 4. real-time mode, S seconds at 1 kHz with recording on: deadline lateness percentiles and
    the ticks that started more than a whole period late, the writer's CPU and bytes per tick;
