@@ -10,7 +10,8 @@ and read the medians, not the maxima):
 2. the Pinocchio floor: the per-tick Pinocchio calls alone (2 RNEA, 2 ABA, 2 frame Jacobians);
 3. the full simulated tick (both models, controllers, channel, both plants) without and with
    recording, the log writer process's CPU per tick (and its fixed start and close cost) and
-   the log's bytes per tick, and the controller-side tick (what runs against hardware: read,
+   the log's bytes per tick, beside its floors (the SDK's log calls alone, a bare fork and
+   exit of this process), and the controller-side tick (what runs against hardware: read,
    models, controllers, channel, safety, write; the feedback replayed from a simulated run);
 4. real-time mode, S seconds at 1 kHz with recording on: deadline lateness percentiles and
    the ticks that started more than a whole period late, the writer's CPU and bytes per tick;
@@ -239,9 +240,51 @@ def full_tick(cfg, ticks: int, repeat: int, tmp: Path) -> dict:
         Recorder(Session(cfg), tmp / f"bench-empty-{r}.mcap").close(None)
         fixed_ms.append(1e3 * (children_cpu_s() - cpu_before))
     beyond = [us - 1e3 * ms / ticks for us, ms in zip(writer_us, fixed_ms, strict=True)]
+    topics = [t.name for t in recorder.layout.topics]
     return {"plain": best_of(plain), "recorded": best_of(logged), "writer_cpu_us": writer_us,
             "writer_fixed_ms": fixed_ms, "writer_per_tick_us": beyond,
-            "log_bytes_per_tick": log_bytes}  # fmt: skip
+            "log_bytes_per_tick": log_bytes,
+            "floors": writer_floors(path, topics, tmp)}  # fmt: skip
+
+
+def writer_floors(log: Path, topics: list[str], tmp: Path, repeat: int = 5) -> dict:
+    """The log writer's floors, measured in this process: the SDK's log call alone per tick
+    (the messages of ``topics`` in ``log``, re-logged from a ready list with the writer's MCAP
+    options: while each topic's tick is one message, the writer's per-tick part cannot go
+    below it), and a bare fork and exit of this process (what the kernel takes to copy and
+    tear down the address space a forked writer inherits: the floor of its fixed part).
+    Minimum of ``repeat``."""
+    import foxglove
+    from mcap.reader import make_reader
+
+    from teleop_rt.recording.writer import write_options
+
+    with open(log, "rb") as f:
+        found = make_reader(f).iter_messages(topics=topics, log_time_order=False)
+        messages = [(ch.topic, message.data, message.log_time) for _, ch, message in found]
+    sdk_us = []
+    for r in range(repeat):
+        context = foxglove.Context()
+        out = tmp / f"floor-{r}.mcap"
+        writer = foxglove.open_mcap(str(out), context=context, writer_options=write_options())
+        schema = foxglove.Schema(name="floor", encoding="ros2msg", data=b"uint8[] data")
+        logs = {t: foxglove.Channel(t, message_encoding="cdr", schema=schema,
+                                    context=context).base.log for t in topics}  # fmt: skip
+        calls = [(logs[t], data, stamp) for t, data, stamp in messages]
+        t0 = time.process_time_ns()
+        for log, data, stamp in calls:
+            log(data, stamp)
+        sdk_us.append((time.process_time_ns() - t0) / 1e3 / (len(calls) / len(topics)))
+        writer.close()
+    fork_ms = []
+    for _ in range(repeat):
+        pid = os.fork()
+        if pid == 0:
+            os._exit(0)
+        usage = os.wait4(pid, 0)[2]
+        fork_ms.append(1e3 * (usage.ru_utime + usage.ru_stime))
+    return {"sdk_log_us_per_tick": min(sdk_us), "messages_per_tick": len(topics),
+            "fork_exit_ms": min(fork_ms)}  # fmt: skip
 
 
 CHANNEL_KINDS = {  # label -> overrides; the first is the baseline
@@ -583,6 +626,10 @@ def run(args, cfg, joints: list[int]) -> int:
               f"used {writer} us of CPU per tick over runs of {args.ticks} ticks; a writer "
               f"started and closed without a tick {fixed} ms; beyond that {beyond} us per "
               f"tick (goal, issue 27: <= 5); the log {size} bytes per tick")  # fmt: skip
+        fl = full["floors"]
+        print(f"  the writer's floors: the SDK's log call alone {fl['sdk_log_us_per_tick']:.2f} us "
+              f"per tick ({fl['messages_per_tick']} messages); a bare fork and exit of this "
+              f"process {fl['fork_exit_ms']:.1f} ms")  # fmt: skip
         out.update(pinocchio_floor_us=floor, full_tick_us=full, controller_side_us=ctrl,
                    site_alone_us=sites)  # fmt: skip
 

@@ -145,15 +145,9 @@ def _write(
     path, ctrl, ring, layout, period_ns, metadata, attachments, summary_conn, context,
     scene_spec, server,
 ) -> None:  # fmt: skip
-    # LZ4, not Zstd: half the writer's CPU per tick (about 10 against 20 us for the four
-    # messages), for files about 18 % larger (330 against 280 bytes per tick of the paper
-    # experiment); on a 2-core machine the writer's CPU is taken from the control loop
-    options = MCAPWriteOptions(
-        compression=MCAPCompression.Lz4, chunk_size=256 * 1024, profile=PROFILE
-    )
     sink = _Sink(path, ctrl)
     inbox = _Inbox(summary_conn, metadata)
-    writer = foxglove.open_mcap(sink, context=context, writer_options=options)
+    writer = foxglove.open_mcap(sink, context=context, writer_options=write_options())
     channels = [
         foxglove.Channel(
             topic.name,
@@ -222,6 +216,14 @@ def _write(
         writer.write_metadata("teleop_rt.summary", {"json": json.dumps(summary)})
     writer.close()  # after a write error the sink drops this too
     sink.close()
+
+
+def write_options() -> MCAPWriteOptions:
+    """The SDK's MCAP options of a log (also tools/bench.py's floor of the writer)."""
+    # LZ4, not Zstd: half the writer's CPU per tick (about 10 against 20 us for the four
+    # messages), for files about 18 % larger (330 against 280 bytes per tick of the paper
+    # experiment); on a 2-core machine the writer's CPU is taken from the control loop
+    return MCAPWriteOptions(compression=MCAPCompression.Lz4, chunk_size=256 * 1024, profile=PROFILE)
 
 
 class _Sink:
