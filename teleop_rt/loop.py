@@ -94,10 +94,10 @@ class TickClock:
         remaining = self.deadline_ns - now
         if remaining > lead:
             self.sleep((remaining - lead) * 1e-9)
-            woke = now
+            asleep_at = now
             now = self.now_ns()
             if self.adaptive:  # one step towards the median of the overshoot
-                late = now - woke - (remaining - lead)
+                late = now - asleep_at - (remaining - lead)  # past the sleep asked for
                 step = OVERSLEEP_STEP_NS if late > self.oversleep_ns else -OVERSLEEP_STEP_NS
                 self.oversleep_ns = min(max(self.oversleep_ns + step, 0), self.period_ns // 2)
         spin_from = now
