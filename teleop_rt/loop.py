@@ -2,7 +2,10 @@
 
 Real-time mode: deadlines are absolute, ``next_ns += period_ns`` (never ``sleep(dt)``, which
 drifts); the clock sleeps until ``spin_ns`` before the deadline, then spins on the monotonic
-clock. Fast mode runs ticks back to back (simulation time only).
+clock. With ``adaptive`` it sleeps until ``spin_ns`` plus its estimate of how late a sleep
+returns (the running median of the overshoot, a sign-step quantile tracker after Robbins and
+Monro, 1951), so that a short spin is enough where the OS's sleeps overshoot by tens of us.
+Fast mode runs ticks back to back (simulation time only).
 
 Overrun policy, applied when a tick's work ends after the next deadline (a missed deadline):
 * ``catch_up``: keep the schedule; the following ticks start late until they have caught up;
@@ -38,6 +41,7 @@ from teleop_rt.exit_signals import unanswered
 
 MCL_CURRENT, MCL_FUTURE = 1, 2  # <sys/mman.h>
 CPU_DMA_LATENCY = "/dev/cpu_dma_latency"  # the kernel's PM QoS request for wake-up latency
+OVERSLEEP_STEP_NS = 1_000  # the adaptive clock's median tracker moves by this per sleep
 
 
 class OverrunStop(SafetyStop):
@@ -56,6 +60,7 @@ class TickClock:
         now_ns=time.monotonic_ns,
         sleep=time.sleep,
         max_missed: int | None = None,
+        adaptive: bool = False,
     ) -> None:
         if overrun not in OVERRUN_POLICIES:
             raise ValueError(f"overrun policy must be one of {OVERRUN_POLICIES}, got {overrun!r}")
@@ -71,6 +76,8 @@ class TickClock:
         self.deadline_ns = 0
         self.skipped = 0
         self.spun_ns = 0  # time spent spinning before deadlines (CPU the loop burns by design)
+        self.adaptive = adaptive
+        self.oversleep_ns = 0  # (adaptive) the estimated median of how late a sleep returns
 
     def start(self) -> None:
         self.deadline_ns = self.now_ns()
@@ -83,10 +90,16 @@ class TickClock:
         if not self.realtime:
             return 0
         now = self.now_ns()
+        lead = self.spin_ns + self.oversleep_ns
         remaining = self.deadline_ns - now
-        if remaining > self.spin_ns:
-            self.sleep((remaining - self.spin_ns) * 1e-9)
+        if remaining > lead:
+            self.sleep((remaining - lead) * 1e-9)
+            asleep_at = now
             now = self.now_ns()
+            if self.adaptive:  # one step towards the median of the overshoot
+                late = now - asleep_at - (remaining - lead)  # past the sleep asked for
+                step = OVERSLEEP_STEP_NS if late > self.oversleep_ns else -OVERSLEEP_STEP_NS
+                self.oversleep_ns = min(max(self.oversleep_ns + step, 0), self.period_ns // 2)
         spin_from = now
         while now < self.deadline_ns:
             now = self.now_ns()

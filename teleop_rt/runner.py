@@ -54,13 +54,15 @@ class LoopOptions:
     back to back); ``overrun`` / ``max_missed``: what a missed deadline does (``TickClock``);
     ``spin_ns``: how long before each deadline the clock stops sleeping and spins (None:
     ``TickClock``'s default); ``cpu``: the real-time loop's CPU, an index into the CPUs it may
-    use (-1 the last; None leaves the affinity alone)."""
+    use (-1 the last; None leaves the affinity alone); ``adaptive_spin``: sleep for the spin
+    plus the sleeps' measured overshoot (``TickClock``'s ``adaptive``)."""
 
     realtime: bool = False
     overrun: str = OVERRUN_DEFAULT
     max_missed: int | None = None
     spin_ns: int | None = None
     cpu: int | None = -1
+    adaptive_spin: bool = False
 
 
 class LoopHooks(ABC):
@@ -115,7 +117,8 @@ def run_loop(
     period_ns = int(round(dt * 1e9))
     stats = TimingStats(total, period_ns)
     spin = {} if options.spin_ns is None else {"spin_ns": options.spin_ns}
-    clock = TickClock(period_ns, realtime, options.overrun, max_missed=options.max_missed, **spin)
+    clock = TickClock(period_ns, realtime, options.overrun, max_missed=options.max_missed,
+                      adaptive=options.adaptive_spin, **spin)  # fmt: skip
     grant = acquire_realtime(cpu=options.cpu) if realtime else None
     perf = time.perf_counter_ns
     out = LoopOutcome(stats, clock, realtime, perf(), StopSignals())

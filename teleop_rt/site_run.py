@@ -37,11 +37,13 @@ if TYPE_CHECKING:
 
 SENDER_PRIORITY = 81  # the link's sender thread (with an impairment): above the loop's 80
 ZENOH_PRIORITY = 70  # Zenoh's threads: below the loop's SCHED_FIFO 80, above normal processes
-# A site's loop spins 50 us before each deadline, not the one-process loop's 200 us: the
-# sleep here overshoots by about 40-60 us, so a tick still starts on time at p50 (p99 about
-# 100 us late, well within the network's own jitter), and the spin costs ~5 us per tick
-# instead of ~150 (15 % of a core: a third of a site's CPU; see docs/benchmarks.md).
-SITE_SPIN_NS = 50_000
+# A site's loop sleeps until 5 us plus its sleeps' measured overshoot before each deadline
+# (loop.TickClock's adaptive clock), then spins: on this VM a sleep returns 35-60 us late, and
+# a fixed 50 us spin cost 4-17 us per tick (3-7 % of a site's CPU) and still started ticks
+# late where the overshoot passed 50 us; adaptive: 6-7 us a tick, ticks on time at p50, p99
+# as before (docs/benchmarks.md). The one-process loop keeps its fixed 200 us.
+SITE_SPIN_NS = 5_000
+SITE_ADAPTIVE_SPIN = True
 # Each role's CPU by default, as an index into the CPUs the process may use: two sites started
 # by hand on one host spin on different CPUs (the HSI on the last, the TO on the one before).
 SITE_CPU_INDEX = {"hsi": -1, "to": -2}
@@ -149,6 +151,7 @@ def run_site(
     run = _SiteRun(cfg, name, site, link, recorder, realtime, on_wait, on_peer)
     options = LoopOptions(
         realtime=realtime, overrun=overrun, max_missed=max_missed, spin_ns=SITE_SPIN_NS,
+        adaptive_spin=SITE_ADAPTIVE_SPIN,
         cpu=cpu_index,
     )  # fmt: skip
     try:

@@ -38,6 +38,7 @@ MARKS_BY_FILE = {
     "test_zenoh_impairment.py": ("zenoh", "realtime"),
     "test_zenoh_sites.py": ("zenoh", "realtime"),
     "test_zenoh_tls.py": ("zenoh",),
+    "test_loopback_link.py": ("zenoh",),  # (a ZenohLink's config needs zenoh, not a session)
     "test_site_logs.py": ("zenoh", "realtime"),
     "test_can_backend.py": ("can",),
     "test_can_codec.py": ("can",),

@@ -16,6 +16,7 @@ import pytest
 from teleop_rt.errors import SafetyStop, TeleopError
 from teleop_rt.loop import (
     OVERRUN_POLICIES,
+    OVERSLEEP_STEP_NS,
     OverrunStop,
     RealtimeGrant,
     TickClock,
@@ -308,3 +309,47 @@ def test_a_wakeup_latency_request_not_granted_is_a_note(tmp_path) -> None:
     notes: list[str] = []
     assert hold_wakeup_latency(notes, str(tmp_path / "missing" / "cpu_dma_latency")) is None
     assert notes[0].startswith("CPU wake-up latency not held (") and "deep idle" in notes[0]
+
+
+# --- the adaptive spin ------------------------------------------------------------------------
+class OversleepingClock(FakeClock):
+    """A fake clock whose every sleep returns ``over_ns`` late, as a loaded host's does."""
+
+    def __init__(self, over_ns: int) -> None:
+        super().__init__()
+        self.over_ns = over_ns
+
+    def sleep(self, seconds: float) -> None:
+        super().sleep(seconds)
+        self.t += self.over_ns
+
+
+@pytest.mark.parametrize("over_us", [0, 40, 120])
+def test_the_adaptive_clock_learns_how_late_its_sleeps_return(over_us: int) -> None:
+    """Sleeps that return 40 us late, a spin of 5 us: the fixed clock starts every tick 35 us
+    late; the adaptive one learns the overshoot (1 us a tick) and then starts each tick on
+    time, spinning about the 5 us only."""
+    spin, over = 5_000, over_us * 1000
+    results = {}
+    for adaptive in (False, True):
+        fake = OversleepingClock(over)
+        clock = TickClock(PERIOD, True, "catch_up", spin, now_ns=fake.now_ns, sleep=fake.sleep,
+                          adaptive=adaptive)  # fmt: skip
+        clock.start()
+        late = []
+        for _ in range(400):
+            late.append(clock.wait())
+            fake.work(50_000)
+            clock.finish(fake.now_ns())
+        spun = clock.spun_ns
+        for _ in range(100):  # converged: how late, and how long it spins, per tick
+            late.append(clock.wait())
+            fake.work(50_000)
+            clock.finish(fake.now_ns())
+        results[adaptive] = (max(late[-100:]), (clock.spun_ns - spun) / 100)
+    fixed_late, _ = results[False]
+    late, spun = results[True]
+    if over > spin:  # the fixed clock: late by the overshoot beyond its spin
+        assert fixed_late >= over - spin
+    assert late <= 2 * OVERSLEEP_STEP_NS + READ  # on time, within the tracker's step
+    assert spun <= spin + 2 * OVERSLEEP_STEP_NS + READ

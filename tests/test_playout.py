@@ -280,3 +280,35 @@ def test_the_receive_path_allocates_nothing_it_keeps() -> None:
     assert net_blocks(tick, 10_000) < 100
     c = rx.playout.counters()
     assert c["used"] == 10_100 - d and c["duplicated"] == 10_100
+
+
+def test_the_receive_path_notes_each_ticks_first_copy_and_every_fresh_delay() -> None:
+    """``Receiver.arrive`` (one compiled call per packet) notes, per sender tick, the first
+    copy's receiver tick and one-way delay (a duplicate never overwrites it), and the delay
+    of every fresh arrival only (not a duplicate's, a stale one's or a rejected one's)."""
+    d = 2
+    rx = Receiver(N, d, SESSION_ID, SENDER, arrivals=16, delays=8)
+    sent_ns = lambda s: s * 1_000_000  # (wire_of's stamps)  # noqa: E731
+    for s in range(4):
+        rx.arrive(s + 1, wire_of(s), sent_ns(s) + 100 + s)  # 100 + s ns on the way
+    rx.arrive(5, wire_of(2), sent_ns(2) + 7_000)  # a second copy, later: duplicated
+    rx.arrive(5, wire_of(3)[:-1], sent_ns(3) + 9_000)  # the wrong size: rejected
+    for k in range(2, 5):
+        rx.take(k, Packet(N))  # ticks 0..2 used
+    rx.arrive(6, wire_of(1), sent_ns(1) + 8_000)  # stale: counted late, not fresh
+    assert not rx.fresh
+    assert rx.delay_count == 4
+    assert rx.delays_ns[:4].tolist() == [100, 101, 102, 103]
+    for s in range(4):
+        assert rx.arrived[s % 16].tolist() == [s, s + 1, 100 + s]
+    assert rx.arrived[4].tolist() == [-1, -1, -1]
+    c = rx.playout.counters()
+    assert (c["received"], c["duplicated"], c["late"]) == (6, 1, 1)
+
+
+def test_a_full_delay_record_keeps_the_first_ones() -> None:
+    rx = Receiver(N, 2, SESSION_ID, SENDER, arrivals=4, delays=3)
+    for s in range(6):
+        rx.arrive(s + 1, wire_of(s), s * 1_000_000 + 50 + s)
+    assert rx.delay_count == 3 and rx.delays_ns.tolist() == [50, 51, 52]
+    assert rx.arrived[5 % 4].tolist() == [5, 6, 55]  # the table wraps by sender tick

@@ -5,6 +5,7 @@ process.
 
     python tools/bench_link.py [CONFIG] [--seconds 10] [--rounds 2] [--delay-ms 1]
                                [--set KEY=VALUE ...] [--json OUT] [--port P] [--no-codec]
+                               [--fast-ticks N]
 
 Every row runs two processes on this host, each pinned to a CPU of its own (the HSI's on the
 first allowed CPU, the TO's on the second, as ``run --link zenoh`` does) under the loop's
@@ -20,6 +21,9 @@ process of its own: tools/bench.py times it) and with a peer timeout of ``--peer
 (a stall of the shared host is then counted as late packets, not a stop); a run that fails
 anyway is reported in its row and the others go on. ``--set`` overrides go to the sites'
 runs; ``--sparse K`` adds bare Zenoh sending every Kth tick only (about the codec's rate).
+Each round also runs the same two sites in fast mode (``fast_ticks``: the same tick and link
+code back to back over a ``LoopbackTransport``, no Zenoh) and prints the real-time tick
+compute against it (issue 27's goal: within 1.5 x).
 """
 
 from __future__ import annotations
@@ -43,7 +47,8 @@ from teleop_rt.session import Session  # noqa: E402
 
 SITES = ("hsi", "to")
 START_LEAD_S = 2.0  # a floor's peers start their ticks this long after they were started
-GOALS = {"p50": 1.5, "cpu": 1.3, "bad_percent": 0.1, "codec_cpu": -30.0}  # issues 27, 24
+# issues 27, 24
+GOALS = {"p50": 1.5, "cpu": 1.3, "bad_percent": 0.1, "codec_cpu": -30.0, "compute": 1.5}
 
 
 def free_port() -> int:
@@ -143,6 +148,62 @@ def two_sites(cfg_path: str, seconds: float, delay_ms: int, sets: list[str], por
     return out
 
 
+def fast_ticks(cfg_path: str, delay_ms: int, ticks: int) -> dict:
+    """Each site's tick compute p50 (us) in fast mode: the same two sites, the same tick (what
+    ``_SiteRun.step`` times: sense, update with the link's encoder and playout, the tick
+    record) and the same ``ZenohLink`` code, back to back in one process over a
+    ``LoopbackTransport`` (each tick's packet is handed to the peer's receive callback between
+    ticks, untimed; no Zenoh ``put``). Runs in a child pinned to the first CPU."""
+    cmd = [sys.executable, str(Path(__file__).resolve()), cfg_path, "--delay-ms", str(delay_ms),
+           "--fast-probe", str(ticks)]  # fmt: skip
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, preexec_fn=pinned(0))
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
+        raise TeleopError(f"the fast-mode sites failed: {last}")
+    return json.loads(done.stdout)
+
+
+def fast_probe(cfg_path: str, delay_ms: int, ticks: int) -> dict:
+    """``fast_ticks``'s child: per site the p50 and p99 of its tick compute, us, over the ticks
+    after the first tenth."""
+    import numpy as np
+
+    from teleop_rt.com.wire import wire_size
+    from teleop_rt.com.zenoh_link import LoopbackTransport, ZenohLink
+    from teleop_rt.site import HsiSite, ToSite
+    from teleop_rt.site_run import TickRecord
+
+    cfg = config.load(cfg_path, [f"channel.delay_ms={delay_ms}"])
+    sites = [HsiSite(cfg, None), ToSite(cfg, None)]
+    links, records = [], []
+    for site in sites:
+        site.warm_up()
+        link = ZenohLink(cfg, site.side, site.n, lambda site=site: site.tick,
+                         LoopbackTransport(wire_size(site.n)))  # fmt: skip
+        link.connect(1)
+        link.start()
+        links.append(link)
+        records.append(TickRecord(ticks, site.n))
+    a, b = (link.transport for link in links)
+    compute = np.zeros((2, ticks), dtype=np.int64)
+    perf = time.perf_counter_ns
+    for k in range(ticks):
+        for j, (site, link, record) in enumerate(zip(sites, links, records, strict=True)):
+            t0 = perf()
+            site.sense(link)
+            site.update(link)
+            record.add(site)
+            compute[j, k] = perf() - t0
+        a.deliver(b)  # type: ignore[attr-defined]
+        b.deliver(a)  # type: ignore[attr-defined]
+    used = [link.receiver.playout.counters()["used"] for link in links]  # type: ignore[union-attr]
+    if min(used) < ticks // 2:
+        raise TeleopError(f"the fast-mode sites used only {min(used)} of {ticks} packets")
+    c = compute[:, ticks // 10 :] / 1e3
+    return {site: {"p50": float(np.percentile(c[j], 50)), "p99": float(np.percentile(c[j], 99))}
+            for j, site in enumerate(SITES)}  # fmt: skip
+
+
 def one_process(cfg_path: str, seconds: float, delay_ms: int) -> float:
     """CPU per tick of the same config as one session (both sites, in-process link), us."""
     cfg = config.load(cfg_path, [f"channel.delay_ms={delay_ms}", f"duration_s={seconds}"])
@@ -175,13 +236,19 @@ def main() -> int:
     p.add_argument("--no-codec", action="store_true", help="leave out the codec's row")
     p.add_argument("--sparse", type=int, default=0, metavar="K",
                    help="also bare Zenoh on every Kth tick (a codec's rate)")  # fmt: skip
+    p.add_argument("--fast-ticks", type=int, default=5000, metavar="N",
+                   help="the sites' ticks in fast mode per round (default 5000)")  # fmt: skip
+    p.add_argument("--fast-probe", type=int, default=0, help=argparse.SUPPRESS)  # (the child)
     args = p.parse_args()
+    if args.fast_probe:  # fast_ticks's child: one JSON line
+        print(json.dumps(fast_probe(args.config, args.delay_ms, args.fast_probe)))
+        return 0
     if (not 0 < args.seconds <= 3600 or args.delay_ms < 1 or not 1 <= args.rounds <= 20
-            or args.sparse < 0):  # fmt: skip
+            or args.sparse < 0 or args.fast_ticks < 100):  # fmt: skip
         print("bench_link: error: --seconds in (0, 3600], --delay-ms >= 1, --rounds in [1, 20], "
-              "--sparse >= 0", file=sys.stderr)  # fmt: skip
+              "--sparse >= 0, --fast-ticks >= 100", file=sys.stderr)  # fmt: skip
         return 2
-    rows = ["udp", "zenoh", *(["sparse"] if args.sparse else []), "sites",
+    rows = ["udp", "zenoh", *(["sparse"] if args.sparse else []), "sites", "fast",
             *([] if args.no_codec else ["codec"])]  # fmt: skip
     runs: dict[str, list[dict]] = {row: [] for row in rows}
     failed: dict[str, list[str]] = {row: [] for row in rows}
@@ -194,6 +261,8 @@ def main() -> int:
                     runs[row].append(floor(row, args.seconds, port))
                 elif row == "sparse":
                     runs[row].append(floor("zenoh", args.seconds, port, args.sparse))
+                elif row == "fast":
+                    runs[row].append(fast_ticks(args.config, args.delay_ms, args.fast_ticks))
                 else:
                     codec = ["channel.codec=deadband"] if row == "codec" else []
                     sets = [f"link.peer_timeout_ms={args.peer_timeout_ms:g}", *args.sets, *codec]
@@ -216,7 +285,8 @@ def main() -> int:
 
 def report(args: argparse.Namespace, runs: dict, failed: dict, local: float) -> None:
     names = {"udp": "raw UDP (Python)", "zenoh": "bare zenoh-python", "sites": "two sites",
-             "codec": "two sites, codec", "sparse": f"bare Zenoh, 1/{args.sparse}"}  # fmt: skip
+             "codec": "two sites, codec", "sparse": f"bare Zenoh, 1/{args.sparse}",
+             "fast": "sites, fast mode"}  # fmt: skip
     print(f"\n{Path(args.config).name}, 1 kHz, {args.rounds} alternated rounds of "
           f"{args.seconds:g} s, sites at D = {args.delay_ms} ms (medians over rounds; "
           "per direction: to the HSI / to the TO)")  # fmt: skip
@@ -225,6 +295,10 @@ def report(args: argparse.Namespace, runs: dict, failed: dict, local: float) -> 
     for row, rs in runs.items():
         if not rs:
             print(f"  {names[row]:18s} failed: {'; '.join(failed[row])}")
+            continue
+        if row == "fast":  # the tick alone: no link, no CPU of a run
+            comp = " / ".join(f"{median(rs, s, 'p50'):.1f}" for s in SITES)
+            print(f"  {names[row]:18s} {'':>17s} {'':>15s} {'':>16s} {'':>15s} {comp:>13s}")
             continue
         p50 = " / ".join(f"{median(rs, s, 'p50'):.0f}" for s in SITES)
         p99 = " / ".join(f"{median(rs, s, 'p99'):.0f}" for s in SITES)
@@ -255,6 +329,14 @@ def report(args: argparse.Namespace, runs: dict, failed: dict, local: float) -> 
               f"{GOALS['cpu']}: {met[r_cpu <= GOALS['cpu']]}); lost or late, worst run and "
               f"direction {bad:.3f} % (goal <= {GOALS['bad_percent']} %: "
               f"{met[bad <= GOALS['bad_percent']]})")  # fmt: skip
+    fast = runs.get("fast", [])
+    if sites and fast:
+        r_c = max(median(sites, s, "compute_p50") / median(fast, s, "p50") for s in SITES)
+        r_n = max((median(sites, s, "compute_p50") - median(sites, s, "put_p50"))
+                  / median(fast, s, "p50") for s in SITES)  # fmt: skip
+        print(f"  sites' tick compute, real time / fast mode (the same tick and link code; fast "
+              f"mode has no Zenoh put): x{r_c:.2f} (goal <= {GOALS['compute']}: "
+              f"{met[r_c <= GOALS['compute']]}); without the put's p50 x{r_n:.2f}")  # fmt: skip
     if sites and codec:
         d = max(median(codec, s, "p50") / median(sites, s, "p50") for s in SITES)
         c = max(100 * (median(codec, s, "cpu_us") / median(sites, s, "cpu_us") - 1) for s in SITES)

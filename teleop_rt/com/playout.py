@@ -41,9 +41,20 @@ from __future__ import annotations
 import numpy as np
 
 from teleop_rt.com.port import Packet
-from teleop_rt.com.wire import OK, REASONS, STALE, Decoder, WireBounds
+from teleop_rt.com.wire import (
+    OK,
+    REASONS,
+    SEEN_TICK,
+    SENDER_TIME,
+    SIZE,
+    STALE,
+    Decoder,
+    WireBounds,
+    _as_i64,
+    _decode,
+)  # fmt: skip
 from teleop_rt.declarations import PLAYOUT_DEFAULT
-from teleop_rt.flat import jit
+from teleop_rt.flat import compiled_for, jit
 
 EARLY_SLACK_TICKS = 50  # default early horizon beyond D: room for the clocks' offset
 NONE = -(1 << 62)  # an empty slot's sender tick
@@ -235,6 +246,45 @@ def _take(
     return 0
 
 
+# what ``_receive`` notes per arrival: a table by sender tick (modulo its rows) of the first
+# copy's sender tick, receiver tick and one-way delay (ns), and every fresh arrival's delay
+NOTE_TICK, NOTE_ARRIVAL, NOTE_DELAY = range(3)
+FRESH = 1 << 8  # ``_receive``'s result: the decoder's status, or-ed with this if fresh
+
+
+@jit
+def _receive(
+    words: np.ndarray, n: int, session: int, sender: int, bounds: np.ndarray,
+    dstate: np.ndarray, st: np.ndarray, ring_f: np.ndarray, ring_i: np.ndarray,
+    pf: np.ndarray, pi: np.ndarray, k: int, now_ns: int, arrived: np.ndarray,
+    delays: np.ndarray, count: np.ndarray,
+) -> int:  # fmt: skip
+    """One arrival's whole receive path in one compiled call (one call per packet on the
+    transport's thread, nothing allocated): decode ``words`` (the packet's bytes, copied in)
+    into the scratch packet, hand it to the playout (or count a stale one late), note the
+    first copy of each sender tick in ``arrived`` and a fresh arrival's delay in ``delays``
+    (``count[0]`` of them). Returns the status, or-ed with ``FRESH``."""
+    newest = k + st[EARLY_TICKS] - st[DELAY] - st[OFFSET]  # the newest tick playable by k
+    status = _decode(words, n, session, sender, newest, bounds, dstate, pf, pi)
+    fresh = False
+    if status == OK:
+        stored = _arrive(st, ring_f, ring_i, k, pf, pi)
+        fresh = stored == STORED or stored == DROPPED_LATE
+        s = dstate[SEEN_TICK]
+        delay = now_ns - dstate[SENDER_TIME]
+        row = s % arrived.shape[0]
+        if arrived[row, NOTE_TICK] != s:  # the first copy's
+            arrived[row, NOTE_TICK] = s
+            arrived[row, NOTE_ARRIVAL] = k
+            arrived[row, NOTE_DELAY] = delay
+        if fresh and count[0] < delays.size:
+            delays[count[0]] = delay
+            count[0] += 1
+    elif status == STALE:
+        _count_late(st, k, dstate[SEEN_TICK])
+    return status | FRESH if fresh else status
+
+
 class Receiver:
     """One direction's receiving end: the wire decoder, then the playout."""
 
@@ -247,26 +297,48 @@ class Receiver:
         bounds: WireBounds | None = None,
         early_ticks: int | None = None,
         policy: str = PLAYOUT_DEFAULT,
+        arrivals: int = 1,
+        delays: int = 0,
     ) -> None:
-        """``sender``: the side whose packets this direction carries (0 HSI, 1 TO)."""
+        """``sender``: the side whose packets this direction carries (0 HSI, 1 TO);
+        ``arrivals``: rows of the table of arrivals by sender tick (``arrived``: sender tick,
+        receiver tick, one-way delay ns; -1 empty); ``delays``: how many fresh arrivals'
+        one-way delays (ns) to keep (``delays_ns``, in arrival order, ``delay_count`` of
+        them)."""
         self.session_id = session_id
         self.decoder = Decoder(n, sender, bounds)
         self.playout = Playout(n, delay_ticks, early_ticks, policy=policy)
         self._scratch = Packet(n)
         self.fresh = False  # the last arrival passed every check and was new to the playout
+        self.arrived = np.full((max(arrivals, 1), 3), -1, dtype=np.int64)
+        self.delays_ns = np.zeros(delays, dtype=np.int64)
+        self._count = np.zeros(1, dtype=np.int64)
+        d, p = self.decoder, self.playout
+        self._size, self._rx = d.size, d._rx_data
+        args = (d._rx.words, n, _as_i64(session_id) if session_id >= 1 << 63 else session_id,
+                sender, d.bounds, d.state, p.st, p.ring_f, p.ring_i, self._scratch.f,
+                self._scratch.i)  # fmt: skip
+        notes = (self.arrived, self.delays_ns, self._count)
+        self._args, self._notes = args, notes
+        # the compiled entry point, bound to the buffers (``compiled_for``: no type dispatch)
+        self._receive = compiled_for(_receive, *args, 0, 0, *notes)
 
-    def arrive(self, k: int, data: bytes | bytearray | memoryview) -> int:
-        """Bytes from the network at receiver tick ``k``; returns the decoder's status."""
-        st = self.playout.st
-        newest = k + int(st[EARLY_TICKS]) - int(st[DELAY]) - int(st[OFFSET])  # playable by k
-        status = self.decoder.decode(data, self.session_id, self._scratch, newest)
-        self.fresh = False
-        if status == OK:
-            stored = self.playout.arrive(k, self._scratch)
-            self.fresh = stored == STORED or stored == DROPPED_LATE
-        elif status == STALE:
-            self.playout.late(k, self.decoder.seen_tick)
-        return status
+    @property
+    def delay_count(self) -> int:
+        """How many one-way delays ``delays_ns`` holds."""
+        return int(self._count[0])
+
+    def arrive(self, k: int, data: bytes | bytearray | memoryview, now_ns: int = 0) -> int:
+        """Bytes from the network at receiver tick ``k`` (``now_ns``: the arrival's instant,
+        CLOCK_MONOTONIC, for the notes); returns the decoder's status."""
+        if len(data) != self._size:
+            self.decoder.counts[SIZE] += 1  # (the kernel never sees a wrong size)
+            self.fresh = False
+            return SIZE
+        self._rx[:] = data
+        result = self._receive(*self._args, k, now_ns, *self._notes)
+        self.fresh = result >= FRESH
+        return result & (FRESH - 1)
 
     def take(self, k: int, into: Packet) -> int:
         """The packet to use at tick ``k`` (zeros if none); 1 if one arrived."""

@@ -70,7 +70,7 @@ from teleop_rt.com.impairment import MAX_ARRIVALS, Impairment
 from teleop_rt.com.link import Link
 from teleop_rt.com.playout import Receiver
 from teleop_rt.com.port import HSI, Packet
-from teleop_rt.com.wire import OK, VERSION, WireBuffer, encode_into, wire_size
+from teleop_rt.com.wire import VERSION, WireBuffer, encode_into, wire_size
 from teleop_rt.com.zenoh_transport import ZenohTransport, zenoh_config
 from teleop_rt.errors import ConfigError, SafetyStop, TeleopError
 from teleop_rt.exit_signals import Terminated
@@ -254,11 +254,56 @@ def shared_parts(cfg: SessionConfig, joints: int) -> dict:
     return {**parts, "config_hash": digest}
 
 
+class LoopbackTransport:
+    """Two links' transports in one process, without Zenoh: ``send`` keeps the tick's packet
+    (copied, as ``ZenohTransport.send`` does), ``deliver`` hands it to the peer's receive
+    callback, outside the ticks. A pair of ``ZenohLink`` over it runs the link's own code (the
+    encoder, the receive path, the playout, the drift follower) back to back: the fast-mode
+    figure of a site's tick that ``tools/bench_link.py`` puts beside the real-time one."""
+
+    send_errors = 0
+
+    def __init__(self, packet_bytes: int) -> None:
+        self._out = bytearray(packet_bytes)
+        self._pending = False
+        self.on_bytes: Any = None
+
+    def listen(self, key: str, on_bytes: Any) -> None:
+        self.on_bytes = on_bytes
+
+    def send(self, data: bytes | bytearray | memoryview, at_ns: int) -> None:
+        self._out[:] = data
+        self._pending = True
+
+    def deliver(self, peer: LoopbackTransport) -> None:
+        """The packet sent since the last delivery (if any) into ``peer``'s callback, as the
+        bytes Zenoh's callback gets."""
+        if self._pending and peer.on_bytes is not None:
+            self._pending = False
+            peer.on_bytes(bytes(self._out))
+
+    def late_out_us(self) -> None:
+        return None
+
+    def put_us(self) -> None:
+        return None
+
+    def hold_stats(self) -> dict:
+        return {}
+
+    def close(self) -> None:
+        return
+
+
 class ZenohLink(Link):
     """Site ``side``'s end of a Zenoh link for the session of ``cfg``."""
 
-    def __init__(self, cfg: SessionConfig, side: int, n: int, clock_tick: Any) -> None:
-        """``clock_tick()``: the site's current tick (where an arrival is counted)."""
+    def __init__(
+        self, cfg: SessionConfig, side: int, n: int, clock_tick: Any, transport: Any = None
+    ) -> None:
+        """``clock_tick()``: the site's current tick (where an arrival is counted);
+        ``transport``: in place of a Zenoh session (``LoopbackTransport``: this link's own
+        code between two sites of one process, for a benchmark's fast-mode figure)."""
         spec = cfg.link
         self.check(cfg)
         self.cfg, self.side, self.n = cfg, side, n
@@ -282,7 +327,7 @@ class ZenohLink(Link):
             slots = MAX_ARRIVALS * (self.impairment.max_delay_ticks + slack)
             hold = HeldPackets(wire_size(n), slots)
         listening = (ends.listen, f"link.zenoh.{self.name}.listen")  # named if in use
-        self.transport = ZenohTransport(
+        self.transport = transport or ZenohTransport(
             config, f"{self.base}/{self.name}/waves", wire_size(n), hold=hold, listen=listening
         )
         # this site's tick period in real time: a clock clock_ppm fast counts its ticks sooner
@@ -306,13 +351,12 @@ class ZenohLink(Link):
         self.hellos_ignored: dict[str, int] = {}  # invalid hellos by reason
         self.sent = 0
         self.not_sent = 0  # ticks the codec sent nothing
-        # one-way delay of every accepted packet, ns (sender and receiver on one host share
-        # CLOCK_MONOTONIC: across hosts this is meaningless and only ticks compare)
-        self.delays_ns = np.zeros(cfg.n_ticks + 10_000, dtype=np.int64)
-        self.n_delays = 0
-        # per sender tick (modulo the slots): when its first copy arrived, and its delay
-        slots = max(ARRIVAL_SLOTS, 2 * (cfg.delay_ticks + 64))
-        self._arrived = np.full((slots, 3), -1, dtype=np.int64)  # sender tick, tick, delay ns
+        # the receiver (made by the handshake) notes the one-way delay of every fresh packet,
+        # ns (sender and receiver on one host share CLOCK_MONOTONIC: across hosts this is
+        # meaningless and only ticks compare), and per sender tick (modulo the slots) when its
+        # first copy arrived, and its delay
+        self._delay_capacity = cfg.n_ticks + 10_000
+        self._arrival_slots = max(ARRIVAL_SLOTS, 2 * (cfg.delay_ticks + 64))
         self.arrival: Arrival | None = None  # filled at every receive when set
         self._warm_up()
 
@@ -408,14 +452,20 @@ class ZenohLink(Link):
         finally:
             listener.undeclare()
             hello.undeclare()
-        self.session_id = int(mine["session_id"])
+        self.connect(int(mine["session_id"]))
+        return int(mine["start_ns"])
+
+    def connect(self, session_id: int) -> None:
+        """The session agreed: its receiver, the drift follower, and the subscription to the
+        peer's packets (the handshake's last step; a loopback pair calls it directly)."""
+        self.session_id = session_id
         self.receiver = Receiver(
-            self.n, self.cfg.delay_ticks, self.session_id, 1 - self.side,
-            policy=self.cfg.link.playout,
+            self.n, self.cfg.delay_ticks, session_id, 1 - self.side,
+            policy=self.cfg.link.playout, arrivals=self._arrival_slots,
+            delays=self._delay_capacity,
         )  # fmt: skip
         self.drift = DriftFollower(self.receiver.playout, self.cfg.link.max_drift_ppm)
         self.transport.listen(f"{self.base}/{self.peer}/waves", self._arrive)
-        return int(mine["start_ns"])
 
     def hellos_text(self) -> str:
         """'; ignored N invalid hellos (reason n, ...)' or ''."""
@@ -455,21 +505,17 @@ class ZenohLink(Link):
 
     # --- the Link interface -------------------------------------------------------------------
     def _arrive(self, data: bytes, now_ns: int | None = None) -> None:  # on Zenoh's thread
-        """Bytes from the peer's key (``now_ns``: their instant, CLOCK_MONOTONIC; tests)."""
+        """Bytes from the peer's key (``now_ns``: their instant, CLOCK_MONOTONIC; tests). One
+        compiled call decodes them into the playout and notes their delay
+        (``Receiver.arrive``); only the drift follower's few float operations stay in
+        Python, and only for a fresh packet."""
         receiver = self.receiver
         if receiver is None:
             return
         with self._lock:  # the playout's kernels release the GIL: one thread at a time
-            k = self._tick()
-            status = receiver.arrive(k, data)
-            fresh = receiver.fresh
             now = time.monotonic_ns() if now_ns is None else now_ns
-            delay = now - receiver.decoder.sender_time_ns
-            if status == OK:
-                s = receiver.decoder.seen_tick
-                row = self._arrived[s % len(self._arrived)]
-                if row[0] != s:  # the first copy's
-                    row[0], row[1], row[2] = s, k, delay
+            receiver.arrive(self._tick(), data, now)
+            fresh = receiver.fresh
             # only an arrival that passed every check and was new to the playout tells where
             # the peer's clock is (replayed or duplicated copies would move the playout)
             if fresh and self.start_ns:
@@ -478,9 +524,6 @@ class ZenohLink(Link):
         if fresh:
             self.last_arrival_ns = now
             self.heard = True
-            if self.n_delays < self.delays_ns.size:
-                self.delays_ns[self.n_delays] = delay
-                self.n_delays += 1
 
     def send(self, side: int, packet: Packet) -> None:
         self._packet = packet
@@ -509,7 +552,8 @@ class ZenohLink(Link):
         return f", after the codec's maximum interval of {ch.deadband.max_interval_ticks} ticks"
 
     def _note_arrival(self, a: Arrival, used: int, s: int) -> None:
-        row = self._arrived[s % len(self._arrived)]
+        arrived = self.receiver.arrived  # type: ignore[union-attr]  # (made by connect)
+        row = arrived[s % len(arrived)]
         if not used:
             a.none()
         elif row[0] == s:
@@ -558,7 +602,8 @@ class ZenohLink(Link):
     def stats(self) -> dict:
         """What the link did: this site's packets sent, and the peer's as received here."""
         received = self.receiver.stats() if self.receiver is not None else {}
-        d = self.delays_ns[: self.n_delays] / 1e3
+        r = self.receiver
+        d = r.delays_ns[: r.delay_count] / 1e3 if r is not None else np.zeros(0)
         delay_us = (
             {"min": float(d.min()), "p50": float(np.percentile(d, 50)),
              "p99": float(np.percentile(d, 99)), "max": float(d.max())} if d.size else None
