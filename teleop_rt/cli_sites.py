@@ -100,6 +100,16 @@ def site_exit_code(summary) -> int:
     return 5 if code == 0 and summary.peer_silent else code
 
 
+def check_network(cfg) -> None:
+    """ConfigError if ``cfg`` cannot run its two sites over Zenoh (a delay under one tick, a
+    TLS certificate that does not name its site's role: ``ZenohLink.check``), for ``check`` and
+    ``run --link zenoh`` before any site starts, as each site refuses it after its warm-up."""
+    from teleop_rt.com.zenoh_link import ZenohLink
+
+    for site in ("hsi", "to"):
+        ZenohLink.check(cfg, site)
+
+
 def insecure_warnings(cfg) -> list[str]:
     """A warning for a link that reaches beyond loopback without TLS, allowed only by
     ``link.zenoh.allow_insecure`` (config.ZenohSpec refuses it otherwise)."""
@@ -123,6 +133,7 @@ def run_two_sites(args, cfg) -> int:
         raise ConfigError("--link zenoh runs two processes in real time: add --realtime")
     if args.can_log is not None:
         raise ConfigError("--can-log records the buses of one process: not with --link zenoh")
+    check_network(cfg)
     for line in insecure_warnings(cfg):
         print(f"teleop-rt: warning: {line}", file=sys.stderr)
     logs = _site_logs(args, cfg)

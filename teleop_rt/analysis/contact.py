@@ -55,6 +55,10 @@ def contact_warnings(cfg, to_model) -> list[str]:
     the sampled contact loop's limit. ``cfg``: SessionConfig; ``to_model``: the TO RobotModel."""
     from teleop_rt.config import per_joint
 
+    if cfg.channel.space != "joint":
+        # the bound is the joint-space loop's (b per joint, N m s/rad); in task space b is the
+        # tool's (N s/m; a pose's per component, not per joint): no bound of this analysis
+        return []
     n = to_model.nv
     q0 = np.array(per_joint(cfg.to.robot.q0_rad, n, "to.robot.q0_rad") or [0.0] * n)
     b = per_joint(cfg.channel.wave_impedance, n, "channel.wave_impedance")

@@ -1,0 +1,118 @@
+"""Found by attacking the command line from outside (session 36): what ``check`` accepts runs,
+what ``run`` or a site refuses ``check`` refuses, and a damaged log or an extreme value is one
+line, never a traceback."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from teleop_rt.cli import main
+from teleop_rt.recording.reader import read_log
+from tests.conftest import CONFIGS
+from tests.test_cli import assert_one_error_line
+from tests.test_site_logs import rewrite
+
+WALL = str(CONFIGS / "stiff_wall.yaml")
+
+
+def _run(capsys, *argv: str) -> tuple[int, list[str]]:
+    code = main(list(argv))
+    return code, capsys.readouterr().err.strip().splitlines()
+
+
+def test_the_shipped_pose_config_checks_and_runs(tmp_path, capsys) -> None:
+    """configs/task_space/ur5_panda_pose.yaml (b per pose component: 6 numbers, a 7-joint TO)
+    was refused by check and run alike: the contact warning took b as per joint. That
+    joint-space bound is for channel.space: joint only."""
+    pose = str(CONFIGS / "task_space" / "ur5_panda_pose.yaml")
+    code, err = _run(capsys, "check", pose)
+    assert code == 0 and not err, err
+    code, err = _run(capsys, "run", pose, "--duration", "0.05", "--no-log", "--json")
+    assert code == 0 and not err, err
+
+
+def test_check_refuses_a_start_outside_the_joint_limits(capsys) -> None:
+    """A simulated robot starting outside its joint limits is stopped at the first tick by the
+    guard; check says so in one line instead of 'ok'."""
+    code, err = _run(capsys, "run", WALL, "--duration", "0.05", "--no-log", "--json",
+                     "--set", "hsi.robot.q0_rad=[100, 0]")  # fmt: skip
+    assert code == 3
+    code, err = _run(capsys, "check", WALL, "--set", "hsi.robot.q0_rad=[100, 0]")
+    assert code == 2 and len(err) == 1, err
+    assert err[0].startswith("teleop-rt: error: hsi.robot.q0_rad: 100 rad for joint 0 (shoulder)")
+    assert "outside its limits [-2.6, 2.6] rad" in err[0]
+    # without the position limits the guard lets it start: so does check
+    code, err = _run(capsys, "check", WALL, "--set", "hsi.robot.q0_rad=[100, 0]",
+                     "--set", "safety.position_limits=false")  # fmt: skip
+    assert code == 0, err
+
+
+def test_check_and_run_refuse_a_network_link_without_delay(tmp_path, capsys) -> None:
+    """Each site refuses a delay under one tick over Zenoh, after its warm-up; check accepted
+    it, and run --link zenoh started both sites to learn it. Both now refuse it at once, in one
+    line, and no log is begun."""
+    code, err = _run(capsys, "check", WALL, "--set", "link.kind=zenoh")
+    assert code == 2 and len(err) == 1 and "channel.delay_ms: a link between processes" in err[0]
+    log = tmp_path / "pair.mcap"
+    code, err = _run(capsys, "run", WALL, "--link", "zenoh", "--realtime", "--log", str(log))
+    assert code == 2 and len(err) == 1 and "channel.delay_ms: a link between processes" in err[0]
+    assert not list(tmp_path.glob("pair*"))
+    code, err = _run(capsys, "check", WALL, "--set", "link.kind=zenoh",
+                     "--set", "channel.delay_ms=2")  # fmt: skip
+    assert code == 0, err
+
+
+@pytest.fixture(scope="module")
+def mapped_log(tmp_path_factory: pytest.TempPathFactory):
+    """A mapped session's log (schema 3: the map's constants in its ``mapping`` metadata)."""
+    path = tmp_path_factory.mktemp("mapped") / "mapped.mcap"
+    assert main(["run", str(CONFIGS / "foam.yaml"), "--duration", "0.1", "--json", "--log",
+                 str(path), "--set", "mapping.motion_scale=0.5"]) == 0  # fmt: skip
+    assert "mapping" in read_log(path).meta
+    return path
+
+
+@pytest.mark.parametrize(
+    "value,said",
+    [
+        ("{not json", "mapping = '{not json' is not a JSON object"),
+        ("[1, 2]", "mapping = '[1, 2]' is not a JSON object"),
+        ('{"live_inputs": "3"}', "mapping's live_inputs = '\"3\"' is not an integer 0 to 3"),
+        ('{"live_inputs": 8}', "mapping's live_inputs = '8' is not an integer 0 to 3"),
+        ('{"follows_packets": 1.5}', "mapping's follows_packets = '1.5' is not an integer"),
+    ],
+)
+def test_a_damaged_mapping_metadata_is_one_line(mapped_log, value, said, tmp_path,
+                                                capsys) -> None:  # fmt: skip
+    """replay of a mapped log whose ``mapping`` metadata is damaged: one line naming it (it was
+    a JSONDecodeError or AttributeError traceback); info and metrics do not need it."""
+    damaged = tmp_path / "damaged.mcap"
+    rewrite(mapped_log, damaged, mapping=value)
+    code = main(["replay", str(damaged), "--no-log", "--json"])
+    captured = capsys.readouterr()
+    assert code == 2, captured.err
+    assert_one_error_line(captured.err, str(damaged))
+    assert said in captured.err
+    for argv in (["info", str(damaged)], ["metrics", str(damaged), "--json"]):
+        assert main(argv) == 0
+        capsys.readouterr()
+
+
+def test_the_mapped_log_itself_replays(mapped_log, capsys) -> None:
+    code = main(["replay", str(mapped_log), "--no-log", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert code == 0 and out["replay"]["ticks"] == 100
+
+
+def test_a_scene_rate_below_one_per_session_logs_the_start_only(tmp_path, capsys) -> None:
+    """recording.scene_hz = 1e-300 (accepted: > 0) overflowed the writer's frame selection
+    (OverflowError in its process: the log incomplete, exit 4); it is one scene, at the start."""
+    log = tmp_path / "scene.mcap"
+    code, err = _run(capsys, "run", WALL, "--duration", "0.05", "--json", "--log", str(log),
+                     "--set", "recording.scene_hz=1e-300")  # fmt: skip
+    assert code == 0 and not err, err
+    data = read_log(log)
+    assert data.ticks == 50 and not data.truncated
+    assert data.other_topics["/tf"][1] == 2  # the static transforms and the first frame
