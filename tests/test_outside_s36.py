@@ -116,3 +116,29 @@ def test_a_scene_rate_below_one_per_session_logs_the_start_only(tmp_path, capsys
     data = read_log(log)
     assert data.ticks == 50 and not data.truncated
     assert data.other_topics["/tf"][1] == 2  # the static transforms and the first frame
+
+
+@pytest.mark.parametrize("window", [["--from", "1e308"], ["--from", "1e300", "--to", "1e308"]])
+def test_a_window_past_any_log_is_one_line(mapped_log, window, capsys) -> None:
+    """--from 1e308 is finite, but its tick is not (OverflowError from math.ceil): it is a
+    window after the log's last tick, one line; --to 1e308 is the whole log."""
+    image = str(mapped_log.with_suffix(".png"))
+    for command in (["metrics", str(mapped_log), "--json"], ["plot", str(mapped_log), "-o", image]):
+        code = main([*command, *window])
+        err = capsys.readouterr().err
+        assert code == 2, err
+        assert_one_error_line(err, str(mapped_log))
+        assert "holds no ticks (the log's ticks run from 0 to 0.099 s)" in err
+    assert main(["metrics", str(mapped_log), "--json", "--to", "1e308"]) == 0
+    assert json.loads(capsys.readouterr().out)["ticks"] == 100
+
+
+@pytest.mark.parametrize("option", ["--env-mass", "--env-damping", "--env-stiffness",
+                                    "--amplitude"])  # fmt: skip
+def test_bode_refuses_an_infinite_parameter(option, capsys) -> None:
+    """An infinite Z_e term (or amplitude) made a NaN model: RuntimeWarnings, NaN figures and
+    exit 0. Refused before any work, one line."""
+    code = main(["bode", WALL, option, "inf", "--omegas", "1"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert_one_error_line(err, "and finite, got inf")
