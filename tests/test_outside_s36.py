@@ -142,3 +142,26 @@ def test_bode_refuses_an_infinite_parameter(option, capsys) -> None:
     err = capsys.readouterr().err
     assert code == 2, err
     assert_one_error_line(err, "and finite, got inf")
+
+
+@pytest.mark.parametrize(
+    "config,sets,said",
+    [
+        ("stiff_wall.yaml", [], "mapping.posture_gain_per_s: the posture task acts in the null "
+         "space of the TO's tool Jacobian; it needs channel.space: plane, position or pose"),
+        ("task_space/ur5_scara_plane.yaml", [], "mapping.posture_gain_per_s: the TO's 2 joints "
+         "have none to spare over the 2 directions of channel.space: plane"),
+        ("stiff_wall.yaml", ["channel.space=plane"], "mapping.posture_gain_per_s: the TO's 2 "
+         "joints have none to spare"),
+    ],
+)  # fmt: skip
+def test_a_posture_gain_without_a_null_space_is_one_line(config, sets, said, capsys) -> None:
+    """A posture gain in joint space, or for a TO with no joint to spare, was taken and did
+    nothing (or, at a DLS's damping, leaked); posture_rad there was refused. Both are now."""
+    argv = ["check", str(CONFIGS / config), "--set", "mapping.posture_gain_per_s=1"]
+    code = main([*argv, *(x for s in sets for x in ("--set", s))])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert_one_error_line(err, said)
+    assert main(["check", str(CONFIGS / "task_space" / "scara_ur5_plane.yaml"),
+                 "--set", "mapping.posture_gain_per_s=1"]) == 0  # fmt: skip
