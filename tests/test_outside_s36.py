@@ -165,3 +165,17 @@ def test_a_posture_gain_without_a_null_space_is_one_line(config, sets, said, cap
     assert_one_error_line(err, said)
     assert main(["check", str(CONFIGS / "task_space" / "scara_ur5_plane.yaml"),
                  "--set", "mapping.posture_gain_per_s=1"]) == 0  # fmt: skip
+
+
+def test_a_rate_too_low_for_the_tos_velocity_loop_is_a_warning(capsys) -> None:
+    """At rate_hz = 10 the TO's velocity loop alone is unstable (dt / T2 = 20 >= 2): the contact
+    bound is 0, and check and run divided by it (ZeroDivisionError). Now a warning naming it;
+    the run ends in a safety stop, as the warning says it would go."""
+    sets = ["--set", "rate_hz=10", "--set", "channel.wave_filter_hz=null"]
+    code = main(["check", WALL, *sets])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 0 and len(err) == 1, err
+    assert err[0] == ("teleop-rt: warning: to joint 0: its velocity loop alone is unstable at "
+                      "rate_hz = 10 (dt / T2 = 20 >= 2, T2 = M2/c2; see teleop_rt/analysis/"
+                      "contact.py): raise rate_hz or T2")  # fmt: skip
+    assert main(["run", WALL, *sets, "--no-log", "--json"]) == 3
