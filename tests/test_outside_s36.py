@@ -179,3 +179,21 @@ def test_a_rate_too_low_for_the_tos_velocity_loop_is_a_warning(capsys) -> None:
                       "rate_hz = 10 (dt / T2 = 20 >= 2, T2 = M2/c2; see teleop_rt/analysis/"
                       "contact.py): raise rate_hz or T2")  # fmt: skip
     assert main(["run", WALL, *sets, "--no-log", "--json"]) == 3
+
+
+def test_a_killed_sites_failure_names_the_signal() -> None:
+    """run --link zenoh with a site SIGKILLed mid-run: the table's 'failed:' showed the last
+    line of its stderr, Python's resource-tracker warning about the log's shared memory. It is
+    the site's own error line if it gave one, else the signal."""
+    from teleop_rt.cli_sites import site_failure
+
+    tracker = ("/usr/lib/python3.11/multiprocessing/resource_tracker.py:254: UserWarning: "
+               "resource_tracker: There appear to be 1 leaked shared_memory objects to clean "
+               "up at shutdown\n"
+               "  warnings.warn('resource_tracker: There appear to be %d '\n")  # fmt: skip
+    assert site_failure(-9, tracker) == "killed by SIGKILL (exit -9)"
+    assert site_failure(-9, "") == "killed by SIGKILL (exit -9)"
+    own = "teleop-rt: error: channel.delay_ms: a link between processes needs a delay\n"
+    assert site_failure(2, tracker + own) == own.strip()
+    assert site_failure(1, "Traceback ...\nRuntimeError: x\n") == "RuntimeError: x"
+    assert site_failure(1, "") == "exit 1"
