@@ -299,6 +299,11 @@ def _cmd_check(args: argparse.Namespace) -> int:
 
     cfg = _load_config(args)
     session = Session(cfg)  # builds models and backends: catches joint-count mismatches too
+    if cfg.link.kind == "zenoh":  # what each site refuses at its start (run --link zenoh too)
+        from teleop_rt.cli_sites import check_network
+
+        check_network(cfg)
+    _start_within_limits(session)
     _print_warnings(session)
     from teleop_rt.analysis.free_space_probe import free_space_stop
 
@@ -319,6 +324,25 @@ def _cmd_check(args: argparse.Namespace) -> int:
         f"delay {cfg.delay_ticks} ticks, backends {_backends_text(cfg)})"
     )
     return 0
+
+
+def _start_within_limits(session) -> None:
+    """ConfigError for a simulated robot whose start (``robot.q0_rad``, default zeros) is
+    outside its joint limits: its guard would stop the run at its first tick, so ``check``
+    refuses what ``run`` would end in a safety stop at once."""
+    cfg = session.cfg
+    for site in session.sites:
+        if cfg.backend_for(site.name) != "sim" or not site.guard.enabled:
+            continue
+        q0 = getattr(cfg, site.name).robot.q0_rad or [0.0] * site.n
+        lo, hi = site.guard.lo, site.guard.hi  # infinite with safety.position_limits off
+        for j, angle in enumerate(q0):
+            if not lo[j] <= angle <= hi[j]:
+                raise ConfigError(
+                    f"{site.name}.robot.q0_rad: {angle:g} rad for joint {j} "
+                    f"({site.model.joint_names[j]}) is outside its limits [{lo[j]:g}, "
+                    f"{hi[j]:g}] rad: the safety layer would stop the run at its first tick"
+                )
 
 
 def _print_warnings(session) -> None:

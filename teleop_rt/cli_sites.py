@@ -100,6 +100,32 @@ def site_exit_code(summary) -> int:
     return 5 if code == 0 and summary.peer_silent else code
 
 
+def site_failure(code: int, err: str) -> str:
+    """What a site that gave no summary ended with: its own last line (``teleop-rt: ...``),
+    else its exit, a signal by name. Not merely the last line of its stderr: after a SIGKILL
+    that is what its helpers print (Python's resource tracker on the log's shared memory)."""
+    own = [line for line in err.strip().splitlines() if line.startswith("teleop-rt:")]
+    if own:
+        return own[-1]
+    if code < 0:
+        try:
+            return f"killed by {signal.Signals(-code).name} (exit {code})"
+        except ValueError:
+            pass
+    lines = err.strip().splitlines()
+    return lines[-1] if lines and code >= 0 else f"exit {code}"
+
+
+def check_network(cfg) -> None:
+    """ConfigError if ``cfg`` cannot run its two sites over Zenoh (a delay under one tick, a
+    TLS certificate that does not name its site's role: ``ZenohLink.check``), for ``check`` and
+    ``run --link zenoh`` before any site starts, as each site refuses it after its warm-up."""
+    from teleop_rt.com.zenoh_link import ZenohLink
+
+    for site in ("hsi", "to"):
+        ZenohLink.check(cfg, site)
+
+
 def insecure_warnings(cfg) -> list[str]:
     """A warning for a link that reaches beyond loopback without TLS, allowed only by
     ``link.zenoh.allow_insecure`` (config.ZenohSpec refuses it otherwise)."""
@@ -123,6 +149,7 @@ def run_two_sites(args, cfg) -> int:
         raise ConfigError("--link zenoh runs two processes in real time: add --realtime")
     if args.can_log is not None:
         raise ConfigError("--can-log records the buses of one process: not with --link zenoh")
+    check_network(cfg)
     for line in insecure_warnings(cfg):
         print(f"teleop-rt: warning: {line}", file=sys.stderr)
     logs = _site_logs(args, cfg)
@@ -153,8 +180,7 @@ def run_two_sites(args, cfg) -> int:
             try:
                 summaries[site] = json.loads(out)
             except ValueError:
-                last = (err.strip().splitlines() or [f"exit {code}"])[-1]
-                summaries[site] = {"site": site, "error": last}
+                summaries[site] = {"site": site, "error": site_failure(code, err)}
         files = [Path(tmp) / f"{s}.npz" for s in ("hsi", "to")]
         pair = None
         if all(f.exists() for f in files):

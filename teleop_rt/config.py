@@ -761,6 +761,12 @@ class SessionConfig(Strict):
                 "mapping.posture_rad: the posture task acts in the null space of the TO's tool "
                 "Jacobian; it needs channel.space: plane, position or pose"
             )
+        if m.posture_gain_per_s > 0 and self.channel.space == "joint":
+            raise ValueError(
+                "mapping.posture_gain_per_s: the posture task acts in the null space of the "
+                "TO's tool Jacobian; it needs channel.space: plane, position or pose (0 turns "
+                "it off)"
+            )
         if m.posture_rad is not None and m.posture_gain_per_s == 0:
             raise ValueError(
                 "mapping.posture_rad: the posture acts with mapping.posture_gain_per_s > 0 "

@@ -82,12 +82,22 @@ def require_task_span(model: RobotModel, space: str, task: int, name: str) -> No
         )
 
 
-def require_posture(model: RobotModel, posture: list[float] | None, space: str, task: int) -> None:
+def require_posture(
+    model: RobotModel, posture: list[float] | None, space: str, task: int, gain: float = 0.0
+) -> None:
     """ConfigError unless ``mapping.posture_rad`` (None: the first tick's q) fits the TO: one
-    angle per joint, each within its joint limits, and joints to spare over the task."""
+    angle per joint, each within its joint limits, and joints to spare over the task; a
+    posture gain (``mapping.posture_gain_per_s``) needs the spare joints too (without them the
+    DLS's projector is its damping's leak, no null space)."""
+    n = model.nv
+    if posture is None and gain > 0 and n <= task:
+        raise ConfigError(
+            f"mapping.posture_gain_per_s: the TO's {n} joints have none to spare over the {task} "
+            f"directions of channel.space: {space} (a posture needs a redundant TO; 0 turns "
+            "it off)"
+        )
     if posture is None:
         return
-    n = model.nv
     if len(posture) != n:
         raise ConfigError(f"mapping.posture_rad: has {len(posture)} entries but the TO has {n} "
                           "joints")  # fmt: skip
@@ -125,8 +135,9 @@ class Site:
         model = RobotModel.from_spec(spec.robot, name, cfg.plant.coulomb_smoothing_rad_s)
         n = model.nv
         if name == "to" and cfg.channel.space != "joint":  # (before the map takes it)
-            require_posture(model, cfg.mapping.posture_rad, cfg.channel.space,
-                            port_size(cfg.channel.space, n))  # fmt: skip
+            m = cfg.mapping
+            require_posture(model, m.posture_rad, cfg.channel.space,
+                            port_size(cfg.channel.space, n), m.posture_gain_per_s)  # fmt: skip
         self.virtual_mass = per_joint(spec.virtual_mass, n, f"{name}.virtual_mass")
         self.backend_name = backend_name or cfg.backend_for(name)
         self._assemble(

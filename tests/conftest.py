@@ -68,6 +68,10 @@ MARKS_BY_TEST = {
     ),
     "test_zenoh_sites.py::test_a_killed_parent_leaves_no_site_running": ("zenoh", "realtime"),
     "test_site_logs.py::test_run_link_zenoh_refuses_a_log_pair_that_exists": ("realtime",),
+    "test_outside_s36.py::test_check_and_run_refuse_a_network_link_without_delay": (
+        "zenoh",
+        "realtime",
+    ),
     "test_two_sites.py::test_a_can_robot_against_a_simulated_one": ("can",),
     "test_backend_lifecycle.py::test_a_can_session_ends_with_both_robots_unconfigured": ("can",),
     "test_late_packets.py::test_a_site_log_with_late_packets_used_replays_bit_for_bit": (

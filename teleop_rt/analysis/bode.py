@@ -529,8 +529,8 @@ def measure_displayed_impedance(
     to ``measure_point`` (tolerances, ``max_seconds`` per frequency, ``chain_kwargs`` for
     ``OpenChain``: robots, friction compensation). progress(done, total) after each frequency.
     """
-    if not amplitude_rad_s > 0:
-        raise AnalysisParamError(f"amplitude must be > 0 rad/s, got {amplitude_rad_s}")
+    if not 0 < amplitude_rad_s < math.inf:
+        raise AnalysisParamError(f"amplitude must be > 0 rad/s and finite, got {amplitude_rad_s}")
     omegas = default_omegas() if omegas is None else np.asarray(omegas, dtype=float)
     if len(omegas) == 0 or not np.all(omegas > 0):
         raise AnalysisParamError("frequencies must be > 0 rad/s (and at least one)")

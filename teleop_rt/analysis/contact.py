@@ -55,12 +55,24 @@ def contact_warnings(cfg, to_model) -> list[str]:
     the sampled contact loop's limit. ``cfg``: SessionConfig; ``to_model``: the TO RobotModel."""
     from teleop_rt.config import per_joint
 
+    if cfg.channel.space != "joint":
+        # the bound is the joint-space loop's (b per joint, N m s/rad); in task space b is the
+        # tool's (N s/m; a pose's per component, not per joint): no bound of this analysis
+        return []
     n = to_model.nv
     q0 = np.array(per_joint(cfg.to.robot.q0_rad, n, "to.robot.q0_rad") or [0.0] * n)
     b = per_joint(cfg.channel.wave_impedance, n, "channel.wave_impedance")
     m2 = per_joint(cfg.to.virtual_mass, n, "to.virtual_mass")
     c2 = per_joint(cfg.to.controller.kp, n, "to.controller.kp")
-    limit = min(contact_stiffness_limit(b[j], m2[j], c2[j], cfg.dt) for j in range(n))
+    limits = [contact_stiffness_limit(b[j], m2[j], c2[j], cfg.dt) for j in range(n)]
+    if 0.0 in limits:  # (no contact bound to divide by: say what is wrong instead)
+        j = limits.index(0.0)
+        return [
+            f"to joint {j}: its velocity loop alone is unstable at rate_hz = {cfg.rate_hz} "
+            f"(dt / T2 = {cfg.dt * c2[j] / m2[j]:.3g} >= 2, T2 = M2/c2; see "
+            "teleop_rt/analysis/contact.py): raise rate_hz or T2"
+        ]
+    limit = min(limits)
     to_model.update_ee(q0, [0.0] * n)
     jacobian = np.array(to_model.ee_jac[:3]).reshape(3, n)
     out = []

@@ -32,6 +32,7 @@ evaluate limits at small nonzero |s|.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Literal, NamedTuple
 
@@ -99,11 +100,13 @@ class ImpedanceParams:
 
     def __post_init__(self) -> None:
         for name in ("m1", "m2", "b"):
-            if not getattr(self, name) > 0:
-                raise AnalysisParamError(f"{name} must be > 0, got {getattr(self, name)}")
+            value = getattr(self, name)
+            if not 0 < value < math.inf:
+                raise AnalysisParamError(f"{name} must be > 0 and finite, got {value}")
         for name in ("z_o", "delay_s", "env_mass", "env_damping", "env_stiffness"):
-            if not getattr(self, name) >= 0:
-                raise AnalysisParamError(f"{name} must be >= 0, got {getattr(self, name)}")
+            value = getattr(self, name)
+            if not 0 <= value < math.inf:  # (inf made a NaN model: warnings, and exit 0)
+                raise AnalysisParamError(f"{name} must be >= 0 and finite, got {value}")
         _check_delay_model(self.delay_model)
         _check_cutoff(self.wave_filter_hz)
 

@@ -605,11 +605,18 @@ def _window(rate: float, t_from: float | None, t_to: float | None) -> tuple[int,
     """Ticks [first, stop) with t_from <= k / rate < t_to (seconds rounded to 1e-6 tick so that
     0.3 s is tick 300 at 1 kHz), and log-time bounds in ns that surely hold them (to skip
     chunks; a margin covers how the writer rounds its period to whole ns)."""
-    first = 0 if t_from is None else max(0, math.ceil(round(t_from * rate, 6)))
-    stop = 2**63 if t_to is None else max(0, math.ceil(round(t_to * rate, 6)))
+    first = 0 if t_from is None else _tick_at(t_from, rate)
+    stop = 2**63 if t_to is None else _tick_at(t_to, rate)
     lo = 0 if t_from is None else max(0, math.floor((first - 1) * 1e9 / rate * (1 - 1e-6)))
     hi = 2**64 if t_to is None else math.ceil((stop + 1) * 1e9 / rate * (1 + 1e-6))
     return first, stop, lo, hi
+
+
+def _tick_at(t: float, rate: float) -> int:
+    """The first tick at or after ``t`` s, 0 to 2**62: a finite time past any log (--from
+    1e308, whose ticks overflow a float) is past its last tick, not an OverflowError."""
+    ticks = round(t * rate, 6)
+    return max(0, math.ceil(ticks)) if ticks < 2**62 else 2**62
 
 
 def _read(cls, body: memoryview):

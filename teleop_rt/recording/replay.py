@@ -27,7 +27,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from teleop_rt.config import SessionConfig, apply_overrides, from_dict
-from teleop_rt.errors import ConfigError
+from teleop_rt.errors import ConfigError, quote
+from teleop_rt.hal.signals import INPUT_CLUTCH, INPUT_PRESENT
 from teleop_rt.model import RobotModel
 from teleop_rt.recording.reader import LogData, LogError, read_log, require_ticks
 from teleop_rt.session import Session
@@ -145,13 +146,39 @@ def take_logged_inputs(site: Site, data: LogData) -> None:
     """Run ``site``'s map as the logged one took the operator's live inputs (the log's
     ``mapping`` metadata: the HSI's ``live_inputs`` bits, the TO's ``follows_packets``), which
     the replay's simulated backend would not give it (a CAN drive's 0x60FD)."""
-    logged = json.loads(data.meta.get("mapping", "{}"))
+    logged = logged_mapping(data)
     if site.name == "hsi":
-        live, follow = int(logged.get("live_inputs", 0)), False
+        bits = INPUT_CLUTCH | INPUT_PRESENT
+        live, follow = _logged_bits(data, logged, "live_inputs", bits), False
     else:
-        live, follow = 0, bool(logged.get("follows_packets", 0))
+        live, follow = 0, bool(_logged_bits(data, logged, "follows_packets", 1))
     if live or follow:
         site.mapping.take_live(live, follow)
+
+
+def logged_mapping(data: LogData) -> dict:
+    """The log's ``mapping`` metadata (JSON, ``recorder.mapping_metadata``; {} when it has
+    none); a damaged one is a LogError naming it, not a traceback."""
+    text = data.meta.get("mapping")
+    if text is None:
+        return {}
+    try:
+        value = json.loads(text)
+    except ValueError:
+        value = None
+    if not isinstance(value, dict):
+        raise LogError(f"{data.path}: 'teleop_rt' metadata: mapping = {quote(text)} is not a "
+                       "JSON object")  # fmt: skip
+    return value
+
+
+def _logged_bits(data: LogData, logged: dict, key: str, most: int) -> int:
+    """An integer of the ``mapping`` metadata, 0 to ``most`` (the bits the recorder writes)."""
+    value = logged.get(key, 0)
+    if type(value) is not int or not 0 <= value <= most:
+        raise LogError(f"{data.path}: 'teleop_rt' metadata: mapping's {key} = "
+                       f"{quote(json.dumps(value))} is not an integer 0 to {most}")  # fmt: skip
+    return value
 
 
 def logged_inputs(data: LogData) -> np.ndarray | None:
@@ -160,7 +187,7 @@ def logged_inputs(data: LogData) -> np.ndarray | None:
     robot = data.topics.get("/hsi")
     if robot is None or "inputs" not in (robot.dtype.names or ()):
         return None
-    if not json.loads(data.meta.get("mapping", "{}")).get("live_inputs"):
+    if not logged_mapping(data).get("live_inputs"):
         return None
     return robot["inputs"]
 

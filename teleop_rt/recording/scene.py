@@ -48,6 +48,8 @@ from foxglove.messages import (
     Vector3,
 )
 
+from teleop_rt.config import MAX_TICKS
+
 if TYPE_CHECKING:
     from teleop_rt.recording.schema import LogLayout
     from teleop_rt.session import Session
@@ -121,7 +123,8 @@ def scene_spec(session: Session, sides: tuple[str, ...] = SIDES) -> SceneSpec | 
         start[side] = (x, y, z)
     # the config's operator and environment exist where a simulated world has them (a plant or
     # the drives' emulator); real hardware logs neither
-    every = max(1, round(cfg.rate_hz / cfg.recording.scene_hz))
+    # a scene_hz below one message per longest session: the start's only (no overflow)
+    every = max(1, min(round(cfg.rate_hz / cfg.recording.scene_hz), MAX_TICKS))
     env = tuple(EnvElement(e.kind, _xyz(e.point_m), _unit(_xyz(e.normal))) for e in cfg.environment)
     return SceneSpec(
         urdf=urdf,
