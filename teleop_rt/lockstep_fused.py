@@ -10,7 +10,9 @@ lock-step one, the plants' read and write in place of the backends'):
     (Python)            ABA of each plant, into its data.ddq
     integrate:          both plants' Euler steps
     (Python)            the tool Jacobian of each plant
-    next_ticks:         both plants' loads at the next tick
+    next_ticks:         both plants' loads at the next tick (in task space, with both sites'
+                        maps for the next tick after them: ``next_ticks_mapped``, one call
+                        fewer per site than the session's own ``map_tool`` calls)
 
 Four compiled calls is the least the Pinocchio calls between them allow. Each is bound once
 (``teleop_rt.flat.compiled_for``: the compiled entry point, not the dispatcher, with every
