@@ -10,7 +10,9 @@ lock-step one, the plants' read and write in place of the backends'):
     (Python)            ABA of each plant, into its data.ddq
     integrate:          both plants' Euler steps
     (Python)            the tool Jacobian of each plant
-    next_ticks:         both plants' loads at the next tick
+    next_ticks:         both plants' loads at the next tick (in task space, with both sites'
+                        maps for the next tick after them: ``next_ticks_mapped``, one call
+                        fewer per site than the session's own ``map_tool`` calls)
 
 Four compiled calls is the least the Pinocchio calls between them allow. Each is bound once
 (``teleop_rt.flat.compiled_for``: the compiled entry point, not the dispatcher, with every
@@ -45,10 +47,12 @@ from teleop_rt.lockstep import (
     lockstep_after,
     lockstep_before,
 )
-from teleop_rt.site_tick import CT, FB, WORLD
+from teleop_rt.mapping import map_tool
+from teleop_rt.site_tick import CT, FB, MAP, WORLD
 
 FB_H, FB_T, WORLD_H, WORLD_T = HSI_SITE + FB, TO_SITE + FB, HSI_SITE + WORLD, TO_SITE + WORLD
 CT_H, CT_T = HSI_SITE + CT, TO_SITE + CT
+MAP_H, MAP_T = HSI_SITE + MAP, TO_SITE + MAP
 
 
 class FusedPlants(ABC):
@@ -81,6 +85,11 @@ class FusedPlants(ABC):
     @abstractmethod
     def advance(self) -> None:
         """The rest of both writes: each plant's period."""
+
+    def take_maps(self, maps: list[tuple[Any, ...]]) -> bool:
+        """Both sites' task-space maps (``Site._bound_map``'s calls) run inside ``advance``,
+        after the plants' period, where the pair can; False: the session calls them."""
+        return False
 
 
 def fuse_plants(hsi: Backend, to: Backend) -> FusedPlants | None:
@@ -144,6 +153,23 @@ def next_ticks(
     next_tick(f, i, o[2 * split :], n, jac_t, x_t)
 
 
+@jit
+def next_ticks_mapped(
+    f: np.ndarray, i: np.ndarray, o: np.ndarray, n: int, split: int,
+    x_h: np.ndarray, x_t: np.ndarray, tool_h: np.ndarray, rot_h: np.ndarray,
+    tool_t: np.ndarray, rot_t: np.ndarray, jac_h: np.ndarray, jac_t: np.ndarray,
+    map_h: np.ndarray, map_t: np.ndarray,
+) -> None:  # fmt: skip
+    """``next_ticks``, then both sites' task-space maps for the next tick (``map_tool``, in
+    the order the session calls them: the HSI's, the TO's) with their Jacobians ``map_h``,
+    ``map_t`` and their controller models' tools (place, rotation): one compiled call in
+    place of three."""
+    next_tick(f, i, o[2 * SESSION_BLOCKS : 2 * split], n, jac_h, x_h)
+    next_tick(f, i, o[2 * split :], n, jac_t, x_t)
+    map_tool(floats_of(f, o, MAP_H), ints_of(i, o, MAP_H), tool_h, rot_h, map_h)
+    map_tool(floats_of(f, o, MAP_T), ints_of(i, o, MAP_T), tool_t, rot_t, map_t)
+
+
 class FusedSimPair(FusedPlants):
     """The HSI's and the TO's simulated plants, stepped inside the session's kernels."""
 
@@ -186,6 +212,22 @@ class FusedSimPair(FusedPlants):
         self._next_ticks = partial(compiled_for(next_ticks, *args, jac, jac), *args)
         self._aba = (plant_h._pin, plant_t._pin)
         self._jac = (plant_h.jacobian_call, plant_t.jacobian_call)
+        self._bound = (f, i, offsets, n, split, x_h, x_t)
+        self._maps: tuple[Any, ...] | None = None
+
+    def take_maps(self, maps: list[tuple[Any, ...]]) -> bool:
+        if len(maps) != 2:  # (a task-space channel maps at both sites)
+            return False
+        (jacobian_h, args_h, mapped_h), (jacobian_t, args_t, mapped_t) = maps
+        tools = (*mapped_h.args[2:], *mapped_t.args[2:])  # (x, rotation of each site)
+        jac = np.zeros((6, self.n))  # (the four Jacobians' type: Pinocchio's (6, n), C order)
+        args = (*self._bound, *tools)
+        sf, si = self._bound[0].copy(), self._bound[1].copy()
+        next_ticks_mapped(sf, si, *args[2:], jac, jac, jac, jac)  # (loaded now, on copies)
+        kernel = compiled_for(next_ticks_mapped, *args, jac, jac, jac, jac)
+        self._next_ticks_mapped = partial(kernel, *args)
+        self._maps = ((jacobian_h, args_h), (jacobian_t, args_t))
+        return True
 
     def before(self) -> int:  # (replaced by a partial at bind)
         raise RuntimeError("bind first")
@@ -199,4 +241,9 @@ class FusedSimPair(FusedPlants):
         aba(*pin_h)  # (into each plant's data.ddq, which integrate reads)
         aba(*pin_t)
         self._integrate()
-        self._next_ticks(jac_h(*tool_h), jac_t(*tool_t))
+        maps = self._maps
+        if maps is None:
+            self._next_ticks(jac_h(*tool_h), jac_t(*tool_t))
+            return
+        (map_h, args_h), (map_t, args_t) = maps
+        self._next_ticks_mapped(jac_h(*tool_h), jac_t(*tool_t), map_h(*args_h), map_t(*args_t))

@@ -461,10 +461,14 @@ def map_orientation(f: np.ndarray, i: np.ndarray, rot: np.ndarray) -> None:
 
 
 @jit
-def map_tool(f: np.ndarray, i: np.ndarray, jac: np.ndarray, x: np.ndarray, rot: np.ndarray) -> None:
+def map_tool(
+    f: np.ndarray, i: np.ndarray, x: np.ndarray, rot: np.ndarray, jac: np.ndarray
+) -> None:  # fmt: skip
     """Task space, after each tick's torques: ``map_kinematics`` and, in the pose,
     ``map_orientation`` (``rot``: the tool's rotation), in one compiled call (each call from
-    Python costs a few hundred ns)."""
+    Python costs a few hundred ns). ``jac`` last: the one argument that is new every tick
+    (Pinocchio's Jacobian call returns a new array), so the site binds the others once
+    (``flat.compiled_for``)."""
     Mi = Mapping.idx
     map_kinematics(f, i, jac, x)
     if i[Mi.SPACE] == POSE:

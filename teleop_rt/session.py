@@ -42,7 +42,7 @@ from teleop_rt.lockstep import (
     pair_monitor,
 )
 from teleop_rt.loop import TickClock
-from teleop_rt.mapping import JOINT, dls_figures
+from teleop_rt.mapping import dls_figures
 from teleop_rt.runner import LoopHooks, LoopOptions, LoopOutcome, run_loop
 from teleop_rt.site import HsiSite, Site, ToSite, bring_to_rest, channel_figures
 from teleop_rt.task_limits import tool_limits_figures
@@ -195,7 +195,6 @@ class Session:
         self._pack(pair)
         self.compiled_link = compiled_link
         self._boxed = [s for s in self.sites if s.guard.workspace is not None and s.guard.enabled]
-        self._task_space = [s for s in self.sites if s.mapping.space != JOINT]
 
     @property
     def sites(self) -> tuple[Site, Site]:
@@ -212,6 +211,8 @@ class Session:
         self.packed = p = Packed(blocks)
         hsi.bind(p, 0)
         to.bind(p, len(hsi.blocks))
+        # each task-space site's map, bound to these buffers (``Site.map_kinematics``'s call)
+        self._maps = [site._kin for site in (hsi, to) if site._kin is not None]
         self._buffers = (p.f, p.i, p.offsets, self.n)
         self._at = at = link_at(p.offsets)
         self._pin = (hsi._pin, to._pin)
@@ -231,6 +232,8 @@ class Session:
         if pair is not None:
             pair.bind(p.f, p.i, p.offsets, rnea, self.n)
             self.fused = True
+            # the maps in the plants' last compiled call of the tick, where the pair takes them
+            self._maps_fused = [] if pair.take_maps(self._maps) else self._maps
 
     def snapshot(self) -> tuple[np.ndarray, np.ndarray]:
         """The state of every block (not the parameters), one copy per buffer."""
@@ -293,13 +296,15 @@ class Session:
         code = self._after() if pair is None else pair.after()
         if code:
             raise self._stop_for(code)
+        maps = self._maps
         if pair is not None:
-            pair.advance()
+            pair.advance()  # (and the maps, where it took them)
+            maps = self._maps_fused
         else:
             hsi.backend.write(hsi.computed_torque.tau)
             to.backend.write(to.computed_torque.tau)
-        for site in self._task_space:  # (the next tick's Jacobians: task-space maps only)
-            site.map_kinematics()
+        for jacobian, args, mapped in maps:  # (the next tick's: task-space maps only)
+            mapped(jacobian(*args))
         self.tick += 1
 
     def _step_over(self, link: Link) -> None:

@@ -15,6 +15,7 @@ the rest).
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -27,7 +28,7 @@ from teleop_rt.com.port import HSI, TO, Packet, Port
 from teleop_rt.config import SafetySpec, SessionConfig, per_joint
 from teleop_rt.control import ComputedTorque, Pid
 from teleop_rt.errors import ConfigError, SafetyStop
-from teleop_rt.flat import Block, Packed
+from teleop_rt.flat import Block, Packed, compiled_for
 from teleop_rt.hal.base import Backend
 from teleop_rt.hal.registry import create_backend
 from teleop_rt.keys import AT_START as KEYS_AT_START
@@ -57,6 +58,9 @@ if TYPE_CHECKING:
 
 SIDES = {"hsi": HSI, "to": TO}
 LWA = pin.LOCAL_WORLD_ALIGNED  # the task-space map's Jacobian: world axes, at the tool
+# a task-space map's per-tick call: Pinocchio's frame Jacobian, its arguments, and the map
+# that takes its result (``Site._bound_map``)
+MapCall = tuple[Callable[..., np.ndarray], tuple, Callable[[np.ndarray], None]]
 REST_SPEED_RAD_S = 1e-3  # a robot slower than this on every joint is at rest
 STOP_GAIN_OF_DEADBEAT = 0.5  # the TO's stop gain at most half the deadbeat gain M_v / dt
 STOP_DAMPING_DEFAULT = SafetySpec.model_fields["stop_damping_nm_s_per_rad"].default
@@ -211,10 +215,12 @@ class Site:
         kin = self._kin
         if kin is None:
             return
-        model, data, measured, frame, f, i, x, rotation = kin
-        at = measured if q is None else q
+        jacobian, args, mapped = kin
+        if q is not None:
+            model, data, _, frame, frames = args
+            args = (model, data, q, frame, frames)
         # (the pose: the tool's rotation too, which oMf holds after the Jacobian's call)
-        map_tool(f, i, pin.computeFrameJacobian(model, data, at, frame, LWA), x, rotation)
+        mapped(jacobian(*args))
 
     def bind(self, packed: Packed, first: int = 0) -> None:
         """Work on the site's blocks where they are now: blocks ``first`` on of ``packed``."""
@@ -223,11 +229,19 @@ class Site:
         self._buffers = (packed.f, packed.i, packed.offsets[2 * first : 2 * end], self.m)
         self._pin = (self.model.model, self.model.data, self.feedback.q, self.feedback.v,
                      self.computed_torque.a_des)  # fmt: skip
-        m, mapping = self.model, self.mapping  # (a task-space map: its Pinocchio call's
-        self._kin = None if mapping.space == JOINT else (  # arguments, looked up once)
-            m.model, m.data, self.feedback.q, m.ee_frame_id, mapping.f, mapping.i,
-            m._ee_translation, m.data.oMf[m.ee_frame_id].rotation,
-        )  # fmt: skip
+        self._kin = None if self.mapping.space == JOINT else self._bound_map()
+
+    def _bound_map(self) -> MapCall:
+        """A task-space map's per-tick call, looked up once: Pinocchio's frame Jacobian, its
+        arguments, and ``map_tool``'s compiled entry point with every argument but the
+        Jacobian bound (``flat.compiled_for``: no dispatcher typing five arrays a tick)."""
+        m, mapping = self.model, self.mapping
+        frame = m.ee_frame_id
+        x, rotation = m._ee_translation, m.data.oMf[frame].rotation  # (views of data.oMf)
+        bound = (mapping.f, mapping.i, x, rotation)
+        example = np.zeros((6, m.nv))  # (the Jacobian's type: Pinocchio's (6, n), C order)
+        mapped = partial(compiled_for(map_tool, *bound, example), *bound)
+        return pin.computeFrameJacobian, (m.model, m.data, self.feedback.q, frame, LWA), mapped
 
     def warm_up(self) -> None:
         """Load (or, on a fresh install, compile) the site's kernels now, on scratch copies."""

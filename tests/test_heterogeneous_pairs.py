@@ -165,6 +165,34 @@ def test_a_pair_of_one_joint_count_in_the_plane_runs_fused_as_read_write() -> No
     assert a.t_tau_total > 0 and a.stopped_early is None
 
 
+def test_a_pose_pair_maps_inside_the_fused_tick_as_the_session_does() -> None:
+    """Two UR5s coupled in the pose (6 joints each, a port of 6), pressing on a table: the
+    fused plants run both sites' task-space maps inside their last compiled call of the tick
+    (``lockstep_fused.next_ticks_mapped``), the read / write path has the session call them
+    after the writes; both give the same run, bit for bit, maps and all."""
+    ur5 = config.load(TASK_SPACE / "ur5_panda_pose.yaml").hsi
+    overrides = [
+        "duration_s=3", "channel.delay_ms=20",
+        "to.robot=" + json.dumps({"example_robot": "ur5", "ee_frame": "tool0",
+                                  "q0_rad": ur5.robot.q0_rad}),
+        "to.virtual_mass=" + json.dumps(ur5.virtual_mass),
+        "to.controller=" + json.dumps({"kind": "p", "kp": 50.0}),
+        "environment=[{kind: wall, point_m: [0.0, 0.0, 0.2], normal: [0, 0, 1], "
+        "stiffness_n_per_m: 5000, damping_n_s_per_m: 20}]",
+    ]  # fmt: skip
+    cfg = pair("ur5_panda_pose", *overrides)
+    fused, plain = Session(cfg), Session(cfg)
+    assert fused.fused and (fused.hsi.n, fused.to.n, fused.n) == (6, 6, 6)
+    assert fused._maps_fused == [] and len(fused._maps) == 2  # (the pair took both maps)
+    plain.fused = False
+    a, b = fused.run(), plain.run()
+    assert (a.t_p, a.t_tau, a.channel_energy_j) == (b.t_p, b.t_tau, b.channel_energy_j)
+    for x, y in ((fused.hsi, plain.hsi), (fused.to, plain.to)):
+        assert np.array_equal(x.mapping.f, y.mapping.f)
+        assert np.array_equal(x.feedback.q, y.feedback.q)
+    assert a.t_tau_total > 0 and a.stopped_early is None
+
+
 # the ratchet in the plane: the SCARA's tool back and forth (3 cm, 2 cm) a stroke a second,
 # the clutch pressed for the middle of the return stroke 10 times, then of the forward stroke
 # 10 times (tests/test_mapping.py's CLUTCH): the UR5's tool is indexed ~0.25 m in and back out

@@ -158,8 +158,20 @@ def run_session(
     trace_methods(tracer, sites, None if session.compiled_link else session.link,
                   backends=not session.fused)  # fmt: skip
     with traced_functions(tracer):
+        rebind_maps(session)
         session.step()
     return {"steps": tracer.steps, "meets": meets(sites), "fused": session.fused}
+
+
+def rebind_maps(session: Session) -> None:
+    """The task-space maps bound again (``Site._bound_map``), now that ``map_tool`` is traced:
+    they are bound once, to the function as it was (a fused pair's own are not traced)."""
+    for site in session.sites:
+        if site._kin is not None:
+            site._kin = site._bound_map()
+    session._maps = [site._kin for site in session.sites if site._kin is not None]
+    if session._pair_plants is None or session._maps_fused:
+        session._maps_fused = session._maps
 
 
 def run_alone(cfg: config.SessionConfig, ticks: int = 3) -> dict:
@@ -183,6 +195,8 @@ def run_alone(cfg: config.SessionConfig, ticks: int = 3) -> dict:
     trace_methods(tracer, sites, link)
     wholes = {name: site.packed.f for name, site in sites.items()}
     with traced_functions(tracer):
+        for site in sites.values():  # (bound to ``map_tool`` before it was traced)
+            site._kin = site._bound_map()
         for phase in ("sense", "update"):
             for name, site in sites.items():
                 tracer.whole = wholes[name]
