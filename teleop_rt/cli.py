@@ -17,7 +17,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from teleop_rt.cli_common import EXIT_INTERRUPTED, ending_code, live_arg
+from teleop_rt.cli_common import EXIT_INTERRUPTED, ending_code, incomplete_line, live_arg
 from teleop_rt.declarations import OVERRUN_DEFAULT, OVERRUN_POLICIES
 from teleop_rt.errors import ConfigError, RecordingFailure, TeleopError
 from teleop_rt.exit_signals import Terminated, exit_on_signals
@@ -242,9 +242,17 @@ def add_log_args(p: argparse.ArgumentParser, default: str = "logs/<name>-<UTC ti
         "--log",
         dest="log_out",
         metavar="PATH",
+        type=_log_path,
         help=f"MCAP log to write (default: {default}; never overwrites)",
     )
     group.add_argument("--no-log", action="store_true", help="do not record this run")
+
+
+def _log_path(text: str) -> str:
+    """An empty --log would fall back to the default path: refused instead."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path; give a file name (or --no-log)")
+    return text
 
 
 def _positive_float(text: str) -> float:
@@ -510,11 +518,7 @@ def _say_if_incomplete(recorder) -> None:
     """One line on stderr when the log lacks ticks (why, and how many were dropped)."""
     status = recorder.status() if recorder else None
     if status is not None and not status["complete"]:
-        print(
-            f"teleop-rt: log {recorder.path} is incomplete: {status['failure']} "
-            f"(ticks dropped: {status['dropped_rows']})",
-            file=sys.stderr,
-        )
+        print(incomplete_line(recorder.path, status), file=sys.stderr)
 
 
 def exit_code(summary, recorder=None) -> int:

@@ -39,3 +39,21 @@ def live_arg(args: argparse.Namespace) -> LiveAddress | None:
     if args.no_log:
         raise ConfigError("--live is served by the log's writer: it cannot go with --no-log")
     return live
+
+
+def incomplete_line(path: object, status: dict) -> str:
+    """The one stderr line for a log that lacks ticks: why, the ticks dropped before the
+    writer (``dropped_rows``) and, read back from the file, how many ticks it does hold: a
+    writer that failed loses the rows it had taken but not yet put on disk, which
+    ``dropped_rows`` cannot count."""
+    from teleop_rt.errors import TeleopError
+    from teleop_rt.recording.reader import read_log
+
+    try:
+        held = f"; the file holds {read_log(str(path)).ticks} ticks"
+    except (TeleopError, OSError, ValueError):  # unreadable: the reason above says why
+        held = ""
+    return (
+        f"teleop-rt: log {path} is incomplete: {status['failure']} "
+        f"(ticks dropped: {status['dropped_rows']}{held})"
+    )

@@ -20,7 +20,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from teleop_rt.cli_common import live_arg
+from teleop_rt.cli_common import incomplete_line, live_arg
 from teleop_rt.errors import ConfigError
 from teleop_rt.exit_signals import Terminated
 
@@ -83,8 +83,7 @@ def cmd_site(args, load_config, live=None) -> int:
         print_site_summary(summary)
     status = summary.recording
     if status is not None and not status["complete"]:
-        print(f"teleop-rt: log {summary.log} is incomplete: {status['failure']} "
-              f"(ticks dropped: {status['dropped_rows']})", file=sys.stderr)  # fmt: skip
+        print(incomplete_line(summary.log, status), file=sys.stderr)
     if summary.peer_silent:
         print(f"teleop-rt: error: {summary.peer_silent}", file=sys.stderr)
     return site_exit_code(summary)

@@ -197,3 +197,13 @@ def test_a_killed_sites_failure_names_the_signal() -> None:
     assert site_failure(2, tracker + own) == own.strip()
     assert site_failure(1, "Traceback ...\nRuntimeError: x\n") == "RuntimeError: x"
     assert site_failure(1, "") == "exit 1"
+
+
+@pytest.mark.parametrize("command", ["run", "site"])
+def test_an_empty_log_path_is_refused(command, capsys) -> None:
+    """``--log ""`` fell back to the default path (the run wrote a log the user did not name)."""
+    argv = [command, WALL, "--log", ""] if command == "run" else [command, "hsi", WALL, "--log", ""]
+    with pytest.raises(SystemExit) as ended:
+        main(argv)
+    err = capsys.readouterr().err
+    assert ended.value.code == 2 and "argument --log: an empty path" in err, err

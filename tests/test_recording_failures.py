@@ -213,6 +213,9 @@ def _assert_write_failure(log: Path, proc, summary: dict, err: str, strerror: st
     assert summary["ticks"] < 60_000
     data = read_log(log)  # every chunk written before the error
     assert data.truncated and data.ticks > 1000
+    # the rows the writer had taken but not put on disk are not in dropped_rows: the line
+    # says what the file holds, read back
+    assert_says_incomplete(err, log, f"; the file holds {data.ticks} ticks)")
 
 
 def test_a_full_disk_is_one_line_and_a_recording_failure(tmp_path: Path) -> None:
