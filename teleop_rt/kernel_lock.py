@@ -21,6 +21,9 @@ from pathlib import Path
 from typing import Any
 
 LOCK_NAME = "compile.lock"
+# a wait longer than this is worth a note: a compilation takes seconds, so the holder is
+# stopped or stuck (a process under a debugger, SIGSTOP), and the start would look hung
+WAIT_NOTE_S = 10.0
 
 
 class CompileLock:
@@ -59,7 +62,13 @@ class CompileLock:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 self.waited += 1
-                fcntl.flock(fd, fcntl.LOCK_EX)
+                note = threading.Timer(WAIT_NOTE_S, self._say_waiting, (fd,))
+                note.daemon = True
+                note.start()
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX)
+                finally:
+                    note.cancel()
             return fd
         except OSError as err:
             if fd is not None:
@@ -69,6 +78,29 @@ class CompileLock:
                   f"{err.strerror or err}); two processes starting at once from an empty "
                   "cache may race", file=sys.stderr)  # fmt: skip
             return None
+
+    def _say_waiting(self, fd: int) -> None:
+        try:  # the lock may have come (and the fd gone) just as the timer fired
+            holders = _holders(os.fstat(fd).st_ino)
+        except OSError:
+            return
+        who = f"pid {', '.join(map(str, holders))}" if holders else "another process"
+        print(f"teleop-rt: note: waiting {WAIT_NOTE_S:g} s so far for the kernel cache lock "
+              f"{self.path} (held by {who})", file=sys.stderr, flush=True)  # fmt: skip
+
+
+def _holders(inode: int) -> list[int]:
+    """The pids holding a flock on the file with ``inode`` (from /proc/locks; [] if unknown)."""
+    pids = []
+    try:
+        for line in Path("/proc/locks").read_text().splitlines():
+            fields = line.split()
+            if "->" not in fields and "FLOCK" in fields and len(fields) >= 6:
+                if int(fields[5].split(":")[2]) == inode:
+                    pids.append(int(fields[4]))
+    except (OSError, ValueError, IndexError):
+        return []
+    return pids
 
 
 def locked(dispatcher: Any, lock: CompileLock) -> Any:

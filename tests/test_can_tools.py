@@ -9,6 +9,7 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
@@ -59,10 +60,13 @@ def test_sigint_to_the_emulator_ends_both_robots_emulators() -> None:
     watchdog = threading.Timer(240, os.killpg, (proc.pid, signal.SIGKILL))
     watchdog.start()
     try:
-        ready = 0
+        ready, started = 0, time.monotonic()
         while ready < 2:
             line = proc.stdout.readline()
-            assert line, f"the emulator ended early: {proc.stderr.read()}"
+            took = time.monotonic() - started  # 240 s: the watchdog (a stopped lock holder?)
+            assert line, f"the emulator ended early ({took:.0f} s, exit {proc.wait()}): " + (
+                proc.stderr.read()
+            )
             ready += line.startswith("ready")
             if line.startswith("emulating"):  # the bus as configured (was 'on unknown')
                 assert " on udp_multicast 239.74." in line, line

@@ -103,6 +103,36 @@ def test_a_compilation_waits_for_the_lock_another_process_holds(tmp_path: Path) 
     assert json.loads(out) == {"y": 3.0, "waited": 1}
 
 
+def test_a_long_wait_for_the_lock_is_a_note_naming_the_holder(tmp_path: Path) -> None:
+    """A holder that is stopped or stuck made a start look hung, with nothing on stderr (the
+    CAN emulator's test, twice): past WAIT_NOTE_S the waiter says whom it waits for."""
+    cache = tmp_path / "cache"
+    lock_path = cache / _source_hash() / LOCK_NAME
+    lock_path.parent.mkdir(parents=True)
+    script = tmp_path / "kernel.py"
+    script.write_text("import teleop_rt.kernel_lock as kl\nkl.WAIT_NOTE_S = 0.3\n" + KERNEL)
+    with open(lock_path, "w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        child = subprocess.Popen(
+            [sys.executable, str(script)], env=env_with_cache(cache),
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )  # fmt: skip
+        try:
+            deadline = time.monotonic() + TIMEOUT_S
+            while not blocked_on(child.pid, os.fstat(held.fileno()).st_ino):
+                assert child.poll() is None, f"compiled without waiting: {child.communicate()}"
+                assert time.monotonic() < deadline, "never waited for the cache's lock"
+                time.sleep(0.05)
+            time.sleep(1.0)  # past the note's 0.3 s
+        finally:
+            fcntl.flock(held, fcntl.LOCK_UN)
+        out, err = child.communicate(timeout=TIMEOUT_S)
+    assert child.returncode == 0, err
+    notes = [line for line in err.splitlines() if "kernel cache lock" in line]
+    assert len(notes) == 1, err
+    assert notes[0].startswith("teleop-rt: note: waiting") and f"pid {os.getpid()}" in notes[0]
+
+
 def test_an_unusable_cache_folder_is_one_note_and_the_kernel_still_runs(tmp_path: Path) -> None:
     """No lock file can be made (a file where the folder should be; read-only for root too):
     one note on stderr, and numba compiles on its own fallback."""
