@@ -78,39 +78,15 @@ def blocked_on(pid: int, inode: int) -> bool:
     return False
 
 
-def test_a_compilation_waits_for_the_lock_another_process_holds(tmp_path: Path) -> None:
+def run_behind_a_held_lock(tmp_path: Path, preamble: str = "", hold_s: float = 0.0):
+    """Run KERNEL (after ``preamble``) while this process holds the cache's lock ("another
+    process" compiling): once the child blocks on it (and ``hold_s`` more), release it; the
+    child's (returncode, stdout, stderr)."""
     cache = tmp_path / "cache"
     lock_path = cache / _source_hash() / LOCK_NAME
     lock_path.parent.mkdir(parents=True)
     script = tmp_path / "kernel.py"  # a file: numba caches only kernels with a source file
-    script.write_text(KERNEL)
-    with open(lock_path, "w") as held:
-        fcntl.flock(held, fcntl.LOCK_EX)  # "another process" is compiling
-        child = subprocess.Popen(
-            [sys.executable, str(script)], env=env_with_cache(cache),
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        )  # fmt: skip
-        try:
-            deadline = time.monotonic() + TIMEOUT_S
-            while not blocked_on(child.pid, os.fstat(held.fileno()).st_ino):
-                assert child.poll() is None, f"compiled without waiting: {child.communicate()}"
-                assert time.monotonic() < deadline, "never waited for the cache's lock"
-                time.sleep(0.05)
-        finally:
-            fcntl.flock(held, fcntl.LOCK_UN)
-        out, err = child.communicate(timeout=TIMEOUT_S)
-    assert child.returncode == 0, err
-    assert json.loads(out) == {"y": 3.0, "waited": 1}
-
-
-def test_a_long_wait_for_the_lock_is_a_note_naming_the_holder(tmp_path: Path) -> None:
-    """A holder that is stopped or stuck made a start look hung, with nothing on stderr (the
-    CAN emulator's test, twice): past WAIT_NOTE_S the waiter says whom it waits for."""
-    cache = tmp_path / "cache"
-    lock_path = cache / _source_hash() / LOCK_NAME
-    lock_path.parent.mkdir(parents=True)
-    script = tmp_path / "kernel.py"
-    script.write_text("import teleop_rt.kernel_lock as kl\nkl.WAIT_NOTE_S = 0.3\n" + KERNEL)
+    script.write_text(preamble + KERNEL)
     with open(lock_path, "w") as held:
         fcntl.flock(held, fcntl.LOCK_EX)
         child = subprocess.Popen(
@@ -123,11 +99,25 @@ def test_a_long_wait_for_the_lock_is_a_note_naming_the_holder(tmp_path: Path) ->
                 assert child.poll() is None, f"compiled without waiting: {child.communicate()}"
                 assert time.monotonic() < deadline, "never waited for the cache's lock"
                 time.sleep(0.05)
-            time.sleep(1.0)  # past the note's 0.3 s
+            time.sleep(hold_s)
         finally:
             fcntl.flock(held, fcntl.LOCK_UN)
         out, err = child.communicate(timeout=TIMEOUT_S)
-    assert child.returncode == 0, err
+    return child.returncode, out, err
+
+
+def test_a_compilation_waits_for_the_lock_another_process_holds(tmp_path: Path) -> None:
+    code, out, err = run_behind_a_held_lock(tmp_path)
+    assert code == 0, err
+    assert json.loads(out) == {"y": 3.0, "waited": 1}
+
+
+def test_a_long_wait_for_the_lock_is_a_note_naming_the_holder(tmp_path: Path) -> None:
+    """A holder that is stopped or stuck made a start look hung, with nothing on stderr (the
+    CAN emulator's test, twice): past WAIT_NOTE_S the waiter says whom it waits for."""
+    preamble = "import teleop_rt.kernel_lock as kl\nkl.WAIT_NOTE_S = 0.3\n"
+    code, out, err = run_behind_a_held_lock(tmp_path, preamble, hold_s=1.0)
+    assert code == 0, err
     notes = [line for line in err.splitlines() if "kernel cache lock" in line]
     assert len(notes) == 1, err
     assert notes[0].startswith("teleop-rt: note: waiting") and f"pid {os.getpid()}" in notes[0]
