@@ -215,9 +215,11 @@ def test_no_client_and_a_client_that_never_reads_do_not_hold_the_loop(tmp_path):
     ticks, missed = run_ticks(summary)
     ticks_alone, missed_alone = run_ticks(summary_alone)
     assert ticks == ticks_alone == SLOW_S * 1000
-    # deadlines: the slow client's run misses no more than the same run without a client
-    # (plus 1 % of the ticks for a shared host's noise)
-    assert missed <= missed_alone + ticks // 100, (missed, missed_alone)
+    # deadlines: a loop held by the client while it never reads (half the run) would miss
+    # about half the ticks; the slow client's run misses no more than the same run without a
+    # client plus 10 % (the server's work for it shares two cores with the loop: 1 % was
+    # exceeded once in CI, 472 against 75 of 12 000)
+    assert missed <= missed_alone + ticks // 10, (missed, missed_alone)
     # the client did not keep up, and was not waited for: the server dropped messages of the
     # running session for it (one that waited would deliver 0, 1, 2, ... without a gap, and
     # hold the writer: dropped rows, exit 4)
