@@ -119,6 +119,32 @@ def require_posture(
             )
 
 
+def require_stable_task_gains(cfg: SessionConfig, n: int) -> None:
+    """ConfigError for a posture or orientation gain at or above the sampled loop's limit.
+
+    Each adds k (target - x) to the TO's velocity reference, which its P velocity loop tracks
+    with T2 = M2/c2: per direction the loop of teleop_rt.analysis.contact with K / b = k, so
+    k < (4 T2 - 2 dt) / dt^2 (Jury), taken at the joint with the smallest T2. A gain beyond it
+    ran into a safety stop at the first ticks; now it is refused before any."""
+    from teleop_rt.analysis.contact import contact_stiffness_limit
+
+    m2 = per_joint(cfg.to.virtual_mass, n, "to.virtual_mass")
+    c2 = per_joint(cfg.to.controller.kp, n, "to.controller.kp")
+    limits = [contact_stiffness_limit(1.0, m2[j], c2[j], cfg.dt) for j in range(n)]
+    j = int(np.argmin(limits))
+    gains = [("posture_gain_per_s", cfg.mapping.posture_gain_per_s)]
+    if cfg.channel.space == "pose":
+        gains.append(("orientation_gain_per_s", cfg.mapping.orientation_gain_per_s))
+    for key, gain in gains:
+        if gain > 0 and gain >= limits[j]:
+            raise ConfigError(
+                f"mapping.{key} = {gain:g} 1/s is at or above the limit of the TO's sampled "
+                f"velocity loop, {limits[j]:.4g} 1/s at rate_hz = {cfg.rate_hz} ((4 T2 - 2 dt) "
+                f"/ dt^2, T2 = M2/c2 = {m2[j] / c2[j]:.3g} s at joint {j}; see "
+                "teleop_rt/analysis/contact.py): the correction would be unstable"
+            )
+
+
 class SensorsUnusable(Exception):
     """A robot's sensors cannot be trusted while stopping: zero torque at once."""
 
@@ -142,6 +168,7 @@ class Site:
             m = cfg.mapping
             require_posture(model, m.posture_rad, cfg.channel.space,
                             port_size(cfg.channel.space, n), m.posture_gain_per_s)  # fmt: skip
+            require_stable_task_gains(cfg, n)
         self.virtual_mass = per_joint(spec.virtual_mass, n, f"{name}.virtual_mass")
         self.backend_name = backend_name or cfg.backend_for(name)
         self._assemble(
