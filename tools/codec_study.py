@@ -276,7 +276,7 @@ TDPA_VARIANTS = {
 
 # part 7, the energy deadband's pace (channel.deadband.exchange_min_ticks; docs/codec.md):
 # a smaller step that sends no sooner than PACE_TICKS after the last packet
-PACE_STEP_J, PACE_TICKS = 6e-6, 3
+PACE_STEP_J, PACE_TICKS = 5.5e-6, 3
 PACE_LABEL = f"{PACE_STEP_J:g} J, Weber's rule {WEBER_E:g}, pace {PACE_TICKS}"
 PACE = {PACE_LABEL: (f"channel.deadband.exchange_j={PACE_STEP_J:g}", *EXCHANGE[1:],
                      f"channel.deadband.exchange_weber={WEBER_E:g}",

@@ -90,7 +90,7 @@ energy it declared. What keeps that passive is the port's own rule, unchanged:
   push), and the push's force times that velocity crosses ~1e-5 J a tick, so a step of
   2e-5 J fires in bursts wherever the cycle moves, 27 % of the push's ticks, all by energy.
   A small step with a pace of 3 samples the cycle at a steady 3-4 ticks instead, which damps
-  it (0.0036 -> 0.0012 rad/s RMS) and sends fewer (23 %). A trigger only: passive as before.
+  it (7e-6 J: 0.0036 -> 0.0012 rad/s RMS) and sends fewer (23 %). A trigger only: passive.
 
 Past the maximum interval the peer should have sent: the tick is a loss (``expired``) and the
 port's own loss rule applies (the bounded hold, TDPA's hold then zero); the peer timeout
