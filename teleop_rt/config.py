@@ -175,6 +175,9 @@ class DeadbandSpec(Strict):
     # codec.EXCHANGE_WINDOW_TICKS (Weber's rule on the energy: a steady flow, foam's damping,
     # sends a packet per fraction of the window); 0: the fixed step
     exchange_weber: NonNegFloat = 0.0
+    # ... and it sends no sooner than this many ticks after the last packet (the deadband's
+    # own crossings still go out at once; docs/codec.md, "the energy deadband's pace"); 1: off
+    exchange_min_ticks: Annotated[int, Field(ge=1, le=MAX_CODEC_INTERVAL)] = 1
 
     @model_validator(mode="after")
     def _intervals(self) -> DeadbandSpec:
@@ -185,6 +188,13 @@ class DeadbandSpec(Strict):
             )
         if self.exchange_weber > 0 and not self.exchange_j > 0:
             raise ValueError("exchange_weber grows the energy step exchange_j: set exchange_j > 0")
+        if self.exchange_min_ticks > 1 and not self.exchange_j > 0:
+            raise ValueError(
+                "exchange_min_ticks paces the energy step exchange_j: set exchange_j > 0"
+            )
+        if self.exchange_min_ticks > self.max_interval_ticks:
+            raise ValueError(f"exchange_min_ticks = {self.exchange_min_ticks} is above "
+                             f"max_interval_ticks = {self.max_interval_ticks}")
         return self
 
 

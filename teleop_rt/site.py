@@ -503,7 +503,7 @@ def port_for(cfg: SessionConfig, n: int, side: int) -> Port:
         codec.configure(port, getattr(db, f"weber_{own}"), getattr(db, f"floor_{own}"),
                         db.min_interval_ticks, db.max_interval_ticks,
                         db.velocity_gain_s_per_rad, mine, peers, db.exchange_j,
-                        db.exchange_weber)  # fmt: skip
+                        db.exchange_weber, db.exchange_min_ticks)  # fmt: skip
     return port
 
 

@@ -30,6 +30,7 @@ from tests.conftest import CONFIGS
 from tests.test_passive_channels import CLASSES, PASSIVE_J, SWEEP, drive, schedules
 
 WEBER, FLOOR, MAX_TICKS = 0.1, 0.01, 50
+PACED_STEP_J = 5.5e-6  # the energy deadband's step with its pace of 3 ticks (docs/codec.md)
 
 
 class CodecHarness:
@@ -41,13 +42,14 @@ class CodecHarness:
                  max_ticks: int = MAX_TICKS, predictions: tuple[str, str] = ("linear", "hold"),
                  arrival: int | None = None, ahead_ticks: int = 0,
                  how: str = CODEC_RECONSTRUCTION, exchange_j: float = 0.0,
-                 exchange_weber: float = 0.0) -> None:  # fmt: skip
+                 exchange_weber: float = 0.0, exchange_min_ticks: int = 1) -> None:  # fmt: skip
         self.n = n
         self.ports = [make_port(side, mode, [1.5] * n, 1, 1e-3, filter_hz, how)
                       for side in (HSI, TO)]  # fmt: skip
         for side, port in enumerate(self.ports):  # predictions: of the HSI's, of the TO's packets
             codec.configure(port, WEBER, FLOOR, 1, max_ticks, 0.0, predictions[side],
-                            predictions[1 - side], exchange_j, exchange_weber)  # fmt: skip
+                            predictions[1 - side], exchange_j, exchange_weber,
+                            exchange_min_ticks)  # fmt: skip
             codec.look_ahead(port, ahead_ticks)  # (the senders' model of it: any)
         # the look-ahead: a packet has arrived ``arrival`` ticks after it was sent (None: none
         # is known before it is due); the newest arrived is the receiver's, due or not
@@ -102,15 +104,20 @@ HOW = st.sampled_from(CODEC_RECONSTRUCTIONS)
        filter_hz=st.sampled_from([None, 30.0]), max_ticks=st.sampled_from([1, 5, 50]),
        predictions=st.tuples(PREDICTION, PREDICTION), how=HOW,
        exchange_j=st.sampled_from([0.0, 1e-5, 1e-3]),
-       exchange_weber=st.sampled_from([0.0, 0.1, 1.0]))  # fmt: skip
+       exchange_weber=st.sampled_from([0.0, 0.1, 1.0]),
+       exchange_min_ticks=st.sampled_from([1, 3]))  # fmt: skip
 def test_ports_with_the_codec_are_passive_for_any_delays_losses_and_inputs(
-    schedule, mode, filter_hz, max_ticks, predictions, how, exchange_j, exchange_weber
-) -> None:
-    """(TDPA with and without the energy deadband and its Weber rule: they only add packets.)"""
+    schedule, mode, filter_hz, max_ticks, predictions, how, exchange_j, exchange_weber,
+    exchange_min_ticks,
+) -> None:  # fmt: skip
+    """(TDPA with and without the energy deadband, its Weber rule and its pace: they only
+    decide when to send.)"""
     exchange_j = exchange_j if mode == "tdpa" else 0.0
     exchange_weber = exchange_weber if exchange_j > 0 else 0.0
+    exchange_min_ticks = min(exchange_min_ticks, max_ticks) if exchange_j > 0 else 1
     harness = CodecHarness(mode, 1, filter_hz, max_ticks, predictions, how=how,
-                           exchange_j=exchange_j, exchange_weber=exchange_weber)  # fmt: skip
+                           exchange_j=exchange_j, exchange_weber=exchange_weber,
+                           exchange_min_ticks=exchange_min_ticks)  # fmt: skip
     assert drive(harness, schedule) >= PASSIVE_J
 
 
@@ -289,6 +296,41 @@ def test_weber_rule_on_the_energy_step_lengthens_a_steady_flow_not_an_oscillatio
     assert packets_sent(wave, w, step) > 0.85 * packets_sent(wave, 0.0, step)
 
 
+def energy_paced(exchange_min_ticks: int, jump_at: int = -1) -> tuple[list[int], list[int]]:
+    """TDPA, one tick of delay: the HSI moves at 0.05 rad/s against the TO's 0.2 N m (1e-5 J
+    crosses each port a tick, twice the energy step of 5e-6 J), and at ``jump_at`` its
+    velocity jumps to 0.5 rad/s (the deadband crosses); the ticks the HSI sent at, and the
+    ticks it sent by the energy deadband."""
+    harness = CodecHarness("tdpa", max_ticks=100, predictions=("hold", "hold"), exchange_j=5e-6,
+                           exchange_min_ticks=exchange_min_ticks)
+    port, sent, by_energy = harness.ports[HSI], [], []
+    for k in range(600):
+        before = int(port.codec_by_energy)
+        harness.step(k, (np.full(1, 0.5 if 0 <= jump_at <= k else 0.05), np.full(1, 0.2)),
+                     (1, 1), (False, False))  # fmt: skip
+        if not harness.tx[HSI].unsent:
+            sent.append(k)
+        if int(port.codec_by_energy) > before:
+            by_energy.append(k)
+    return sent, by_energy
+
+
+def test_the_energy_deadbands_pace_spaces_its_packets_not_the_deadbands() -> None:
+    """``exchange_min_ticks`` m (docs/codec.md, "the energy deadband's pace"): the energy
+    deadband sends no sooner than m ticks after the last packet, so where energy crosses
+    faster than its step (here every tick) it sends every m ticks, not every tick; a
+    crossing of the deadband itself still goes out at once. Mutation: the pace off (the
+    energy deadband sends every tick: fails)."""
+    for m in (1, 3):
+        sent, by_energy = energy_paced(m)
+        gaps = np.diff(sent[5:])
+        assert len(by_energy) > 100 and set(gaps.tolist()) == {m}
+    paced, _ = energy_paced(3)
+    last = next(k for k in paced if k >= 300)
+    sent, _ = energy_paced(3, jump_at=last + 1)
+    assert last in sent and last + 1 in sent  # the jump, one tick after a paced packet
+
+
 def hold_through_a_lost_drop(max_ticks: int = MAX_TICKS) -> CodecHarness:
     """The HSI pushes hard (3), then softly (0.3): the codec sends the drop at once, and that
     packet is lost; the TO goes on holding the strong wave while the HSI puts in the weak one
@@ -361,20 +403,23 @@ def test_the_codec_is_off_by_default_and_sends_every_tick() -> None:
     assert s.hsi.port.codec == 0 and int(s.hsi.port.codec_silent) == 0
 
 
-@pytest.mark.parametrize("mode", ["wave", "tdpa", "tdpa+exchange", "tdpa+exchange+weber"])
+@pytest.mark.parametrize("mode", ["wave", "tdpa", "tdpa+exchange", "tdpa+exchange+weber",
+                                  "tdpa+exchange+weber+pace"])
 @pytest.mark.parametrize("impairment", ["loss", "burst_loss", "reordering", "jitter"])
 def test_sessions_with_the_codec_stay_passive_under_impairments(mode: str, impairment: str) -> None:
     """The stiff wall and free space through the impaired link, the codec on (the study runs
-    every class, tools/network_study.py --codec); TDPA also with the energy deadband, and
-    with Weber's rule on it."""
+    every class, tools/network_study.py --codec); TDPA also with the energy deadband, with
+    Weber's rule on it, and with its pace."""
     for path in (CONFIGS / "stiff_wall.yaml", CONFIGS / "free_space.yaml"):
         sets = ["duration_s=6", "channel.delay_ms=2", "link.playout=newest",
                 f"channel.mode={mode.split('+')[0]}", "channel.codec=deadband"]  # fmt: skip
-        if "+exchange" in mode:  # (with Weber's rule: the setting docs/codec.md measures best)
-            weber = mode.endswith("+weber")
-            sets += [f"channel.deadband.exchange_j={2e-5 if weber else 3e-5}",
+        if "+exchange" in mode:  # (with Weber's rule, and its pace: docs/codec.md's settings)
+            weber, pace = "+weber" in mode, mode.endswith("+pace")
+            step = PACED_STEP_J if pace else 2e-5 if weber else 3e-5
+            sets += [f"channel.deadband.exchange_j={step}",
                      "channel.deadband.prediction_hsi=linear",
-                     f"channel.deadband.exchange_weber={0.1 if weber else 0.0}"]  # fmt: skip
+                     f"channel.deadband.exchange_weber={0.1 if weber else 0.0}",
+                     f"channel.deadband.exchange_min_ticks={3 if pace else 1}"]  # fmt: skip
         if path.stem == "free_space":
             sets.append("operator.waypoints=" + json.dumps(SWEEP[:6]))
         s = session(path, sets, CLASSES[impairment])
@@ -421,6 +466,8 @@ def test_the_links_carry_only_what_the_codec_sent(monkeypatch: pytest.MonkeyPatc
      (["channel.deadband.exchange_j=1e-5"], "channel.deadband.exchange_j: the energy deadband"),
      (["channel.mode=tdpa", "channel.deadband.exchange_j=-1"], "channel.deadband.exchange_j"),
      (["channel.mode=tdpa", "channel.deadband.exchange_weber=0.05"], "set exchange_j > 0"),
+     (["channel.mode=tdpa", "channel.deadband.exchange_min_ticks=3"],
+      "exchange_min_ticks paces the energy step exchange_j: set exchange_j > 0"),
      (["channel.codec=zip"], "channel.codec")],
 )  # fmt: skip
 def test_a_codec_that_cannot_be_passive_is_refused(sets: list[str], words: str) -> None:
@@ -553,6 +600,31 @@ def test_webers_rule_on_the_energy_step_saves_85_percent_on_foam_at_one_tick() -
     assert max(fixed["red_hsi"], fixed["red_to"]) < 0.75
     assert min(on["red_hsi"], on["red_to"]) >= 0.85
     assert abs(on["stiffness"] / off["stiffness"] - 1) <= 0.1
+    assert min(on["min_energy"], on["min_balance"]) >= PASSIVE_J
+
+
+@pytest.mark.slow
+def test_the_energy_deadbands_pace_meets_the_stiff_walls_row_at_one_tick() -> None:
+    """TDPA at D = 1 ms on the stiff wall with the energy deadband paced
+    (tools/codec_study.py's PACE: 5.5e-6 J, Weber's rule 0.1, no sooner than 3 ticks after
+    the last packet; docs/codec.md): >= 85 % fewer packets each way with T_tau, the felt
+    stiffness and T_p by the joint-angle JND (10 % of 14.0 mrad) as without codec (measured
+    85.9 / 86.1 %, T_tau +0.6 %, +3.2 %, -0.09 mrad); the same step unpaced chases the push's
+    limit cycle every tick or two (83.1 / 82.9 %). Mutation: the pace off fails."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tools"))
+    import codec_study as cs
+
+    base = ["channel.mode=tdpa", "channel.delay_ms=1"]
+    paced = cs.PACE[cs.PACE_LABEL]
+    off = cs.run("stiff_wall", [*base, *cs.codec_sets(None)])
+    on = cs.run("stiff_wall", [*base, *cs.codec_sets(0.1), *paced])
+    unpaced = cs.run("stiff_wall", [*base, *cs.codec_sets(0.1), *paced,
+                                    "channel.deadband.exchange_min_ticks=1"])  # fmt: skip
+    assert min(on["red_hsi"], on["red_to"]) >= 0.85
+    assert max(unpaced["red_hsi"], unpaced["red_to"]) < 0.85
+    for key in ("t_tau", "stiffness"):
+        assert abs(on[key] / off[key] - 1) <= 0.1
+    assert abs(on["rms_p"] - off["rms_p"]) <= 0.1 * 14.0e-3
     assert min(on["min_energy"], on["min_balance"]) >= PASSIVE_J
 
 

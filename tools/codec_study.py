@@ -4,7 +4,7 @@
     python tools/codec_study.py [--quick] [--out DIR] [--parts P,..] [--rows C:D:CH,..]
                                 [--codec-set KEY=VALUE]   (or: network_study.py --codec)
 
-Five parts, one-process fast-mode sessions (deterministic):
+Seven parts, one-process fast-mode sessions (deterministic):
 
 1. acceptance: the paper experiment, foam and the stiff wall at D = 1 (the least delay a
    network carries: the codec needs one), 20 and 50 ms, the bounded wave channel and TDPA,
@@ -18,7 +18,9 @@ Five parts, one-process fast-mode sessions (deterministic):
    the codec switched off or replaced one at a time (the reserve, the reconstruction between
    packets, TDPA's integral reconstruction; the codec's constants set for the run);
 5. TDPA's energy deadband (``channel.deadband.exchange_j``): every TDPA row with the setting
-   measured best at D = 1 ms, and the stiff wall at 1 ms against the energy step.
+   measured best at D = 1 ms, and the stiff wall at 1 ms against the energy step;
+6. TDPA: every TDPA row with each energy setting, the onset stiffness next to the study's;
+7. pace: every TDPA row with the energy deadband paced (``exchange_min_ticks``).
 
 ``--parts`` runs some of them, ``--rows`` some acceptance rows (``config:D:channel``),
 ``--codec-set`` adds an override to the acceptance part's runs with the codec.
@@ -272,7 +274,17 @@ TDPA_VARIANTS = {
 }
 
 
-def tdpa_rows(quick: bool) -> list[dict]:
+# part 7, the energy deadband's pace (channel.deadband.exchange_min_ticks; docs/codec.md):
+# a smaller step that sends no sooner than PACE_TICKS after the last packet
+PACE_STEP_J, PACE_TICKS = 5.5e-6, 3
+PACE_LABEL = f"{PACE_STEP_J:g} J, Weber's rule {WEBER_E:g}, pace {PACE_TICKS}"
+PACE = {PACE_LABEL: (f"channel.deadband.exchange_j={PACE_STEP_J:g}", *EXCHANGE[1:],
+                     f"channel.deadband.exchange_weber={WEBER_E:g}",
+                     f"channel.deadband.exchange_min_ticks={PACE_TICKS}")}  # fmt: skip
+
+
+def tdpa_rows(quick: bool, variants: dict | None = None) -> list[dict]:
+    variants = TDPA_VARIANTS if variants is None else variants
     rows = []
     names = ("stiff_wall",) if quick else tuple(CONFIGS)
     delays = (20,) if quick else DELAYS_MS
@@ -281,7 +293,7 @@ def tdpa_rows(quick: bool) -> list[dict]:
         for d in delays:
             base = ["channel.mode=tdpa", f"channel.delay_ms={d}"]
             off = run(name, [*base, *codec_sets(None)], dur)
-            for label, extra in TDPA_VARIANTS.items():
+            for label, extra in variants.items():
                 on = run(name, [*base, *codec_sets(WEBER), *extra], dur)
                 rows.append({"config": name, "delay": d, "channel": f"tdpa ({label})",
                              "variant": label, "on": on, "off": off})  # fmt: skip
@@ -399,6 +411,7 @@ def misses(acc: list[dict]) -> str:
 def report(
     acc: list[dict], cur: dict, pas: list[dict], spl: list[dict], out: Path, quick: bool,
     ene: list[dict] | None = None, tdpa: list[dict] | None = None,
+    pace: list[dict] | None = None,
 ) -> Path:
     ene = ene or []
     lines = ["# The deadband codec, measured", "",
@@ -492,17 +505,26 @@ def report(
                      f"{on['min_energy']:.2g} | {on['min_balance']:.2g} |")  # fmt: skip
     if ene:
         lines += ["", "Missed with the energy deadband: " + misses(ene)]
-    tdpa = tdpa or []
-    lines += ["", "## TDPA: every energy setting, and the stiffness at the onset of contact "
-              f"({WEBER:.0%})", "",
-              "Changes against TDPA without codec at the same D; every energy setting with the "
-              "linear reconstruction from the HSI. Onset: the felt stiffness fitted over the "
-              f"first {ONSET_S:g} s of contact only (docs/codec.md, \"TDPA's stiff wall\"), "
-              "N/m without -> with.", "",
-              "| config | D (ms) | codec | reduction | T_p | T_tau | stiffness | mass | "
-              "onset stiffness | onset K (N/m) | RMS T_p (mrad) | RMS T_tau (N m) | "
-              "min two-port energy (J) | min port balance (J) |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"] if tdpa else []
+    lines += _tdpa_section(tdpa or [], "## TDPA: every energy setting, and the stiffness at "
+                           f"the onset of contact ({WEBER:.0%})")
+    lines += _tdpa_section(pace or [], "## TDPA: the energy deadband's pace "
+                           f"(channel.deadband.exchange_min_ticks, {WEBER:.0%})")
+    path = out / "codec_study.md"
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def _tdpa_section(tdpa: list[dict], head: str) -> list[str]:
+    """A table of TDPA rows with the onset stiffness (parts 6 and 7)."""
+    lines = ["", head, "",
+             "Changes against TDPA without codec at the same D; every energy setting with the "
+             "linear reconstruction from the HSI. Onset: the felt stiffness fitted over the "
+             f"first {ONSET_S:g} s of contact only (docs/codec.md, \"TDPA's stiff wall\"), "
+             "N/m without -> with.", "",
+             "| config | D (ms) | codec | reduction | T_p | T_tau | stiffness | mass | "
+             "onset stiffness | onset K (N/m) | RMS T_p (mrad) | RMS T_tau (N m) | "
+             "min two-port energy (J) | min port balance (J) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"] if tdpa else []
     for row in tdpa:
         on, off = row["on"], row["off"]
         lines.append(f"| {row['config']} | {row['delay']} | {row['variant']} | "
@@ -512,12 +534,10 @@ def report(
                      f"{1e3 * off['rms_p']:.2f} -> {1e3 * on['rms_p']:.2f} | "
                      f"{off['rms_tau']:.3f} -> {on['rms_tau']:.3f} | "
                      f"{on['min_energy']:.2g} | {on['min_balance']:.2g} |")  # fmt: skip
-    path = out / "codec_study.md"
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    return lines
 
 
-PARTS = ("acceptance", "curve", "passivity", "split", "energy", "tdpa")
+PARTS = ("acceptance", "curve", "passivity", "split", "energy", "tdpa", "pace")
 
 
 def parse_rows(text: str) -> tuple[set[tuple[str, int, str]], str | None]:
@@ -565,9 +585,10 @@ def main(argv: list[str] | None = None) -> int:
     spl = split(args.quick) if "split" in parts else []
     ene = energy(args.quick) if "energy" in parts else []
     tdp = tdpa_rows(args.quick) if "tdpa" in parts else []
+    pac = tdpa_rows(args.quick, PACE) if "pace" in parts else []
     if cur:
         plot_curve(cur, out / "figures" / "codec_curve.png")
-    print(f"report: {report(acc, cur, pas, spl, out, args.quick, ene, tdp)}")
+    print(f"report: {report(acc, cur, pas, spl, out, args.quick, ene, tdp, pac)}")
     return 0
 
 

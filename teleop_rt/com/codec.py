@@ -82,6 +82,15 @@ energy it declared. What keeps that passive is the port's own rule, unchanged:
   w N ticks or so instead of per step, while an oscillation's energy, which goes back and
   forth and nets about zero, keeps the fixed step (the stiff wall's limit cycle at D = 1 ms;
   the gross flow as the reference brings it back: measured, docs/codec.md). A trigger only.
+  With ``exchange_min_ticks`` m (1 by default: off; our own) the energy deadband sends no
+  sooner than m ticks after the last packet (the deadband's own crossings still go out at
+  once: unlike ``min_interval_ticks`` it spaces only the energy's packets). Why (tick traces
+  of the stiff wall at D = 1 ms, docs/codec.md): in the settled push the holds leave a
+  ~22 Hz limit cycle inside the Weber band (0.007 rad/s at the HSI, +-0.03 N m of a 1.9 N m
+  push), and the push's force times that velocity crosses ~1e-5 J a tick, so a step of
+  2e-5 J fires in bursts wherever the cycle moves, 27 % of the push's ticks, all by energy.
+  A small step with a pace of 3 samples the cycle at a steady 3-4 ticks instead, which damps
+  it (7e-6 J: 0.0036 -> 0.0012 rad/s RMS) and sends fewer (23 %). A trigger only: passive.
 
 Past the maximum interval the peer should have sent: the tick is a loss (``expired``) and the
 port's own loss rule applies (the bounded hold, TDPA's hold then zero); the peer timeout
@@ -135,7 +144,7 @@ PREDICTIONS_BY_MODE = {"wave": ("linear", "hold"), "tdpa": ("hold", "linear")}
 def configure(
     port: Port, weber: float, floor: float, min_ticks: int, max_ticks: int,
     velocity_gain: float = 0.0, prediction: str = "linear", peer_prediction: str | None = None,
-    exchange_j: float = 0.0, exchange_weber: float = 0.0,
+    exchange_j: float = 0.0, exchange_weber: float = 0.0, exchange_min_ticks: int = 1,
 ) -> None:  # fmt: skip
     """Switch the deadband codec on at ``port`` (its own signal's Weber fraction and floor;
     ``prediction``: how the peer reconstructs this port's packets between them, 'linear' or
@@ -149,6 +158,8 @@ def configure(
         raise ValueError("the codec's exchange_j is >= 0 J, and only for TDPA")
     if not exchange_weber >= 0.0 or (exchange_weber > 0.0 and not exchange_j > 0.0):
         raise ValueError("the codec's exchange_weber is >= 0, and needs exchange_j > 0")
+    if not 1 <= exchange_min_ticks <= max_ticks or (exchange_min_ticks > 1 and not exchange_j > 0):
+        raise ValueError("the codec's exchange_min_ticks is 1 .. max_ticks; > 1 needs exchange_j")
     if not 1 <= min_ticks <= max_ticks:
         raise ValueError("the codec's intervals need 1 <= min_ticks <= max_ticks")
     if port.delay_ticks < 1:
@@ -161,6 +172,7 @@ def configure(
     port.codec_exchange_step = exchange_j
     port.codec_exchange_weber = exchange_weber
     port.codec_flow_alpha = 1.0 / EXCHANGE_WINDOW_TICKS
+    port.codec_exchange_min = exchange_min_ticks
     port.codec_predict = PREDICTIONS[prediction]
     port.codec_rx_predict = PREDICTIONS[peer_prediction]
     port.codec_sum_rate = 1.0 / SUM_TIME_S
@@ -332,6 +344,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
     step = f[s + Pt.CODEC_ENERGY_STEP]
     exchange = f[s + Pt.CODEC_EXCHANGE_STEP]
     exchange_weber, alpha = f[s + Pt.CODEC_EXCHANGE_WEBER], f[s + Pt.CODEC_FLOW_ALPHA]
+    exchange_min = i[Pt.CODEC_EXCHANGE_MIN]
     # with a look-ahead of A ticks the peer's room at its playout of this tick includes the
     # energy declared by any packet sent in the next A ticks: this tick's true wave energy,
     # if one goes out within A + 1 ticks of the last
@@ -361,7 +374,7 @@ def codec_send(f: np.ndarray, i: np.ndarray, n: int, tx: np.ndarray, tx_i: np.nd
             f[Pt.CODEC_FLOW * n + j] = flow
             f[Pt.CODEC_CROSSED_LAST * n + j] = net
             grown = exchange + exchange_weber * abs(flow) / alpha
-            if crossed_j - f[Pt.CODEC_E_CROSSED * n + j] > grown:
+            if crossed_j - f[Pt.CODEC_E_CROSSED * n + j] > grown and since >= exchange_min:
                 short = True
         if wave and not reflects:
             # would the peer's bound cut the held wave this tick (the room declared so far)?

@@ -214,6 +214,8 @@ class Port(Block):
     codec = Int("0: a packet every tick; 1: the deadband codec", param=True)
     codec_min = Int("the fewest ticks between two packets sent", param=True)
     codec_max = Int("the most ticks between two packets sent", param=True)
+    codec_exchange_min = Int("TDPA: the energy deadband sends no sooner than this many ticks "
+                             "after the last packet (1: at once)", param=True)
     codec_ahead_ticks = Int("the look-ahead the link gives the peer: a packet reaches it this "
                             "many ticks before it is due (0: none known); on ``reflected`` "
                             "also the hold cap (codec.REFLECT_HOLD_TICKS - 1 where none is "
