@@ -91,7 +91,7 @@ def compiled_for(kernel: Any, *args: Any) -> Callable[..., Any]:
 
 # an index a kernel computes, unsigned: numba checks a signed index for a negative value at
 # every access (Python's wraparound) and takes an unsigned one as it is. The same arithmetic,
-# bit for bit, in fewer instructions (task_math.dls_inverse: 10.1k -> 5.9k per call at m = n =
+# bit for bit, in fewer instructions (task_math.dls_inverse: 10.0k -> 5.9k per call at m = n =
 # 6). Keep such an index unsigned throughout, its constants too: numba makes a float of an
 # int64 variable + a uint64, and a signed index again of a literal + a uint64.
 Index = np.uint64
