@@ -103,7 +103,7 @@ import numpy as np
 from teleop_rt.com.port import HSI, TO
 from teleop_rt.config import SessionConfig
 from teleop_rt.declarations import TASK_DIMS
-from teleop_rt.flat import Block, Int, Scalar, Vector, jit, vec
+from teleop_rt.flat import Block, Index, Int, Scalar, Vector, jit, vec
 from teleop_rt.hal.signals import INPUT_CLUTCH, INPUT_PRESENT
 from teleop_rt.task_math import dls_inverse, so3_exp, so3_log, times, times_transposed
 
@@ -415,9 +415,10 @@ def map_kinematics(f: np.ndarray, i: np.ndarray, jac: np.ndarray, x: np.ndarray)
     Mi = Mapping.idx
     k, n, m = i[Mi.KIN_AT], i[Mi.JOINTS], i[Mi.TASK]
     jj, inv, pos = k, k + m * n, k + 2 * m * n
-    for a in range(m):
-        for j in range(n):
-            f[jj + a * n + j] = jac[a, j]
+    jj_, m_, n_ = Index(jj), Index(m), Index(n)  # (unsigned: flat.Index)
+    for a in range(m_):
+        for j in range(n_):
+            f[jj_ + a * n_ + j] = jac[a, j]
     for a in range(min(m, 3)):
         f[pos + a] = x[a]
     damping = DLS_DAMPING_M * DLS_DAMPING_M
@@ -527,18 +528,18 @@ def hsi_plane_input(
     position alpha (x_h - offset); the operator's force J#^T tau_h (for T_tau). ``n``: the
     port's size, the task's dimension; the robot's joints are the block's ``joints``."""
     Mi = Mapping.idx
-    s, k = Mi.N_VECTORS * n, i[Mi.KIN_AT]
-    nj = i[Mi.JOINTS]
-    jj, inv, pos = k, k + n * nj, k + 2 * n * nj
+    s = Mi.N_VECTORS * n
+    k, nj, m = Index(i[Mi.KIN_AT]), Index(i[Mi.JOINTS]), Index(n)  # (unsigned: flat.Index)
+    jj, inv, pos = k, k + m * nj, k + Index(2) * m * nj
     r, alpha, dt = f[s + Mi.GAIN], f[s + Mi.MOTION_SCALE], f[s + Mi.DT]
     x, q_mapped, offset = vec(f, Mi.X, n), vec(f, Mi.Q_MAPPED, n), vec(f, Mi.INDEX_OFFSET, n)
     force = vec(f, Mi.TAU_MAPPED, n)
-    for a in range(n):
+    for a in range(m):
         xd = 0.0
         fa = 0.0
         for j in range(nj):
             xd += f[jj + a * nj + j] * v[j]
-            fa += f[inv + j * n + a] * tau_h[j]
+            fa += f[inv + j * m + a] * tau_h[j]
         x[a] = r * xd
         offset[a] += (1.0 - r) * xd * dt
         q_mapped[a] = alpha * (f[pos + a] - offset[a])
@@ -552,11 +553,11 @@ def hsi_plane_render(
 ) -> None:  # fmt: skip
     """Task space at the HSI: C1's error tau_h - r J^T F_c."""
     Mi = Mapping.idx
-    s, jj, nj = Mi.N_VECTORS * n, i[Mi.KIN_AT], i[Mi.JOINTS]
+    s, jj, nj = Mi.N_VECTORS * n, Index(i[Mi.KIN_AT]), Index(i[Mi.JOINTS])
     r = f[s + Mi.GAIN]
     for j in range(nj):
         rendered = 0.0
-        for a in range(n):
+        for a in range(Index(n)):
             rendered += f[jj + a * nj + j] * tau_c[a]
         error[j] = tau_h[j] - r * rendered
 
@@ -565,14 +566,14 @@ def hsi_plane_render(
 def to_plane_input(f: np.ndarray, i: np.ndarray, n: int, tau_e: np.ndarray) -> None:
     """Task space at the TO: the environment's force beta J#^T tau_e into tau_mapped."""
     Mi = Mapping.idx
-    nj = i[Mi.JOINTS]
-    s, inv = Mi.N_VECTORS * n, i[Mi.KIN_AT] + n * nj
+    nj, m = Index(i[Mi.JOINTS]), Index(n)
+    s, inv = Mi.N_VECTORS * n, Index(i[Mi.KIN_AT]) + m * nj
     beta = f[s + Mi.FORCE_SCALE]
     force = vec(f, Mi.TAU_MAPPED, n)
-    for a in range(n):
+    for a in range(m):
         fa = 0.0
         for j in range(nj):
-            fa += f[inv + j * n + a] * tau_e[j]
+            fa += f[inv + j * m + a] * tau_e[j]
         force[a] = beta * fa
 
 
@@ -598,10 +599,11 @@ def to_plane_output(
     if framed:  # the flow in the TO's frame, R omega_t, into the scratch
         frame_turn(f, fr, d, n, omega_t, w, False)
         flow = f[w : w + n]
-    for j in range(nj):
+    inv_, m = Index(inv), Index(n)  # (unsigned: flat.Index)
+    for j in range(Index(nj)):
         v_ref = 0.0
-        for a in range(n):
-            v_ref += f[inv + j * n + a] * flow[a]
+        for a in range(m):
+            v_ref += f[inv_ + j * m + a] * flow[a]
         error[j] = g * v_ref - v[j]
     if i[Mi.SPACE] == POSE:
         to_orientation_step(f, i, g * dt, flow, error)

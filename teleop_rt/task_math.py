@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from teleop_rt.flat import jit
+from teleop_rt.flat import Index, jit
 
 NEAR_PI_COS = -0.9  # cos t below this (t > 2.69 rad): log's axis from the symmetric part
 
@@ -46,58 +46,61 @@ def dls_inverse(
     """J# = J^T (J J^T + l^2 I)^-1 of J = jac[:m, :n] into f[inv:] (n x m, row-major), with
     the Cholesky factor at f[work:] (m x m, its diagonal stored as reciprocals) and the inverse
     iteration's vector after it (m, kept from call to call); returns sigma_min(J)^2 (see the
-    module's docstring)."""
-    for j in range(n):  # J^T into J#'s place (its rows are solved in place below)
-        b = inv + j * m
-        for a in range(m):
+    module's docstring). Its indices are unsigned (``flat.Index``: no wraparound checks)."""
+    one, nn, mm = Index(1), Index(n), Index(m)
+    inv_, work_ = Index(inv), Index(work)
+    for j in range(nn):  # J^T into J#'s place (its rows are solved in place below)
+        b = inv_ + j * mm
+        for a in range(mm):
             f[b + a] = jac[a, j]
-    for r in range(m):  # A's lower triangle, from that copy (flat: cheaper than jac[r, j])
-        for c in range(r + 1):
+    for r in range(mm):  # A's lower triangle, from that copy (flat: cheaper than jac[r, j])
+        for c in range(r + one):
             s = damping2 if r == c else 0.0
-            for j in range(n):
-                s += f[inv + j * m + r] * f[inv + j * m + c]
-            f[work + r * m + c] = s
-    for c in range(m):  # A = L L^T, in place; 1 / L_cc on the diagonal (products, not divisions)
-        cc = work + c * m
+            for j in range(nn):
+                s += f[inv_ + j * mm + r] * f[inv_ + j * mm + c]
+            f[work_ + r * mm + c] = s
+    for c in range(mm):  # A = L L^T, in place; 1 / L_cc on the diagonal (products, not divisions)
+        cc = work_ + c * mm
         d = f[cc + c]
         for p in range(c):
             d -= f[cc + p] * f[cc + p]
         d = 1.0 / math.sqrt(d)
         f[cc + c] = d
-        for r in range(c + 1, m):
-            rr = work + r * m
+        for r in range(c + one, mm):
+            rr = work_ + r * mm
             s = f[rr + c]
             for p in range(c):
                 s -= f[rr + p] * f[cc + p]
             f[rr + c] = s * d
     # row j of J# is A^-1 J[:, j]: all n rows and the inverse iteration's step (k = n: the
     # vector u) are solved in one sweep over L's rows, so their chains of operations overlap
-    u = work + m * m
-    for r in range(m):  # L z = b
-        rr = work + r * m
+    u = work_ + mm * mm
+    for r in range(mm):  # L z = b
+        rr = work_ + r * mm
         d = f[rr + r]
-        for k in range(n + 1):
-            at = u if k == n else inv + k * m
+        for k in range(nn + one):
+            at = u if k == nn else inv_ + k * mm
             s = f[at + r]
             for p in range(r):
                 s -= f[rr + p] * f[at + p]
             f[at + r] = s * d
     zz = 0.0  # |z|^2 = u^T A^-1 u = u . y
-    for a in range(m):
+    for a in range(mm):
         zz += f[u + a] * f[u + a]
-    for r in range(m - 1, -1, -1):  # L^T y = z
-        d = f[work + r * m + r]
-        for k in range(n + 1):
-            at = u if k == n else inv + k * m
-            s = f[at + r]
-            for p in range(r + 1, m):
-                s -= f[work + p * m + r] * f[at + p]
-            f[at + r] = s * d
+    for back in range(mm):  # L^T y = z, row from m - 1 down to 0
+        row = mm - one - back
+        d = f[work_ + row * mm + row]
+        for k in range(nn + one):
+            at = u if k == nn else inv_ + k * mm
+            s = f[at + row]
+            for p in range(row + one, mm):
+                s -= f[work_ + p * mm + row] * f[at + p]
+            f[at + row] = s * d
     yy = 0.0
-    for a in range(m):
+    for a in range(mm):
         yy += f[u + a] * f[u + a]
     scale = 1.0 / math.sqrt(yy)
-    for a in range(m):
+    for a in range(mm):
         f[u + a] *= scale
     # the Rayleigh quotient of y = A^-1 u: y^T A y / y^T y = u . y / |y|^2 = |z|^2 / |y|^2
     return zz / yy - damping2
@@ -106,19 +109,25 @@ def dls_inverse(
 @jit
 def times_transposed(f: np.ndarray, a: int, b: int, out: int) -> None:
     """f[out] = A B^T (3 x 3 each; out apart from a and b)."""
-    for r in range(3):
-        for c in range(3):
-            f[out + 3 * r + c] = (f[a + 3 * r] * f[b + 3 * c] + f[a + 3 * r + 1] * f[b + 3 * c + 1]
-                                  + f[a + 3 * r + 2] * f[b + 3 * c + 2])  # fmt: skip
+    one, three = Index(1), Index(3)  # (unsigned, and so their literals: flat.Index)
+    for r in range(three):
+        ar = Index(a) + three * r
+        for c in range(three):
+            bc = Index(b) + three * c
+            f[Index(out) + three * r + c] = (f[ar] * f[bc] + f[ar + one] * f[bc + one]
+                                             + f[ar + one + one] * f[bc + one + one])  # fmt: skip
 
 
 @jit
 def times(f: np.ndarray, a: int, b: int, out: int) -> None:
     """f[out] = A B (3 x 3 each; out apart from a and b)."""
-    for r in range(3):
-        for c in range(3):
-            f[out + 3 * r + c] = (f[a + 3 * r] * f[b + c] + f[a + 3 * r + 1] * f[b + 3 + c]
-                                  + f[a + 3 * r + 2] * f[b + 6 + c])  # fmt: skip
+    one, three = Index(1), Index(3)  # (unsigned, and so their literals: flat.Index)
+    for r in range(three):
+        ar = Index(a) + three * r
+        for c in range(three):
+            bc, six = Index(b) + c, three + three
+            f[Index(out) + three * r + c] = (f[ar] * f[bc] + f[ar + one] * f[bc + three]
+                                             + f[ar + one + one] * f[bc + six])  # fmt: skip
 
 
 @jit

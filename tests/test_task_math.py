@@ -106,3 +106,32 @@ def test_each_call_returns_the_rayleigh_quotient_of_its_step(m: int, n: int) -> 
         sigma2 = dls_inverse(f, jac, n, m, lam**2, 0, n * m)
         assert sigma2 + lam**2 == pytest.approx(y @ a @ y / (y @ y), rel=1e-12)
         np.testing.assert_allclose(f[n * m + m * m :], y / np.linalg.norm(y), rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("m, n", [(3, 6), (6, 6), (6, 9)])
+def test_the_compiled_dls_is_its_source_bit_for_bit_at_any_offset(m: int, n: int) -> None:
+    """The kernel's unsigned indices (flat.Index) change no arithmetic: at offsets into a larger
+    buffer (J# after 5 floats, the factor 3 floats after J#) the compiled kernel gives its own
+    Python source's J#, factor, vector and figure to the last bit, and those of the kernel at
+    offset 0. A build with fastmath (reassociated, fused) of the same source does not: the
+    comparison can tell a change of arithmetic."""
+    import numba
+
+    jac = RNG.normal(size=(m, n))
+    lam2 = 1e-6
+    inv, work = 5, 5 + n * m + 3
+    size = work + m * m + m
+
+    def run(kernel, inv: int, work: int) -> tuple[np.ndarray, list[float]]:
+        f = np.zeros(size + 4)
+        f[work + m * m : work + m * m + m] = 1.0 / np.sqrt(m)
+        figures = [kernel(f, jac, n, m, lam2, inv, work) for _ in range(3)]
+        return f, figures
+
+    f, figures = run(dls_inverse, inv, work)
+    f_py, figures_py = run(dls_inverse.py_func, inv, work)
+    assert np.array_equal(f, f_py) and figures == figures_py
+    f0, figures0 = run(dls_inverse, 0, n * m)
+    assert np.array_equal(f[inv : inv + n * m], f0[: n * m]) and figures == figures0
+    fast, _ = run(numba.njit(fastmath=True)(dls_inverse.py_func), inv, work)
+    assert not np.array_equal(fast, f)
