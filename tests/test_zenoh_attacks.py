@@ -28,7 +28,7 @@ from teleop_rt.com.wire import WireBuffer, encode_into
 from teleop_rt.com.zenoh_link import START_AHEAD_MAX_S, ZenohLink, parse_hello
 from teleop_rt.errors import SafetyStop
 from tests.conftest import CONFIGS
-from tests.test_zenoh_sites import endpoints, free_port, site, wait_for
+from tests.test_zenoh_sites import PATIENT, endpoints, free_port, site, wait_for
 
 pytest.importorskip("zenoh")
 PAPER = CONFIGS / "paper_experiment.yaml"
@@ -258,7 +258,7 @@ def test_reflected_and_sequence_jumping_packets_are_rejected_by_reason(tmp_path:
     port = free_port()
     stranger = rogue(tmp_path, port, "reflect", 120)
     cmd = [sys.executable, "-m", "teleop_rt", "run", str(PAPER), "--link", "zenoh", "--realtime",
-           "--duration", "4", "--json", "--no-log", "--set", "channel.delay_ms=20",
+           "--duration", "4", "--json", "--no-log", "--set", "channel.delay_ms=20", *PATIENT,
            *endpoints(port)]  # fmt: skip
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=240, cwd=tmp_path)

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import CONFIGS
-from tests.test_zenoh_sites import free_port
+from tests.test_zenoh_sites import PATIENT, free_port
 
 pytest.importorskip("zenoh")
 if shutil.which("openssl") is None:
@@ -86,7 +86,7 @@ def run_pair(tmp: Path, port: int, scheme: str, tls_args: list[str], intruders) 
     cmd = [sys.executable, "-m", "teleop_rt", "run", str(PAPER), "--link", "zenoh", "--realtime",
            "--duration", "4", "--json", "--set", "channel.delay_ms=20",
            # what reaches whom is the question here, not timing on a loaded host (TLS is TCP)
-           "--set", "link.peer_timeout_ms=1000", *args]  # fmt: skip
+           *PATIENT, *args]  # fmt: skip
     rogues = intruders(endpoint, to_endpoint)
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=240, cwd=tmp)
