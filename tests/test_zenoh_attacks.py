@@ -269,7 +269,10 @@ def test_reflected_and_sequence_jumping_packets_are_rejected_by_reason(tmp_path:
     peer = hsi["link"]["from_peer"]
     assert peer["rejected_by_reason"]["side"] > 1000, peer
     assert peer["rejected_by_reason"]["ahead"] > 1000, peer
-    assert peer["used"] > 0.9 * (4000 - 20) and peer["duplicated"] < 100, peer
+    # the TO's own are used: one forged jump accepted would make every later genuine packet
+    # stale (a handful used); a loaded host's stalls lose a few hundred to the catch-up (3479
+    # of 3980 used under 40 ms stalls), never half
+    assert peer["used"] > (4000 - 20) / 2 and peer["duplicated"] < 100, peer
     assert hsi["saturated_ticks"] == 0 and hsi["channel"]["hsi"]["min_balance_j"] > -1e-3
 
 
