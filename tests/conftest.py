@@ -10,6 +10,11 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
 SCARA_URDF = ROOT / "robots" / "urdf" / "scara_2dof.urdf"
+# how long a started run (or pair of sites) may take to reach its loop before a test calls it
+# hung: a hang detector, not a timing assertion. Warm, 8-10 s on this loaded 2-core VM; from an
+# empty kernel cache or behind another process's compile (the cache lock) minutes have been
+# seen (2 min 35 s once); each wait ends early when the run exits
+START_LIMIT_S = 300.0
 
 
 @pytest.fixture

@@ -76,10 +76,11 @@ def test_info_and_metrics_exit_0(log: Path, command: list[str]) -> None:
 def test_a_site_keeps_its_exit_code(tmp_path: Path) -> None:
     """Two sites for a second; the HSI's stdout is closed: it exits 0 like its peer."""
     pytest.importorskip("zenoh")
-    from tests.test_zenoh_sites import endpoints, free_port
+    from tests.test_zenoh_sites import PATIENT, endpoints, free_port
 
     port = free_port()
-    common = ["--duration", "1", "--json", "--set", "channel.delay_ms=20", *endpoints(port)]
+    common = ["--duration", "1", "--json", "--set", "channel.delay_ms=20", *PATIENT,
+              *endpoints(port)]  # fmt: skip
     to = subprocess.Popen([sys.executable, "-m", "teleop_rt", "site", "to", str(PAPER), *common,
                            "--log", str(tmp_path / "s.to.mcap")], stdout=subprocess.PIPE,
                           stderr=subprocess.PIPE, text=True)  # fmt: skip

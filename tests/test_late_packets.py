@@ -30,7 +30,7 @@ from teleop_rt.com.port import HSI, TO, Packet, port_input, port_step
 from teleop_rt.recording.reader import read_log
 from tests.test_passive_channels import PASSIVE_J, Harness
 from tests.test_playout import N, sent, taken
-from tests.test_zenoh_sites import PAPER, endpoints, free_port
+from tests.test_zenoh_sites import PAPER, PATIENT, endpoints, free_port
 
 
 def newest_due(arrived: dict[int, int], k: int, d: int, last: int | None) -> int | None:
@@ -194,7 +194,7 @@ def late_pair(tmp_path_factory) -> dict:
     folder = tmp_path_factory.mktemp("late_pair")
     trace = late_trace(folder / "late.csv", 20)
     base = folder / "late.mcap"
-    sets = ["channel.delay_ms=20", "link.peer_timeout_ms=1000", "link.playout=newest",
+    sets = ["channel.delay_ms=20", PATIENT[1], "link.playout=newest",
             "channel.wave_reconstruction=reflected",
             f"link.impairment={{seed: 3, trace: {trace}}}"]  # fmt: skip
     cmd = [sys.executable, "-m", "teleop_rt", "run", str(PAPER), "--link", "zenoh",

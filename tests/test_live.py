@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pinocchio as pin
 import pytest
-from conftest import ROOT
+from conftest import ROOT, START_LIMIT_S
 from foxglove_ws import FoxgloveClient, SlowClient
 from mcap.reader import make_reader
 
@@ -45,7 +45,7 @@ class LiveRun:
             argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
         )
         self.stderr: list[str] = []
-        deadline = time.monotonic() + 120  # a fresh install compiles kernels first
+        deadline = time.monotonic() + START_LIMIT_S  # a fresh install compiles kernels first
         while time.monotonic() < deadline:
             line = self.proc.stderr.readline()
             if not line:

@@ -19,7 +19,7 @@ from mcap_ros2.decoder import DecoderFactory
 from teleop_rt import config
 from teleop_rt.recording.recorder import LogPathError, Recorder
 from teleop_rt.session import Session
-from tests.conftest import CONFIGS
+from tests.conftest import CONFIGS, START_LIMIT_S
 
 
 def decoded(path: Path, topic: str) -> list:
@@ -104,9 +104,10 @@ def _start_realtime_run(log: Path) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "teleop_rt.cli", "run", str(CONFIGS / "free_space.yaml"),
            "--realtime", "--duration", "20", "--json", "--log", str(log)]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline and (not log.exists() or log.stat().st_size < 70_000):
-        time.sleep(0.1)  # until the writer has put a few chunks on disk
+    deadline = time.monotonic() + START_LIMIT_S
+    while not log.exists() or log.stat().st_size < 70_000:  # the writer put a few chunks on disk
+        assert time.monotonic() < deadline and proc.poll() is None, f"exit {proc.poll()}"
+        time.sleep(0.1)
     return proc
 
 

@@ -27,7 +27,7 @@ from teleop_rt.recording.reader import read_log
 from teleop_rt.recording.recorder import Recorder
 from teleop_rt.recording.writer import PROCESS_NAME
 from teleop_rt.session import Session
-from tests.conftest import CONFIGS
+from tests.conftest import CONFIGS, START_LIMIT_S
 
 PAPER = CONFIGS / "paper_experiment.yaml"
 EXIT_LOG_INCOMPLETE = 4
@@ -58,7 +58,7 @@ def start_run(
     cmd = [sys.executable, "-m", "teleop_rt.cli", "run", str(PAPER), "--json", "--log", str(log),
            *(["--realtime"] if realtime else []), *args]  # fmt: skip
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + START_LIMIT_S
     writers: list[int] = []
     while time.monotonic() < deadline and proc.poll() is None:
         writers = writers or children_named(proc.pid, PROCESS_NAME)

@@ -21,6 +21,7 @@ import pytest
 from teleop_rt import config
 from teleop_rt.cli import main
 from teleop_rt.cli_sites import site_exit_code
+from teleop_rt.com import zenoh_link
 from teleop_rt.com.drift import DriftFollower
 from teleop_rt.com.playout import Receiver
 from teleop_rt.com.port import HSI, TO, Packet
@@ -28,7 +29,7 @@ from teleop_rt.com.wire import WireBuffer, encode_into
 from teleop_rt.com.zenoh_link import START_AHEAD_MAX_S, ZenohLink, parse_hello
 from teleop_rt.errors import SafetyStop
 from tests.conftest import CONFIGS
-from tests.test_zenoh_sites import endpoints, free_port, site, wait_for
+from tests.test_zenoh_sites import PATIENT, endpoints, free_port, site, wait_for
 
 pytest.importorskip("zenoh")
 PAPER = CONFIGS / "paper_experiment.yaml"
@@ -258,7 +259,7 @@ def test_reflected_and_sequence_jumping_packets_are_rejected_by_reason(tmp_path:
     port = free_port()
     stranger = rogue(tmp_path, port, "reflect", 120)
     cmd = [sys.executable, "-m", "teleop_rt", "run", str(PAPER), "--link", "zenoh", "--realtime",
-           "--duration", "4", "--json", "--no-log", "--set", "channel.delay_ms=20",
+           "--duration", "4", "--json", "--no-log", "--set", "channel.delay_ms=20", *PATIENT,
            *endpoints(port)]  # fmt: skip
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=240, cwd=tmp_path)
@@ -269,7 +270,10 @@ def test_reflected_and_sequence_jumping_packets_are_rejected_by_reason(tmp_path:
     peer = hsi["link"]["from_peer"]
     assert peer["rejected_by_reason"]["side"] > 1000, peer
     assert peer["rejected_by_reason"]["ahead"] > 1000, peer
-    assert peer["used"] > 0.9 * (4000 - 20) and peer["duplicated"] < 100, peer
+    # the TO's own are used: one forged jump accepted would make every later genuine packet
+    # stale (a handful used); a loaded host's stalls lose a few hundred to the catch-up (3479
+    # of 3980 used under 40 ms stalls), never half
+    assert peer["used"] > (4000 - 20) / 2 and peer["duplicated"] < 100, peer
     assert hsi["saturated_ticks"] == 0 and hsi["channel"]["hsi"]["min_balance_j"] > -1e-3
 
 
@@ -331,15 +335,19 @@ def test_replayed_and_duplicated_copies_never_move_the_drift_follower(link) -> N
     assert c["late"] >= 15_000 and c["skipped"] == 0 and c["used"] == 4000 - 20, c
 
 
-def test_the_peer_timeout_counts_after_a_start_up_grace(link) -> None:
+def test_the_peer_timeout_counts_after_a_start_up_grace(link, monkeypatch) -> None:
     """Issue 28: the first packet may take longer than a 50 ms timeout on a loaded host; the
-    silence counts from the start plus max(timeout, 0.5 s)."""
+    silence counts from the start plus max(timeout, 0.5 s). (The link's clock is the test's:
+    with real sleeps a stall of this process over 300 ms would make the first 200 ms a stop.)"""
+    now = [10**12]
+    monkeypatch.setattr(zenoh_link, "time", SimpleNamespace(monotonic_ns=lambda: now[0]))
     into = Packet(2)
     link.start()
-    time.sleep(0.2)
-    link.receive(HSI, into)  # 200 ms of nothing: within the grace
-    time.sleep(0.45)
-    with pytest.raises(SafetyStop, match="nothing from the to site since the start"):
+    for ms in (200, 500):  # 200 ms of nothing, then the grace's last instant: within it
+        now[0] = link.start_ns + ms * 1_000_000
+        link.receive(HSI, into)
+    now[0] += 1_000_000
+    with pytest.raises(SafetyStop, match="nothing from the to site since the start for 501 ms"):
         link.receive(HSI, into)
 
 

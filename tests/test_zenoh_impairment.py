@@ -21,7 +21,7 @@ import pytest
 
 from teleop_rt.com.impairment import Impairment, ImpairmentSpec
 from teleop_rt.com.port import HSI, TO
-from tests.test_zenoh_sites import PAPER, endpoints, free_port
+from tests.test_zenoh_sites import PAPER, PATIENT, endpoints, free_port
 
 pytest.importorskip("zenoh")
 SPEC = {"seed": 4, "delay_ms": 10, "loss_percent": 5, "duplicate_percent": 2}
@@ -30,8 +30,8 @@ D = 20  # the playout delay, ticks (channel.delay_ms at 1 kHz)
 
 def two_sites(tmp_path: Path, seconds: float, *overrides: str) -> dict:
     """Both sites for ``seconds``; a peer's silence stops them only after a second here (this
-    shared VM stalls a process by a few hundred ms now and then: not what these tests test)."""
-    base = ("channel.delay_ms=20", "link.peer_timeout_ms=1000")
+    shared VM stalls a process now and then: not what these tests test)."""
+    base = ("channel.delay_ms=20", PATIENT[1])
     sets = [x for o in (*base, *overrides) for x in ("--set", o)]
     cmd = [sys.executable, "-m", "teleop_rt", "run", str(PAPER), "--link", "zenoh", "--realtime",
            "--duration", str(seconds), "--json", *sets, *endpoints(free_port())]  # fmt: skip

@@ -17,10 +17,14 @@ from pathlib import Path
 import pytest
 
 from teleop_rt.recording.reader import LogError, read_log
-from tests.conftest import CONFIGS
+from tests.conftest import CONFIGS, START_LIMIT_S
 
 pytest.importorskip("zenoh")
 PAPER = CONFIGS / "paper_experiment.yaml"
+# for two sites whose question is not the peer timeout: a second of silence before a safety
+# stop (the default 50 ms is shorter than this shared VM's stalls: under stalls of 40 ms a
+# peer went 63 ms unheard and the run stopped, exit 3)
+PATIENT = ("--set", "link.peer_timeout_ms=1000")
 
 
 def free_port() -> int:
@@ -58,11 +62,11 @@ def test_a_killed_site_leaves_its_peer_stopping_safely(killed: str, tmp_path: Pa
     port = free_port()
     errs = {n: tmp_path / f"{n}.err" for n in ("hsi", "to")}
     logs = {n: tmp_path / f"run.{n}.mcap" for n in ("hsi", "to")}
-    procs = {n: site(n, port, "--set", "channel.delay_ms=20", "--duration", "30",
+    procs = {n: site(n, port, "--set", "channel.delay_ms=20", "--duration", "30", *PATIENT,
                      "--log", str(logs[n]), stderr=errs[n]) for n in ("hsi", "to")}  # fmt: skip
     survivor = "hsi" if killed == "to" else "to"
     try:
-        wait_for(errs[survivor], "answered", 120)
+        wait_for(errs[survivor], "answered", START_LIMIT_S)
         time.sleep(1.0)  # a second of ticks
         os.kill(procs[killed].pid, signal.SIGKILL)
         out, _ = procs[survivor].communicate(timeout=60)
@@ -165,12 +169,12 @@ def test_a_killed_parent_leaves_no_site_running(signum: int, tmp_path: Path) -> 
     base = tmp_path / "pair.mcap"
     cmd = [sys.executable, "-m", "teleop_rt", "run", str(PAPER), "--link", "zenoh", "--realtime",
            "--duration", "60", "--json", "--set", "channel.delay_ms=20", "--log", str(base),
-           *endpoints(free_port())]  # fmt: skip
+           *PATIENT, *endpoints(free_port())]  # fmt: skip
     parent = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     logs = [tmp_path / f"pair.{s}.mcap" for s in ("hsi", "to")]
     sites: list[int] = []
     try:
-        deadline = time.monotonic() + 120
+        deadline = time.monotonic() + START_LIMIT_S
         while not (all(p.exists() and p.stat().st_size > 30_000 for p in logs)):  # ticking
             sites = sites if len(sites) == 2 else _site_children(parent.pid)
             assert time.monotonic() < deadline and parent.poll() is None, "the sites never ran"
@@ -238,7 +242,7 @@ def test_two_sites_started_by_hand_spin_on_different_cpus(tmp_path: Path) -> Non
     port = free_port()
     errs = {n: tmp_path / f"{n}.err" for n in ("hsi", "to")}
     procs = {n: site(n, port, "--set", "channel.delay_ms=20", "--duration", "1", "--no-log",
-                     stderr=errs[n]) for n in ("hsi", "to")}  # fmt: skip
+                     *PATIENT, stderr=errs[n]) for n in ("hsi", "to")}  # fmt: skip
     try:
         outs = {n: p.communicate(timeout=180)[0] for n, p in procs.items()}
     finally:

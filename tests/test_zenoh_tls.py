@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import CONFIGS
-from tests.test_zenoh_sites import free_port
+from tests.test_zenoh_sites import PATIENT, free_port
 
 pytest.importorskip("zenoh")
 if shutil.which("openssl") is None:
@@ -86,7 +86,7 @@ def run_pair(tmp: Path, port: int, scheme: str, tls_args: list[str], intruders) 
     cmd = [sys.executable, "-m", "teleop_rt", "run", str(PAPER), "--link", "zenoh", "--realtime",
            "--duration", "4", "--json", "--set", "channel.delay_ms=20",
            # what reaches whom is the question here, not timing on a loaded host (TLS is TCP)
-           "--set", "link.peer_timeout_ms=1000", *args]  # fmt: skip
+           *PATIENT, *args]  # fmt: skip
     rogues = intruders(endpoint, to_endpoint)
     try:
         out = subprocess.run(cmd, capture_output=True, text=True, timeout=240, cwd=tmp)
@@ -101,6 +101,10 @@ def run_pair(tmp: Path, port: int, scheme: str, tls_args: list[str], intruders) 
 
 
 KEY = "teleop_rt/paper_experiment"
+# the peer's packets reached the site (the check that nothing else did is not empty): a link
+# that TLS cut carries none; a loaded host's stalls drop a few hundred of 4000 at the catch-up
+# (3793 received under 40 ms stalls), never half
+RECEIVED = 4000 / 2
 
 
 def tls_of(d: Path, name: str) -> dict:
@@ -127,7 +131,7 @@ def test_a_peer_without_the_sites_certificate_never_reaches_the_hsi(tmp_path: Pa
     guarded = run_pair(tmp_path, free_port(), "tls", tls_args(tmp_path), stranger)
     hsi = guarded["sites"]["hsi"]["link"]["from_peer"]
     assert guarded["pair"]["ticks"] == 4000
-    assert hsi["received"] > 0.95 * 4000 and hsi["rejected"] == 0, hsi  # the TO's only
+    assert hsi["received"] > RECEIVED and hsi["rejected"] == 0, hsi  # the TO's only
     # the same intruder on a plain UDP link gets through to the HSI: its packets are rejected
     # there (not ours), so the check above can tell
     plain = lambda hsi_at, to_at: [intruder(tmp_path, "plain", hsi_at, None, f"{KEY}/to/waves")]  # noqa: E731
@@ -153,7 +157,7 @@ def test_a_certificate_of_the_sites_ca_cannot_take_the_other_role(tmp_path: Path
     for name in ("hsi", "to"):
         link = out["sites"][name]["link"]
         peer = link["from_peer"]
-        assert peer["received"] > 0.95 * 4000 and peer["rejected"] == 0, (name, peer)
+        assert peer["received"] > RECEIVED and peer["rejected"] == 0, (name, peer)
         assert "hellos_ignored" not in link, (name, link)
 
 
