@@ -54,7 +54,16 @@ stays passive when the network varies its delay, loses, duplicates or reorders p
                correction's gain: the pay-back replays what the port missed (after a delay
                step down, the samples the playout skipped) and, in free space, the TO's
                catch-up comes back to the HSI as a wave the operator feels; a longer one
-               trades T_p for T_tau (docs/transparency_under_loss.md, "s36").
+               trades T_p for T_tau (docs/transparency_under_loss.md, "s36"). How the debt
+               arose sets its rate (s37): the share of a packet's new debt that a change of
+               the delay brought under the ``newest`` playout (packets skipped with no silence
+               at a drop, or silent ticks with none missed as it grows: |missed - silent| of
+               max(missed, silent)) is a skip debt, paid at ``1 / wave_skip_time_s`` (default
+               ``WAVE_SKIP_TIME_S``, 2 s: nothing of the HSI's motion was lost, only replayed
+               late, so it may come back slowly); an outage's or a loss's (as many silent
+               ticks as packets missed: motion lost) keeps the fast rate. The fixed playout
+               uses packet k - D at tick k, so the two never differ there: no skip debt, the
+               fixed rule's runs as before, and a clean link's bit for bit.
   ``reflected`` ``corrected`` with energy reflection: the two-port needs only the sum over
                both directions, sum(u_l^2 - u_r^2) + sum(v_r^2 - v_l^2) >= 0, not each
                direction's. In a static push a port takes almost no net power (the wave it uses
