@@ -214,9 +214,10 @@ class ChannelSpec(Strict):
     # position lost meanwhile; docs/transparency_under_loss.md, "s36")
     wave_drift_time_s: PositiveFloat = WAVE_DRIFT_TIME_S
     # the part of that debt a change of the delay brought under the newest playout (packets
-    # skipped, or ticks inserted) is paid back with this time constant, s (an outage's and a
-    # loss's keep wave_drift_time_s; docs/transparency_under_loss.md, "s37")
-    wave_skip_time_s: PositiveFloat = WAVE_SKIP_TIME_S
+    # skipped, or ticks inserted) paid back with this time constant, s, an outage's and a
+    # loss's with wave_drift_time_s; None (the default): one debt (docs/transparency_under_loss.md,
+    # "s37": 2 s meets the foam sawtooth row, costs T_p under jitter)
+    wave_skip_time_s: PositiveFloat | None = WAVE_SKIP_TIME_S
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # docs/passivity.md). None, the default, switches it off.

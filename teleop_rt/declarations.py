@@ -34,11 +34,10 @@ CODEC_RECONSTRUCTION: Reconstruction = CODEC_RECONSTRUCTIONS[0]
 # docs/transparency_under_loss.md)
 WAVE_DRIFT_TIME_S = 0.25
 # the part of that debt that a change of the delay brought under the ``newest`` playout (packets
-# skipped with no silence, or silent ticks with none missed) is paid back with this time
-# constant, s (channel.wave_skip_time_s): an outage's or a loss's debt keeps the fast one (the
-# drift; the fixed playout, where the two never differ, is unchanged), the skip's is felt less
-# (docs/transparency_under_loss.md, "s37")
-WAVE_SKIP_TIME_S = 2.0
+# skipped with no silence, or silent ticks with none missed) may be paid back with a time
+# constant of its own, s (channel.wave_skip_time_s; None, the default: one debt): 2 s meets the
+# foam sawtooth row but costs T_p and drift under jitter (docs/transparency_under_loss.md, "s37")
+WAVE_SKIP_TIME_S: float | None = None
 
 # what the channel couples (channel.space; teleop_rt.mapping): joint j to joint j, or the tools
 # in task space, each robot through its own Jacobian: the plane (x, y), 3-D position (x, y, z),

@@ -145,7 +145,7 @@ def make_port(
     side: int, mode: ChannelMode, wave_impedance: list[float], delay_ticks: int, dt: float,
     filter_hz: float | None, reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION,
     drift_time_s: float | None = None, wave_drift_time_s: float = WAVE_DRIFT_TIME_S,
-    wave_skip_time_s: float = WAVE_SKIP_TIME_S,
+    wave_skip_time_s: float | None = WAVE_SKIP_TIME_S,
 ) -> Port:  # fmt: skip
     """Site ``side``'s port of a channel of ``mode`` ('wave', 'tdpa' or 'direct'; a wave
     channel's ``reconstruction`` of missing waves: 'bounded', 'corrected', 'reflected', 'zero',
@@ -161,7 +161,7 @@ def make_ports(
     mode: ChannelMode, wave_impedance: list[float], delay_ticks: int, dt: float,
     filter_hz: float | None, reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION,
     drift_time_s: float | None = None, wave_drift_time_s: float = WAVE_DRIFT_TIME_S,
-    wave_skip_time_s: float = WAVE_SKIP_TIME_S,
+    wave_skip_time_s: float | None = WAVE_SKIP_TIME_S,
 ) -> tuple[Port, Port]:  # fmt: skip
     """The HSI's and the TO's port of a channel of ``mode`` (a two-port in one object)."""
     args = (mode, wave_impedance, delay_ticks, dt, filter_hz, reconstruction, drift_time_s,

@@ -58,12 +58,12 @@ stays passive when the network varies its delay, loses, duplicates or reorders p
                arose sets its rate (s37): the share of a packet's new debt that a change of
                the delay brought under the ``newest`` playout (packets skipped with no silence
                at a drop, or silent ticks with none missed as it grows: |missed - silent| of
-               max(missed, silent)) is a skip debt, paid at ``1 / wave_skip_time_s`` (default
-               ``WAVE_SKIP_TIME_S``, 2 s: nothing of the HSI's motion was lost, only replayed
-               late, so it may come back slowly); an outage's or a loss's (as many silent
-               ticks as packets missed: motion lost) keeps the fast rate. The fixed playout
-               uses packet k - D at tick k, so the two never differ there: no skip debt, the
-               fixed rule's runs as before, and a clean link's bit for bit.
+               max(missed, silent)) is a skip debt, paid at ``1 / wave_skip_time_s`` (an
+               option, off by default: one debt; 2 s meets the foam sawtooth row, as nothing
+               of the HSI's motion was lost, only replayed late, but under jitter at newest
+               D = 1 ms it costs T_p and drift); an outage's or a loss's (as many silent ticks
+               as packets missed: motion lost) keeps the fast rate. The fixed playout uses
+               packet k - D at tick k, so the two never differ there: no skip debt.
   ``reflected`` ``corrected`` with energy reflection: the two-port needs only the sum over
                both directions, sum(u_l^2 - u_r^2) + sum(v_r^2 - v_l^2) >= 0, not each
                direction's. In a static push a port takes almost no net power (the wave it uses
@@ -171,8 +171,8 @@ class Port(Block):
     got_energy = Vector("dt / 2 times the sum of the squared waves that reached this port in "
                         "time, J (the bound's honest budget)")
     debt = Vector("``corrected``: the peer's wave integral minus the one used, after a packet")
-    skip_debt = Vector("the part of ``debt`` that packets skipped by the playout brought (a "
-                       "delay drop: the seq jumped with no silence), paid at ``skip_rate``")
+    skip_debt = Vector("the part of ``debt`` a delay change brought under ``newest`` (packets "
+                       "skipped with no silence, or silent ticks with none missed)")
     out_energy = Vector("dt / 2 times the sum of the squared waves the filter gave the port, J")
     banked = Vector("the bound's budget left after the last packet, J")
     declared = Vector("``reflected``: the wave energy declared to the peer, J: that sent less "
@@ -183,8 +183,8 @@ class Port(Block):
     alpha = Scalar("received-wave low-pass coefficient", param=True)
     drift_rate = Scalar("TDPA's position-drift compensation at the TO, 1/s (0: off)", param=True)
     wave_drift_rate = Scalar("``corrected``: 1 / wave_drift_time_s, 1/s", param=True)
-    skip_rate = Scalar("``corrected``: 1 / wave_skip_time_s, the skip debt's rate, 1/s",
-                       param=True)
+    skip_rate = Scalar("``corrected``: 1 / wave_skip_time_s, the skip debt's rate, 1/s (0: "
+                       "off, one debt at wave_drift_rate)", param=True)
     dt = Scalar(param=True)
     side = Int("HSI or TO", param=True)
     mode = Int("DIRECT, WAVE or TDPA", param=True)
@@ -257,7 +257,7 @@ class Port(Block):
         reconstruction: int = RECONSTRUCTIONS[DEFAULT_RECONSTRUCTION],
         drift_time_s: float | None = None,
         wave_drift_time_s: float = WAVE_DRIFT_TIME_S,
-        wave_skip_time_s: float = WAVE_SKIP_TIME_S,
+        wave_skip_time_s: float | None = WAVE_SKIP_TIME_S,
     ) -> None:
         b = [float(x) for x in wave_impedance]
         if mode == WAVE and any(not x > 0 for x in b):
@@ -274,9 +274,9 @@ class Port(Block):
             raise ValueError("the wave drift correction's time constant must be > 0 s")
         drifts = reconstruction in (CORRECTED, REFLECTED)
         self.wave_drift_rate = 1.0 / wave_drift_time_s if drifts else 0.0
-        if not wave_skip_time_s > 0:
+        if wave_skip_time_s is not None and not wave_skip_time_s > 0:
             raise ValueError("the skip debt's time constant must be > 0 s")
-        self.skip_rate = 1.0 / wave_skip_time_s if drifts else 0.0
+        self.skip_rate = 1.0 / wave_skip_time_s if drifts and wave_skip_time_s else 0.0
         if mode == WAVE:
             self.b[:] = b
             self.sqrt_2b[:] = [math.sqrt(2.0 * x) for x in b]
@@ -421,8 +421,8 @@ def wave_step(
     # dropped: the sequence jumps while packets kept coming), or silent ticks with no packet
     # missed (it grew: a tick inserted); that share of a packet's new debt is a skip debt, an
     # outage's or a loss's (as many silent ticks as packets missed) is not; the first packet
-    # closes no gap (the ticks before it are the delay's)
-    gap = max(missed, i[Pt.MISSING]) if valid and i[Pt.LAST_SEQ] >= 0 else 0
+    # closes no gap (the ticks before it are the delay's); off (skip_rate 0): one debt
+    gap = max(missed, i[Pt.MISSING]) if skip_rate > 0 and valid and i[Pt.LAST_SEQ] >= 0 else 0
     skipped = abs(missed - i[Pt.MISSING]) if gap > 0 else 0
     # a held wave expires: after HOLD_TICKS ticks of silence the bound emits zeros and gives
     # up what it had left (energy that only a stale wave would spend)
