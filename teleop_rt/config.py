@@ -32,6 +32,7 @@ from teleop_rt.declarations import (
     MAX_DELAY_MS,
     PLAYOUT_DEFAULT,
     WAVE_DRIFT_TIME_S,
+    WAVE_SKIP_TIME_S,
     ChannelMode,
     Playout,
     Reconstruction,
@@ -222,6 +223,11 @@ class ChannelSpec(Strict):
     # this time constant, s (longer: less of the pay-back felt after a delay step down, more
     # position lost meanwhile; docs/transparency_under_loss.md, "s36")
     wave_drift_time_s: PositiveFloat = WAVE_DRIFT_TIME_S
+    # the part of that debt a change of the delay brought under the newest playout (packets
+    # skipped, or ticks inserted) paid back with this time constant, s, an outage's and a
+    # loss's with wave_drift_time_s; None (the default): one debt (docs/transparency_under_loss.md,
+    # "s37": 2 s meets the foam sawtooth row, costs T_p under jitter)
+    wave_skip_time_s: PositiveFloat | None = WAVE_SKIP_TIME_S
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # docs/passivity.md). None, the default, switches it off.

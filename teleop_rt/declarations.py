@@ -33,6 +33,11 @@ CODEC_RECONSTRUCTION: Reconstruction = CODEC_RECONSTRUCTIONS[0]
 # felt (T_tau: after a delay step down it replays the samples the playout skipped;
 # docs/transparency_under_loss.md)
 WAVE_DRIFT_TIME_S = 0.25
+# the part of that debt that a change of the delay brought under the ``newest`` playout (packets
+# skipped with no silence, or silent ticks with none missed) may be paid back with a time
+# constant of its own, s (channel.wave_skip_time_s; None, the default: one debt): 2 s meets the
+# foam sawtooth row but costs T_p and drift under jitter (docs/transparency_under_loss.md, "s37")
+WAVE_SKIP_TIME_S: float | None = None
 
 # what the channel couples (channel.space; teleop_rt.mapping): joint j to joint j, or the tools
 # in task space, each robot through its own Jacobian: the plane (x, y), 3-D position (x, y, z),

@@ -54,7 +54,16 @@ stays passive when the network varies its delay, loses, duplicates or reorders p
                correction's gain: the pay-back replays what the port missed (after a delay
                step down, the samples the playout skipped) and, in free space, the TO's
                catch-up comes back to the HSI as a wave the operator feels; a longer one
-               trades T_p for T_tau (docs/transparency_under_loss.md, "s36").
+               trades T_p for T_tau (docs/transparency_under_loss.md, "s36"). How the debt
+               arose sets its rate (s37): the share of a packet's new debt that a change of
+               the delay brought under the ``newest`` playout (packets skipped with no silence
+               at a drop, or silent ticks with none missed as it grows: |missed - silent| of
+               max(missed, silent)) is a skip debt, paid at ``1 / wave_skip_time_s`` (an
+               option, off by default: one debt; 2 s meets the foam sawtooth row, as nothing
+               of the HSI's motion was lost, only replayed late, but under jitter at newest
+               D = 1 ms it costs T_p and drift); an outage's or a loss's (as many silent ticks
+               as packets missed: motion lost) keeps the fast rate. The fixed playout uses
+               packet k - D at tick k, so the two never differ there: no skip debt.
   ``reflected`` ``corrected`` with energy reflection: the two-port needs only the sum over
                both directions, sum(u_l^2 - u_r^2) + sum(v_r^2 - v_l^2) >= 0, not each
                direction's. In a static push a port takes almost no net power (the wave it uses
@@ -103,6 +112,7 @@ from teleop_rt.declarations import (
     TDPA,
     WAVE,
     WAVE_DRIFT_TIME_S,
+    WAVE_SKIP_TIME_S,
     ZERO,
     require_delay_ticks,
 )
@@ -161,6 +171,8 @@ class Port(Block):
     got_energy = Vector("dt / 2 times the sum of the squared waves that reached this port in "
                         "time, J (the bound's honest budget)")
     debt = Vector("``corrected``: the peer's wave integral minus the one used, after a packet")
+    skip_debt = Vector("the part of ``debt`` a delay change brought under ``newest`` (packets "
+                       "skipped with no silence, or silent ticks with none missed)")
     out_energy = Vector("dt / 2 times the sum of the squared waves the filter gave the port, J")
     banked = Vector("the bound's budget left after the last packet, J")
     declared = Vector("``reflected``: the wave energy declared to the peer, J: that sent less "
@@ -171,6 +183,8 @@ class Port(Block):
     alpha = Scalar("received-wave low-pass coefficient", param=True)
     drift_rate = Scalar("TDPA's position-drift compensation at the TO, 1/s (0: off)", param=True)
     wave_drift_rate = Scalar("``corrected``: 1 / wave_drift_time_s, 1/s", param=True)
+    skip_rate = Scalar("``corrected``: 1 / wave_skip_time_s, the skip debt's rate, 1/s (0: "
+                       "off, one debt at wave_drift_rate)", param=True)
     dt = Scalar(param=True)
     side = Int("HSI or TO", param=True)
     mode = Int("DIRECT, WAVE or TDPA", param=True)
@@ -245,6 +259,7 @@ class Port(Block):
         reconstruction: int = RECONSTRUCTIONS[DEFAULT_RECONSTRUCTION],
         drift_time_s: float | None = None,
         wave_drift_time_s: float = WAVE_DRIFT_TIME_S,
+        wave_skip_time_s: float | None = WAVE_SKIP_TIME_S,
     ) -> None:
         b = [float(x) for x in wave_impedance]
         if mode == WAVE and any(not x > 0 for x in b):
@@ -261,6 +276,9 @@ class Port(Block):
             raise ValueError("the wave drift correction's time constant must be > 0 s")
         drifts = reconstruction in (CORRECTED, REFLECTED)
         self.wave_drift_rate = 1.0 / wave_drift_time_s if drifts else 0.0
+        if wave_skip_time_s is not None and not wave_skip_time_s > 0:
+            raise ValueError("the skip debt's time constant must be > 0 s")
+        self.skip_rate = 1.0 / wave_skip_time_s if drifts and wave_skip_time_s else 0.0
         if mode == WAVE:
             self.b[:] = b
             self.sqrt_2b[:] = [math.sqrt(2.0 * x) for x in b]
@@ -398,9 +416,16 @@ def wave_step(
     reflected = how == REFLECTED
     corrected = how == CORRECTED or reflected
     bounded = how == BOUNDED or corrected
-    rate = f[s + Pt.WAVE_DRIFT_RATE]
+    rate, skip_rate = f[s + Pt.WAVE_DRIFT_RATE], f[s + Pt.SKIP_RATE]
     missed = rx_i[Pk.SEQ] - i[Pt.LAST_SEQ] - 1  # packets missed since the last one used
     catch_up = valid and 0 < missed <= CATCH_UP
+    # the delay changed under the ``newest`` playout: packets skipped with no silence (it
+    # dropped: the sequence jumps while packets kept coming), or silent ticks with no packet
+    # missed (it grew: a tick inserted); that share of a packet's new debt is a skip debt, an
+    # outage's or a loss's (as many silent ticks as packets missed) is not; the first packet
+    # closes no gap (the ticks before it are the delay's); off (skip_rate 0): one debt
+    gap = max(missed, i[Pt.MISSING]) if skip_rate > 0 and valid and i[Pt.LAST_SEQ] >= 0 else 0
+    skipped = abs(missed - i[Pt.MISSING]) if gap > 0 else 0
     # a held wave expires: after HOLD_TICKS ticks of silence the bound emits zeros and gives
     # up what it had left (energy that only a stale wave would spend)
     expired = bounded and not reflected and not valid and i[Pt.MISSING] >= HOLD_TICKS
@@ -444,7 +469,13 @@ def wave_step(
             # cut or an outage lost, paid back within the budget (Niemeyer & Slotine 2004)
             w = (f[Pt.PEER_SUM * n + j] - used_sum - debt) / dt if catch_up else r
             if debt != 0.0:
-                w += rate * debt
+                slow = f[Pt.SKIP_DEBT * n + j]
+                if slow == 0.0:
+                    w += rate * debt
+                else:  # the skip debt at its own rate, the rest at the drift correction's
+                    pay = skip_rate * slow
+                    w += rate * (debt - slow) + pay
+                    f[Pt.SKIP_DEBT * n + j] = slow - pay * dt
         elif how == ZERO or (valid and (how == HOLD or synced)):
             w = r  # (zero: zeros when none arrived; else the wave as it was sent)
         elif not valid:
@@ -498,6 +529,15 @@ def wave_step(
             f[Pt.USED_SUM * n + j] = used_sum + w * dt
             if valid:
                 f[Pt.DEBT * n + j] = f[Pt.PEER_SUM * n + j] - f[Pt.USED_SUM * n + j]
+                if skipped > 0:  # the skipped packets' share of what this gap added
+                    f[Pt.SKIP_DEBT * n + j] += skipped / gap * (f[Pt.DEBT * n + j] - debt)
+                slow = f[Pt.SKIP_DEBT * n + j]
+                if slow != 0.0:  # never more than the debt, nor of the other sign
+                    total = f[Pt.DEBT * n + j]
+                    if slow * total <= 0.0:
+                        f[Pt.SKIP_DEBT * n + j] = 0.0
+                    elif abs(slow) > abs(total):
+                        f[Pt.SKIP_DEBT * n + j] = total
         else:
             f[Pt.USED_SUM * n + j] = f[Pt.PEER_SUM * n + j] if valid else used_sum + w * dt
         if not bounded:
