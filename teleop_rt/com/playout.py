@@ -38,6 +38,8 @@ never does).
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 
 from teleop_rt.com.port import Packet
@@ -256,14 +258,15 @@ FRESH = 1 << 8  # ``_receive``'s result: the decoder's status, or-ed with this i
 def _receive(
     words: np.ndarray, n: int, session: int, sender: int, bounds: np.ndarray,
     dstate: np.ndarray, st: np.ndarray, ring_f: np.ndarray, ring_i: np.ndarray,
-    pf: np.ndarray, pi: np.ndarray, k: int, now_ns: int, arrived: np.ndarray,
-    delays: np.ndarray, count: np.ndarray,
+    pf: np.ndarray, pi: np.ndarray, arrived: np.ndarray, delays: np.ndarray, count: np.ndarray,
+    k: int, now_ns: int,
 ) -> int:  # fmt: skip
     """One arrival's whole receive path in one compiled call (one call per packet on the
     transport's thread, nothing allocated): decode ``words`` (the packet's bytes, copied in)
     into the scratch packet, hand it to the playout (or count a stale one late), note the
     first copy of each sender tick in ``arrived`` and a fresh arrival's delay in ``delays``
-    (``count[0]`` of them). Returns the status, or-ed with ``FRESH``."""
+    (``count[0]`` of them). Returns the status, or-ed with ``FRESH``. The arrival's tick and
+    instant come last, so the buffers bind once in front (``functools.partial``)."""
     newest = k + st[EARLY_TICKS] - st[DELAY] - st[OFFSET]  # the newest tick playable by k
     status = _decode(words, n, session, sender, newest, bounds, dstate, pf, pi)
     fresh = False
@@ -314,14 +317,13 @@ class Receiver:
         self.delays_ns = np.zeros(delays, dtype=np.int64)
         self._count = np.zeros(1, dtype=np.int64)
         d, p = self.decoder, self.playout
-        self._size, self._rx = d.size, d._rx_data
+        self._load = d.load
         args = (d._rx.words, n, _as_i64(session_id) if session_id >= 1 << 63 else session_id,
                 sender, d.bounds, d.state, p.st, p.ring_f, p.ring_i, self._scratch.f,
-                self._scratch.i)  # fmt: skip
-        notes = (self.arrived, self.delays_ns, self._count)
-        self._args, self._notes = args, notes
-        # the compiled entry point, bound to the buffers (``compiled_for``: no type dispatch)
-        self._receive = compiled_for(_receive, *args, 0, 0, *notes)
+                self._scratch.i, self.arrived, self.delays_ns, self._count)  # fmt: skip
+        # the compiled entry point (``compiled_for``: no type dispatch), bound to the buffers
+        # (``partial`` passes them in C: a star call in ``arrive`` built a list per packet)
+        self._receive = partial(compiled_for(_receive, *args, 0, 0), *args)
 
     @property
     def delay_count(self) -> int:
@@ -331,12 +333,10 @@ class Receiver:
     def arrive(self, k: int, data: bytes | bytearray | memoryview, now_ns: int = 0) -> int:
         """Bytes from the network at receiver tick ``k`` (``now_ns``: the arrival's instant,
         CLOCK_MONOTONIC, for the notes); returns the decoder's status."""
-        if len(data) != self._size:
-            self.decoder.counts[SIZE] += 1  # (the kernel never sees a wrong size)
+        if not self._load(data):  # the decoder's size rule (the kernel never sees a wrong size)
             self.fresh = False
             return SIZE
-        self._rx[:] = data
-        result = self._receive(*self._args, k, now_ns, *self._notes)
+        result = self._receive(k, now_ns)
         self.fresh = result >= FRESH
         return result & (FRESH - 1)
 

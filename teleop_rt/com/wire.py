@@ -231,6 +231,16 @@ class Decoder:
     def counts_by_reason(self) -> dict[str, int]:
         return {name: int(c) for name, c in zip(REASONS, self.counts, strict=True)}
 
+    def load(self, data: bytes | bytearray | memoryview) -> bool:
+        """The size rule, the one check made in Python: ``data`` copied into the buffer the
+        compiled checks read (``_decode``, ``playout._receive``) if it is one packet's size,
+        else counted ``SIZE`` and False (so the kernels never see a wrong size)."""
+        if len(data) != self.size:
+            self.counts[SIZE] += 1
+            return False
+        self._rx_data[:] = data
+        return True
+
     def decode(
         self, data: bytes | bytearray | memoryview, expect_session: int, into: Packet,
         newest: int = NO_LIMIT,
@@ -240,10 +250,8 @@ class Decoder:
         sender tick the receiver can play now (beyond: ``AHEAD``)."""
         if into.n != self.n:
             raise ValueError(f"a {self.n}-joint decoder into a {into.n}-joint packet")
-        if len(data) != self.size:
-            self.counts[SIZE] += 1
+        if not self.load(data):
             return SIZE
-        self._rx_data[:] = data
         if expect_session >= 1 << 63:
             expect_session = _as_i64(expect_session)
         return _decode(self._rx.words, self.n, expect_session, self.sender, newest, self.bounds,
