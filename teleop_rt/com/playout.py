@@ -108,6 +108,9 @@ class Playout:
         # per slot: the packet's ints, then the slot's sender tick and whether it was used
         self.ring_i = np.zeros((slots, probe.i.size + 2), dtype=np.int64)
         self.ring_i[:, probe.i.size] = NONE
+        # ``take``'s compiled entry point, once a tick (``compiled_for``: no dispatcher typing
+        # five arrays; a Packet's buffers are float64 and int64 vectors, as the probe's)
+        self._take = compiled_for(_take, self.st, self.ring_f, self.ring_i, 0, probe.f, probe.i)
 
     @property
     def delay_ticks(self) -> int:
@@ -133,7 +136,7 @@ class Playout:
 
     def take(self, k: int, into: Packet) -> int:
         """The packet to use at tick ``k`` into ``into``; 1 if one arrived, 0 (zeros) if not."""
-        return _take(self.st, self.ring_f, self.ring_i, k, into.f, into.i)
+        return self._take(self.st, self.ring_f, self.ring_i, k, into.f, into.i)
 
     def counters(self) -> dict[str, int]:
         return {name: int(self.st[RECEIVED + k]) for k, name in enumerate(COUNTERS)}
