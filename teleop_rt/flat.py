@@ -78,6 +78,16 @@ def jit_inline(func: Callable[..., Any]) -> Any:
     return locked(_njit_inline(func), COMPILE_LOCK)
 
 
+def bound_kernel(kernel: Any, args: tuple[Any, ...], *rest: Any) -> Callable[..., Any] | None:
+    """``kernel``'s compiled entry point (``compiled_for``) with ``args`` bound in front
+    (``partial``: passed in C, no list built per call), for arguments ``rest`` like these
+    examples; None with ``NUMBA_DISABLE_JIT=1``, where a caller calls the kernel by name, so
+    that a test replacing it in its module (tests/tick_trace.py) sees the call."""
+    if not hasattr(kernel, "overloads"):
+        return None
+    return partial(compiled_for(kernel, *args, *rest), *args)
+
+
 def compiled_for(kernel: Any, *args: Any) -> Callable[..., Any]:
     """``kernel``'s compiled code for the types of ``args`` (loaded or compiled now), to call
     per tick in place of ``kernel``: a numba dispatcher works out each argument's type on
@@ -88,16 +98,6 @@ def compiled_for(kernel: Any, *args: Any) -> Callable[..., Any]:
     if not hasattr(kernel, "overloads"):
         return cast(Callable[..., Any], kernel)
     return cast(Callable[..., Any], kernel.compile(tuple(kernel.typeof_pyval(a) for a in args)))
-
-
-def bound_kernel(kernel: Any, args: tuple[Any, ...], *rest: Any) -> Callable[..., Any] | None:
-    """``kernel``'s compiled entry point (``compiled_for``) with ``args`` bound in front
-    (``partial``: passed in C, no list built per call), for arguments ``rest`` like these
-    examples; None with ``NUMBA_DISABLE_JIT=1``, where a caller calls the kernel by name, so
-    that a test replacing it in its module (tests/tick_trace.py) sees the call."""
-    if not hasattr(kernel, "overloads"):
-        return None
-    return partial(compiled_for(kernel, *args, *rest), *args)
 
 
 @jit_inline
