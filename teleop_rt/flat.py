@@ -20,6 +20,7 @@ import hashlib
 from abc import ABCMeta
 from collections import namedtuple
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any, ClassVar, cast, overload
 
@@ -75,6 +76,16 @@ def jit(func: Callable[..., Any]) -> Any:
 def jit_inline(func: Callable[..., Any]) -> Any:
     """``jit``, inlined where it is called."""
     return locked(_njit_inline(func), COMPILE_LOCK)
+
+
+def bound_kernel(kernel: Any, args: tuple[Any, ...], *rest: Any) -> Callable[..., Any] | None:
+    """``kernel``'s compiled entry point (``compiled_for``) with ``args`` bound in front
+    (``partial``: passed in C, no list built per call), for arguments ``rest`` like these
+    examples; None with ``NUMBA_DISABLE_JIT=1``, where a caller calls the kernel by name, so
+    that a test replacing it in its module (tests/tick_trace.py) sees the call."""
+    if not hasattr(kernel, "overloads"):
+        return None
+    return partial(compiled_for(kernel, *args, *rest), *args)
 
 
 def compiled_for(kernel: Any, *args: Any) -> Callable[..., Any]:

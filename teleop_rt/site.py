@@ -28,7 +28,7 @@ from teleop_rt.com.port import HSI, TO, Packet, Port
 from teleop_rt.config import SafetySpec, SessionConfig, per_joint
 from teleop_rt.control import ComputedTorque, Pid
 from teleop_rt.errors import ConfigError, SafetyStop
-from teleop_rt.flat import Block, Packed, compiled_for
+from teleop_rt.flat import Block, Packed, bound_kernel, compiled_for
 from teleop_rt.hal.base import Backend
 from teleop_rt.hal.registry import create_backend
 from teleop_rt.keys import AT_START as KEYS_AT_START
@@ -253,7 +253,13 @@ class Site:
         """Work on the site's blocks where they are now: blocks ``first`` on of ``packed``."""
         self.packed = packed
         end = first + len(SITE_ORDER)
-        self._buffers = (packed.f, packed.i, packed.offsets[2 * first : 2 * end], self.m)
+        self._buffers = b = (packed.f, packed.i, packed.offsets[2 * first : 2 * end], self.m)
+        # the tick's kernels bound to the buffers (no dispatcher typing 3-4 arrays a call, three
+        # calls a tick); the RNEA's torque, Pinocchio's, is a float64 vector like np.zeros
+        self._kernels = (
+            bound_kernel(site_sense, b), bound_kernel(site_before_models, b),
+            bound_kernel(site_after_models, b, np.zeros(self.n)),
+        )  # fmt: skip
         self._pin = (self.model.model, self.model.data, self.feedback.q, self.feedback.v,
                      self.computed_torque.a_des)  # fmt: skip
         self._kin = None if self.mapping.space == JOINT else self._bound_map()
@@ -292,9 +298,9 @@ class Site:
     def sense(self, link: Link) -> None:
         """Read the backend, check the measurements, and hand the link this tick's packet
         with its port input (its wave follows in ``update``)."""
-        f, i, o, n = self._buffers
         self.backend.read()
-        code = site_sense(f, i, o, n)
+        sense = self._kernels[0]
+        code = sense() if sense is not None else site_sense(*self._buffers)
         if code:
             raise self.stop_for(code)
         link.send(self.side, self.tx)
@@ -302,14 +308,17 @@ class Site:
     def update(self, link: Link) -> None:
         """The packet due this tick, the port, the controller, computed torque, the checks,
         the write; then the link may carry this tick's (now complete) packet."""
-        f, i, o, n = self._buffers
+        _, before, after = self._kernels
         link.receive(self.side, self.rx)
-        site_before_models(f, i, o, n)
+        if before is not None:
+            before()
+        else:
+            site_before_models(*self._buffers)
         link.end_tick(self.side)
         model, data, q, v, a = self._pin
         rnea = pin.rnea(model, data, q, v, a)
         self.check_workspace()
-        code = site_after_models(f, i, o, n, rnea)
+        code = after(rnea) if after is not None else site_after_models(*self._buffers, rnea)
         if code:
             raise self.stop_for(code)
         self.backend.write(self.computed_torque.tau)

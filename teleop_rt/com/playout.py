@@ -38,6 +38,8 @@ never does).
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 
 from teleop_rt.com.port import Packet
@@ -106,6 +108,9 @@ class Playout:
         # per slot: the packet's ints, then the slot's sender tick and whether it was used
         self.ring_i = np.zeros((slots, probe.i.size + 2), dtype=np.int64)
         self.ring_i[:, probe.i.size] = NONE
+        # ``take``'s compiled entry point, once a tick (``compiled_for``: no dispatcher typing
+        # five arrays; a Packet's buffers are float64 and int64 vectors, as the probe's)
+        self._take = compiled_for(_take, self.st, self.ring_f, self.ring_i, 0, probe.f, probe.i)
 
     @property
     def delay_ticks(self) -> int:
@@ -131,7 +136,7 @@ class Playout:
 
     def take(self, k: int, into: Packet) -> int:
         """The packet to use at tick ``k`` into ``into``; 1 if one arrived, 0 (zeros) if not."""
-        return _take(self.st, self.ring_f, self.ring_i, k, into.f, into.i)
+        return self._take(self.st, self.ring_f, self.ring_i, k, into.f, into.i)
 
     def counters(self) -> dict[str, int]:
         return {name: int(self.st[RECEIVED + k]) for k, name in enumerate(COUNTERS)}
@@ -256,14 +261,15 @@ FRESH = 1 << 8  # ``_receive``'s result: the decoder's status, or-ed with this i
 def _receive(
     words: np.ndarray, n: int, session: int, sender: int, bounds: np.ndarray,
     dstate: np.ndarray, st: np.ndarray, ring_f: np.ndarray, ring_i: np.ndarray,
-    pf: np.ndarray, pi: np.ndarray, k: int, now_ns: int, arrived: np.ndarray,
-    delays: np.ndarray, count: np.ndarray,
+    pf: np.ndarray, pi: np.ndarray, arrived: np.ndarray, delays: np.ndarray, count: np.ndarray,
+    k: int, now_ns: int,
 ) -> int:  # fmt: skip
     """One arrival's whole receive path in one compiled call (one call per packet on the
     transport's thread, nothing allocated): decode ``words`` (the packet's bytes, copied in)
     into the scratch packet, hand it to the playout (or count a stale one late), note the
     first copy of each sender tick in ``arrived`` and a fresh arrival's delay in ``delays``
-    (``count[0]`` of them). Returns the status, or-ed with ``FRESH``."""
+    (``count[0]`` of them). Returns the status, or-ed with ``FRESH``. The arrival's tick and
+    instant come last, so the buffers bind once in front (``functools.partial``)."""
     newest = k + st[EARLY_TICKS] - st[DELAY] - st[OFFSET]  # the newest tick playable by k
     status = _decode(words, n, session, sender, newest, bounds, dstate, pf, pi)
     fresh = False
@@ -314,14 +320,13 @@ class Receiver:
         self.delays_ns = np.zeros(delays, dtype=np.int64)
         self._count = np.zeros(1, dtype=np.int64)
         d, p = self.decoder, self.playout
-        self._size, self._rx = d.size, d._rx_data
+        self._load = d.load
         args = (d._rx.words, n, _as_i64(session_id) if session_id >= 1 << 63 else session_id,
                 sender, d.bounds, d.state, p.st, p.ring_f, p.ring_i, self._scratch.f,
-                self._scratch.i)  # fmt: skip
-        notes = (self.arrived, self.delays_ns, self._count)
-        self._args, self._notes = args, notes
-        # the compiled entry point, bound to the buffers (``compiled_for``: no type dispatch)
-        self._receive = compiled_for(_receive, *args, 0, 0, *notes)
+                self._scratch.i, self.arrived, self.delays_ns, self._count)  # fmt: skip
+        # the compiled entry point (``compiled_for``: no type dispatch), bound to the buffers
+        # (``partial`` passes them in C: a star call in ``arrive`` built a list per packet)
+        self._receive = partial(compiled_for(_receive, *args, 0, 0), *args)
 
     @property
     def delay_count(self) -> int:
@@ -331,12 +336,10 @@ class Receiver:
     def arrive(self, k: int, data: bytes | bytearray | memoryview, now_ns: int = 0) -> int:
         """Bytes from the network at receiver tick ``k`` (``now_ns``: the arrival's instant,
         CLOCK_MONOTONIC, for the notes); returns the decoder's status."""
-        if len(data) != self._size:
-            self.decoder.counts[SIZE] += 1  # (the kernel never sees a wrong size)
+        if not self._load(data):  # the decoder's size rule (the kernel never sees a wrong size)
             self.fresh = False
             return SIZE
-        self._rx[:] = data
-        result = self._receive(*self._args, k, now_ns, *self._notes)
+        result = self._receive(k, now_ns)
         self.fresh = result >= FRESH
         return result & (FRESH - 1)
 

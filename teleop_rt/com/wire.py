@@ -53,7 +53,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from teleop_rt.com.port import Packet
-from teleop_rt.flat import int_view, jit
+from teleop_rt.flat import compiled_for, int_view, jit
 
 if sys.byteorder != "little":  # the layout is read through native views
     raise ImportError("teleop_rt.com.wire needs a little-endian host")
@@ -121,6 +121,9 @@ class WireBuffer:
         self.n, self.size = n, wire_size(n)
         self.words = np.zeros(self.size // 8, dtype=np.int64)
         self.data = int_view(self.words.view(np.uint8))
+        # ``encode_into``'s compiled entry point (no dispatcher typing three arrays a packet)
+        probe = Packet(n)
+        self._encode = compiled_for(_encode, self.words, n, probe.f, probe.i, 0, 0, 0)
 
 
 def encode_into(
@@ -138,7 +141,7 @@ def encode_into(
         raise ValueError(f"a {packet.n}-joint packet into a {n}-joint wire buffer")
     if session_id >= 1 << 63:
         session_id = _as_i64(session_id)
-    _encode(buffer.words, n, packet.f, packet.i, session_id, time_ns, side)
+    buffer._encode(buffer.words, n, packet.f, packet.i, session_id, time_ns, side)
     return buffer.data
 
 
@@ -231,6 +234,16 @@ class Decoder:
     def counts_by_reason(self) -> dict[str, int]:
         return {name: int(c) for name, c in zip(REASONS, self.counts, strict=True)}
 
+    def load(self, data: bytes | bytearray | memoryview) -> bool:
+        """The size rule, the one check made in Python: ``data`` copied into the buffer the
+        compiled checks read (``_decode``, ``playout._receive``) if it is one packet's size,
+        else counted ``SIZE`` and False (so the kernels never see a wrong size)."""
+        if len(data) != self.size:
+            self.counts[SIZE] += 1
+            return False
+        self._rx_data[:] = data
+        return True
+
     def decode(
         self, data: bytes | bytearray | memoryview, expect_session: int, into: Packet,
         newest: int = NO_LIMIT,
@@ -240,10 +253,8 @@ class Decoder:
         sender tick the receiver can play now (beyond: ``AHEAD``)."""
         if into.n != self.n:
             raise ValueError(f"a {self.n}-joint decoder into a {into.n}-joint packet")
-        if len(data) != self.size:
-            self.counts[SIZE] += 1
+        if not self.load(data):
             return SIZE
-        self._rx_data[:] = data
         if expect_session >= 1 << 63:
             expect_session = _as_i64(expect_session)
         return _decode(self._rx.words, self.n, expect_session, self.sender, newest, self.bounds,
