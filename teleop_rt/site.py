@@ -131,6 +131,9 @@ def require_stable_task_gains(cfg: SessionConfig, n: int) -> None:
     m2 = per_joint(cfg.to.virtual_mass, n, "to.virtual_mass")
     c2 = per_joint(cfg.to.controller.kp, n, "to.controller.kp")
     limits = [contact_stiffness_limit(1.0, m2[j], c2[j], cfg.dt) for j in range(n)]
+    # a joint whose velocity loop is at or past its own limit (dt / T2 >= 2: 0 here) bounds no
+    # gain: that is the loop's, not the correction's (contact_warnings says so in joint space)
+    limits = [x if x > 0 else np.inf for x in limits]
     j = int(np.argmin(limits))
     gains = [("posture_gain_per_s", cfg.mapping.posture_gain_per_s)]
     if cfg.channel.space == "pose":

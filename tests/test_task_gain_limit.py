@@ -60,3 +60,16 @@ def test_a_gain_below_the_limit_passes() -> None:
     site.require_stable_task_gains(cfg, 6)
     with pytest.raises(ConfigError):
         site.require_stable_task_gains(config.load(PLANE, ["mapping.posture_gain_per_s=2e4"]), 6)
+
+
+def test_a_joint_past_its_own_loop_limit_bounds_no_gain() -> None:
+    """dt / T2 = 2 (T2 = 0.5 ms at 1 kHz: the velocity loop itself at its limit, K_max = 0) is
+    the loop's matter, not the gain's: the default orientation gain is not refused for it (it
+    was, in a pose pair test with a UR5's masses and kp 50); the other joints still bound it."""
+    sets = ["to.virtual_mass=[1.0, 1.0, 0.5, 0.5, 0.1, 0.1, 0.025]", "to.controller.kp=50"]
+    cfg = config.load(POSE, sets)
+    site.require_stable_task_gains(cfg, 7)  # joints 0-5: T2 >= 2 ms, limits >= 6 000 1/s
+    with pytest.raises(ConfigError, match="T2 = M2/c2 = 0.002 s at joint 4"):
+        site.require_stable_task_gains(
+            config.load(POSE, [*sets, "mapping.orientation_gain_per_s=7000"]), 7
+        )
