@@ -194,10 +194,12 @@ def run_two_sites(args, cfg) -> int:
         print()
     else:
         print_pair_summary(combined)
-    for s in summaries.values():  # each site's own line (its stderr is not passed through)
+    for s in summaries.values():  # each site's own lines (its stderr is not passed through)
         status = s.get("recording")
         if status is not None and not status["complete"]:
             print(incomplete_line(s["log"], status), file=sys.stderr)
+        if s.get("peer_silent"):
+            print(f"teleop-rt: error: {s['site']} site: {s['peer_silent']}", file=sys.stderr)
     if stop is not None and len(children) < 2:
         return 128 + stop  # stopped before both sites were started
     return worst_exit(codes.values())

@@ -791,6 +791,20 @@ class SessionConfig(Strict):
         return self
 
     @model_validator(mode="after")
+    def _time_constants_of_a_tick_or_more(self) -> SessionConfig:
+        # paid back per tick as debt (1 - dt / T): below a tick it overshoots, below half a
+        # tick it grows without bound (inf, NaN in the ports: teleop_rt.com.port)
+        c = self.channel
+        for key in ("wave_drift_time_s", "wave_skip_time_s", "tdpa_drift_time_s"):
+            t = getattr(c, key)
+            if t is not None and t < self.dt:
+                raise ValueError(
+                    f"channel.{key} = {t:g} s is shorter than one tick ({self.dt:g} s at "
+                    f"rate_hz = {self.rate_hz}): a debt paid back faster than a tick overshoots"
+                )
+        return self
+
+    @model_validator(mode="after")
     def _filter_below_nyquist(self) -> SessionConfig:
         cutoff, nyquist = self.channel.wave_filter_hz, self.rate_hz / 2.0
         if cutoff is not None and cutoff >= nyquist:

@@ -1,5 +1,6 @@
-"""Found from outside (sessions 36-37): what a site says about itself reaches the user of
-``run --link zenoh``, whose children's stderr is not passed through."""
+"""Found from outside (sessions 36-37): what a site says about its run (an incomplete log, a
+silent peer) reaches the user of ``run --link zenoh``, whose children's stderr is not passed
+through."""
 
 from __future__ import annotations
 
@@ -43,3 +44,27 @@ def test_a_sites_incomplete_log_is_its_own_line_under_run_link_zenoh(tmp_path: P
             assert json.loads(out.stdout)["sites"][site]["recording"]["complete"] is False
     finally:
         subprocess.run(["umount", str(mnt)], check=True)
+
+
+def test_a_silent_peer_is_each_sites_own_line_under_run_link_zenoh(tmp_path: Path) -> None:
+    """70 % of the packets lost each way (the impairment stage, seeded): each site used under
+    half of its peer's packets due, which a site run by hand says in one error line, exit 5.
+    The pair's command says it too, once per site, naming the site (a review's finding)."""
+    sets = [
+        "channel.delay_ms=20",
+        "link.peer_timeout_ms=1000",
+        "link.impairment={loss_percent: 70}",
+    ]
+    cmd = [sys.executable, "-m", "teleop_rt", "run", str(CONFIGS / "paper_experiment.yaml"),
+           "--link", "zenoh", "--realtime", "--duration", "3", "--no-log", "--json",
+           *(x for s in sets for x in ("--set", s)), *endpoints(free_port())]  # fmt: skip
+    out = subprocess.run(cmd, capture_output=True, text=True, timeout=240, cwd=tmp_path)
+    assert out.returncode == 5, out.stderr[-3000:]
+    for site, peer in (("hsi", "to"), ("to", "hsi")):
+        said = [
+            x
+            for x in out.stderr.splitlines()
+            if x.startswith(f"teleop-rt: error: {site} site: link: the {peer} site was silent")
+        ]
+        assert len(said) == 1, out.stderr
+        assert json.loads(out.stdout)["sites"][site]["peer_silent"] in said[0]

@@ -20,6 +20,7 @@ from teleop_rt import config
 from teleop_rt.com.channel import make_port
 from teleop_rt.com.port import HSI, TO
 from teleop_rt.declarations import WAVE_DRIFT_TIME_S, WAVE_SKIP_TIME_S
+from teleop_rt.errors import ConfigError
 from teleop_rt.session import Session
 from tests.test_passive_channels import PASSIVE_J, Harness, drive, schedules
 
@@ -99,18 +100,32 @@ def test_the_config_s_skip_time_constant_reaches_both_ports() -> None:
                       ["channel.wave_skip_time_s=4.0"])  # fmt: skip
     session = Session(cfg)
     assert session.hsi.port.skip_rate == session.to.port.skip_rate == 0.25
-    with pytest.raises(ValueError, match="> 0 s"):
+    with pytest.raises(ValueError, match="skip debt's time constant must be >= one tick"):
         make_port(TO, "wave", [1.5], 1, DT, None, "reflected", None, 0.25, 0.0)
+
+
+@pytest.mark.parametrize("key", ["wave_skip_time_s", "wave_drift_time_s", "tdpa_drift_time_s"])
+def test_a_time_constant_under_a_tick_is_refused(key: str) -> None:
+    """Paid back per tick as debt (1 - dt / T), a T under dt / 2 makes the debt grow: reflected's
+    port went to inf and a ZeroDivisionError at T = 0.4 ms (found by a review). Refused by the
+    config in one line naming the key, and by the port; one tick is taken."""
+    path = Path(config.__file__).parents[1] / "configs" / "free_space.yaml"
+    with pytest.raises(ConfigError, match=f"channel.{key} = 0.0004 s is shorter than one tick"):
+        config.load(path, [f"channel.{key}=0.0004"])
+    config.load(path, [f"channel.{key}=0.001"])
+    with pytest.raises(ValueError, match="wave drift correction's time constant must be >= one"):
+        make_port(TO, "wave", [1.5], 1, DT, None, "reflected", None, 0.0004, None)
 
 
 @settings(max_examples=60, deadline=None)
 @given(schedule=schedules(150), how=st.sampled_from(["corrected", "reflected"]),
-       drift_s=st.floats(0.002, 10.0), skip_s=st.floats(0.002, 10.0),
+       drift_s=st.floats(DT, 10.0), skip_s=st.floats(DT, 10.0),
        filter_hz=st.sampled_from([None, 30.0]))  # fmt: skip
 def test_the_ports_are_passive_at_any_skip_time_constant(schedule, how, drift_s, skip_s,
                                                          filter_hz) -> None:  # fmt: skip
     """Random delays (1..40 ticks: drops skip packets, rises insert silent ticks) and losses:
-    the bound keeps the ports passive at any pair of time constants."""
+    the bound keeps the ports passive at any pair of time constants of a tick or more (the
+    shortest the config and the ports take)."""
     harness = Harness("wave", how, 1, filter_hz)
     harness.ports = [make_port(side, "wave", [1.5], 1, DT, filter_hz, how, None, drift_s,
                                skip_s) for side in (HSI, TO)]  # fmt: skip

@@ -269,15 +269,16 @@ class Port(Block):
         self.side, self.mode, self.delay_ticks, self.dt = side, mode, delay_ticks, dt
         self.reconstruction = reconstruction
         self.last_seq = -1
-        if drift_time_s is not None and not drift_time_s > 0:
-            raise ValueError("the drift compensation's time constant must be > 0 s")
+        # each time constant T is paid back per tick as debt (1 - dt / T): below one tick that
+        # overshoots, past two it grows without bound (inf, NaN in the ports)
+        for what, t in (("drift compensation", drift_time_s),
+                        ("wave drift correction", wave_drift_time_s),
+                        ("skip debt", wave_skip_time_s)):  # fmt: skip
+            if t is not None and not t >= dt:
+                raise ValueError(f"the {what}'s time constant must be >= one tick ({dt:g} s)")
         self.drift_rate = 1.0 / drift_time_s if drift_time_s and side == TO else 0.0
-        if not wave_drift_time_s > 0:
-            raise ValueError("the wave drift correction's time constant must be > 0 s")
         drifts = reconstruction in (CORRECTED, REFLECTED)
         self.wave_drift_rate = 1.0 / wave_drift_time_s if drifts else 0.0
-        if wave_skip_time_s is not None and not wave_skip_time_s > 0:
-            raise ValueError("the skip debt's time constant must be > 0 s")
         self.skip_rate = 1.0 / wave_skip_time_s if drifts and wave_skip_time_s else 0.0
         if mode == WAVE:
             self.b[:] = b
