@@ -78,13 +78,11 @@ def jit_inline(func: Callable[..., Any]) -> Any:
     return locked(_njit_inline(func), COMPILE_LOCK)
 
 
-def bound_kernel(kernel: Any, args: tuple[Any, ...], *rest: Any) -> Callable[..., Any] | None:
+def bound_kernel(kernel: Any, args: tuple[Any, ...], *rest: Any) -> Callable[..., Any]:
     """``kernel``'s compiled entry point (``compiled_for``) with ``args`` bound in front
     (``partial``: passed in C, no list built per call), for arguments ``rest`` like these
-    examples; None with ``NUMBA_DISABLE_JIT=1``, where a caller calls the kernel by name, so
-    that a test replacing it in its module (tests/tick_trace.py) sees the call."""
-    if not hasattr(kernel, "overloads"):
-        return None
+    examples. With ``NUMBA_DISABLE_JIT=1`` the kernel itself, bound alike (a stage called
+    inside it is still looked up, and traced, at call time: tests/tick_trace.py)."""
     return partial(compiled_for(kernel, *args, *rest), *args)
 
 

@@ -309,8 +309,7 @@ class Site:
         """Read the backend, check the measurements, and hand the link this tick's packet
         with its port input (its wave follows in ``update``)."""
         self.backend.read()
-        sense = self._kernels[0]
-        code = sense() if sense is not None else site_sense(*self._buffers)
+        code = self._kernels[0]()
         if code:
             raise self.stop_for(code)
         link.send(self.side, self.tx)
@@ -320,15 +319,12 @@ class Site:
         the write; then the link may carry this tick's (now complete) packet."""
         _, before, after = self._kernels
         link.receive(self.side, self.rx)
-        if before is not None:
-            before()
-        else:
-            site_before_models(*self._buffers)
+        before()
         link.end_tick(self.side)
         model, data, q, v, a = self._pin
         rnea = pin.rnea(model, data, q, v, a)
         self.check_workspace()
-        code = after(rnea) if after is not None else site_after_models(*self._buffers, rnea)
+        code = after(rnea)
         if code:
             raise self.stop_for(code)
         self.backend.write(self.computed_torque.tau)

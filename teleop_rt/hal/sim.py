@@ -25,7 +25,7 @@ import pinocchio as pin
 
 from teleop_rt.config import FaultSpec, SessionConfig
 from teleop_rt.errors import ConfigError
-from teleop_rt.flat import Block, Int, Packed, Scalar, Vector, as_floats, compiled_for, jit
+from teleop_rt.flat import Block, Int, Packed, Scalar, Vector, as_floats, bound_kernel, jit
 from teleop_rt.hal.base import Backend
 from teleop_rt.hal.signals import Feedback, WorldSnapshot
 from teleop_rt.model import RobotModel, friction_torque
@@ -279,17 +279,16 @@ class SimBackend(Backend):
             (pin.computeFrameJacobian, self._tool) if direct else (self._jacobian, ())
         )
         self.jacobian_call = call
-        # the read's and write's kernels' compiled entry points (``flat.compiled_for``: no
-        # dispatcher typing 4-6 arrays a call), for the plant's own buffers, Pinocchio's ABA
-        # (a float64 vector) and Jacobian ((6, n), C order, as ``_no_jacobian``); the feedback
-        # and world buffers are passed per call (a site packs them after this). None with
-        # NUMBA_DISABLE_JIT: by name, as tests/tick_trace.py traces them.
-        fb, n = self.feedback, self.n
+        # the read's and write's kernels bound to the plant's own buffers (``flat.bound_kernel``:
+        # no dispatcher typing 4-6 arrays a call), for Pinocchio's ABA (a float64 vector) and
+        # Jacobian ((6, n), C order, as ``_no_jacobian``); the feedback and world buffers are
+        # passed per call (a site packs them after this)
+        fb, b = self.feedback, self._buffers
         self._entries = (
-            compiled_for(sense, f, i, offsets, n, fb.f, fb.i, self.world.f),
-            compiled_for(euler_step, f, i, offsets, n, np.zeros(n)),
-            compiled_for(next_tick, f, i, offsets, n, self._no_jacobian, self._x),
-        ) if hasattr(sense, "overloads") else None  # fmt: skip
+            bound_kernel(sense, b, fb.f, fb.i, self.world.f),
+            bound_kernel(euler_step, b, np.zeros(self.n)),
+            bound_kernel(next_tick, b, self._no_jacobian, self._x),
+        )
 
     @property
     def compiled_common_case(self) -> bool:
@@ -312,9 +311,7 @@ class SimBackend(Backend):
         if self.faults and self._active("dropout"):
             fb.age_ticks += 1  # the sensors did not deliver: the last values stay
             return fb
-        f, i, o, n = self._buffers
-        entries = self._entries
-        (entries[0] if entries else sense)(f, i, o, n, fb.f, fb.i, self.world.f)
+        self._entries[0](fb.f, fb.i, self.world.f)
         if self._ideal_sensors:
             return fb
         if self.torque_noise_std:
@@ -329,14 +326,13 @@ class SimBackend(Backend):
         tau = tau if isinstance(tau, np.ndarray) else as_floats(tau)
         f, i, o, n = self._buffers
         command(f, o, n, tau)  # (the dispatcher: ``tau`` is any caller's)
-        entries = self._entries
+        _, step, to_next_tick = self._entries
         if self._one_euler_step:
             model, data, q, v, tau_total = self._pin
-            step = entries[1] if entries else euler_step
-            step(f, i, o, n, pin.aba(model, data, q, v, tau_total))
+            step(pin.aba(model, data, q, v, tau_total))
         else:
             self._advance()
-        (entries[2] if entries else next_tick)(f, i, o, n, self._jacobian(), self._x)
+        to_next_tick(self._jacobian(), self._x)
 
     # --- lifecycle (teleop_rt.hal.base): nothing to configure or power up; torque is accepted
     # from construction on (a session stepped by hand needs none of it)
