@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -572,26 +573,36 @@ def scene_columns(layout: LogLayout) -> dict[str, slice]:
     return out
 
 
+def scene_topics(spec: SceneSpec) -> list[tuple[str, str, tuple[str, str, bytes]]]:
+    """The scene's channels: (topic, message encoding, (schema name, encoding, data)), the
+    protobuf schemas the Foxglove SDK's own (``get_schema``: what its typed channels use)."""
+    tf, update = FrameTransforms.get_schema(), SceneUpdate.get_schema()
+    out = [
+        (ROBOT_DESCRIPTION, "cdr", (STRING_TYPE, "ros2msg", STRING_DEFINITION)),
+        (TF, "protobuf", (tf.name, tf.encoding, bytes(tf.data))),
+    ]
+    if spec.environment:
+        out.append((ENVIRONMENT, "protobuf", (update.name, update.encoding, bytes(update.data))))
+    if spec.hand:
+        out.append((HAND_TARGET, "protobuf", (update.name, update.encoding, bytes(update.data))))
+    return out
+
+
 class SceneChannels:
-    """The scene's channels on the writer's foxglove context (the log file and, with a live
-    view, the server), and what goes on them from a batch of ring rows. The environment is
-    sent when it changes (a contact, a moving mass) and once a second besides."""
+    """The scene's messages from a batch of ring rows, encoded (the SDK's message classes,
+    ``encode``) and handed to ``out(topic, data, log_time_ns)`` (the writer puts them in the
+    log file and, with a live view, on the server). The environment is sent when it changes
+    (a contact, a moving mass) and once a second besides."""
 
-    def __init__(self, spec: SceneSpec, layout: LogLayout, context) -> None:
-        import foxglove
-        from foxglove.channels import FrameTransformsChannel, SceneUpdateChannel
-
+    def __init__(
+        self, spec: SceneSpec, layout: LogLayout, out: Callable[[str, bytes, int], None]
+    ) -> None:
         self.scene = Scene(spec)
+        self.out = out
         self.every = spec.every
         self.cols = scene_columns(layout)
-        schema = foxglove.Schema(name=STRING_TYPE, encoding="ros2msg", data=STRING_DEFINITION)
-        self.description = foxglove.Channel(
-            ROBOT_DESCRIPTION, message_encoding="cdr", schema=schema, context=context
-        )
         self.urdf = string_message(combined_urdf(spec))
-        self.tf = FrameTransformsChannel(TF, context=context)
-        self.env = SceneUpdateChannel(ENVIRONMENT, context=context) if spec.environment else None
-        self.hand = SceneUpdateChannel(HAND_TARGET, context=context) if spec.hand else None
+        self.env, self.hand = bool(spec.environment), spec.hand
         self._env_shown: bytes | None = None  # the environment's state when last sent
         self._env_due = 0  # the tick by which it is sent again regardless
         self._env_period = spec.resend
@@ -599,8 +610,8 @@ class SceneChannels:
     def describe(self, stamp_ns: int) -> None:
         """What is sent once (at the start, and again for a live client that subscribes): the
         URDF and the transforms that never move; the environment is sent at the next frame."""
-        self.description.log(self.urdf, log_time=stamp_ns)
-        self.tf.log(self.scene.static_transforms(stamp_ns), log_time=stamp_ns)
+        self.out(ROBOT_DESCRIPTION, self.urdf, stamp_ns)
+        self.out(TF, self.scene.static_transforms(stamp_ns).encode(), stamp_ns)
         self._env_shown = None
 
     def emit(self, rows: np.ndarray, start_ns: int, period_ns: int) -> None:
@@ -609,22 +620,21 @@ class SceneChannels:
         frames = np.flatnonzero(ticks % self.every == 0)
         if not len(frames):
             return
-        cols, scene, sel = self.cols, self.scene, rows[frames]
+        cols, scene, sel, out = self.cols, self.scene, rows[frames], self.out
         stamps = (start_ns + ticks[frames] * period_ns).tolist()
         q = {side: sel[:, cols[f"{side}.q"]] for side in scene.spec.sides}
-        log_tf = self.tf.log
         for message, stamp in zip(scene.transforms(q, stamps), stamps, strict=True):
-            log_tf(message, log_time=stamp)
+            out(TF, message.encode(), stamp)
         for f, stamp in enumerate(stamps):
             row = sel[f]
-            if self.env is not None:
+            if self.env:
                 k = int(row[0])
                 shifts, contacts = row[cols["shift"]], row[cols["to.in_contact"]]
                 state = shifts.tobytes() + contacts.tobytes()
                 if state != self._env_shown or k >= self._env_due:
-                    self.env.log(scene.environment(shifts, contacts, stamp), log_time=stamp)
+                    out(ENVIRONMENT, scene.environment(shifts, contacts, stamp).encode(), stamp)
                     self._env_shown, self._env_due = state, k + self._env_period
-            if self.hand is not None:
+            if self.hand:
                 tool = scene.tool("hsi", q["hsi"][f])
                 target = row[cols["hsi.operator_reference_m"]]
-                self.hand.log(scene.hand(target, tool, stamp), log_time=stamp)
+                out(HAND_TARGET, scene.hand(target, tool, stamp).encode(), stamp)

@@ -50,6 +50,7 @@ import foxglove
 import numpy as np
 from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
+from teleop_rt import __version__
 from teleop_rt.declarations import (
     CLOSED,
     CONSUMED,
@@ -62,6 +63,8 @@ from teleop_rt.declarations import (
     WRITE_FAILED,
 )
 from teleop_rt.process_name import set_process_name
+from teleop_rt.recording.chunks import MessageRecords, TickRecords
+from teleop_rt.recording.mcap_file import McapFile
 from teleop_rt.recording.schema import CDR_HEADER, LogLayout
 
 if TYPE_CHECKING:
@@ -71,6 +74,7 @@ if TYPE_CHECKING:
 CONTROL_BYTES = 8 * CONTROL_WORDS
 PROCESS_NAME = "teleop-rt-log"  # the writer's name in ps / top / /proc/PID/comm
 PROFILE = "ros2"
+LIBRARY = f"teleop_rt/{__version__}"  # the Header's library (with mcap's own)
 BATCH_ROWS = 4096
 # wait for this many rows before encoding: the numpy work of a batch (about 0.3 ms) is paid
 # rarely; at 1 kHz this is a second, about what a 256 kB chunk holds (900 ticks of the paper
@@ -145,27 +149,24 @@ def _write(
     path, ctrl, ring, layout, period_ns, metadata, attachments, summary_conn, context,
     scene_spec, server,
 ) -> None:  # fmt: skip
-    sink = _Sink(path, ctrl)
+    fd = os.open(path, os.O_WRONLY | os.O_TRUNC)  # created by the control process
+    try:
+        out = _Output(fd, ctrl, layout, scene_spec, context if server is not None else None)
+        _loop(out, ctrl, ring, layout, period_ns, metadata, attachments, summary_conn,
+              scene_spec, server)  # fmt: skip
+    finally:
+        os.close(fd)
+
+
+def _loop(
+    out, ctrl, ring, layout, period_ns, metadata, attachments, summary_conn, scene_spec, server
+) -> None:  # fmt: skip
     inbox = _Inbox(summary_conn, metadata)
-    writer = foxglove.open_mcap(sink, context=context, writer_options=write_options())
-    channels = [
-        foxglove.Channel(
-            topic.name,
-            message_encoding="cdr",
-            schema=foxglove.Schema(name=topic.type_name, encoding="ros2msg", data=topic.definition),
-            context=context,
-        )
-        for topic in layout.topics
-    ]
-    columns = layout.columns()
-    encoders = [
-        (ch, topic, columns[topic.name]) for ch, topic in zip(channels, layout.topics, strict=True)
-    ]
     scene = None
     if scene_spec is not None:
         from teleop_rt.recording.scene import SceneChannels
 
-        scene = SceneChannels(scene_spec, layout, context)
+        scene = SceneChannels(scene_spec, layout, out.scene)
     parent = multiprocessing.parent_process()
     capacity = len(ring)
     # a small ring (tests, ring_s) is emptied before it fills; a live view is sent at the
@@ -178,7 +179,7 @@ def _write(
     max_batch = min(BATCH_ROWS, capacity)
     consumed = 0
     start_ns: int | None = None  # known once the first row (or the end) has come
-    while not sink.failed:
+    while not out.file.failed:
         ctrl[HEARTBEAT] += 1
         published = int(ctrl[PUBLISHED])
         closed = bool(ctrl[CLOSED])
@@ -191,15 +192,17 @@ def _write(
                 rows = np.concatenate([ring[start_slot:], ring[:end_slot]])
             ctrl[CONSUMED] = end  # the slots are copied: the producer may reuse them
             if start_ns is None:
-                start_ns = _describe(writer, int(ctrl[START_NS]), inbox.metadata(), attachments)
+                start_ns = _describe(out.file, int(ctrl[START_NS]), inbox.metadata(), attachments)
                 if scene is not None:
                     scene.describe(start_ns)
-            _emit(rows, encoders, layout, period_ns, start_ns)
+            chunked = out.ticks(rows, period_ns, start_ns)
             if scene is not None:
                 scene.emit(rows, start_ns, period_ns)
                 if server is not None and server.resend.is_set():  # a client subscribed
                     server.resend.clear()
                     scene.describe(start_ns + int(rows[-1, 0]) * period_ns)
+            if chunked:  # the scene's chunk follows the ticks' (about as many seconds)
+                out.scene_records.flush()
             consumed = end
             continue
         if closed or (parent is not None and not parent.is_alive()):
@@ -210,64 +213,89 @@ def _write(
         due = (min_batch - (published - consumed)) * period_ns / 1e9
         time.sleep(min(max(due, POLL_S), MAX_SLEEP_S))
     if start_ns is None:  # no tick ran
-        _describe(writer, int(ctrl[START_NS]), inbox.metadata(), attachments)
-    summary = None if sink.failed else inbox.summary()
+        _describe(out.file, int(ctrl[START_NS]), inbox.metadata(), attachments)
+    out.tick_records.flush()
+    out.scene_records.flush()
+    summary = None if out.file.failed else inbox.summary()
     if summary is not None:
-        writer.write_metadata("teleop_rt.summary", {"json": json.dumps(summary)})
-    writer.close()  # after a write error the sink drops this too
-    sink.close()
+        out.file.metadata("teleop_rt.summary", {"json": json.dumps(summary)})
+    out.file.close()  # after a write error the file drops this too
+
+
+class _Output:
+    """Where the writer's messages go: the MCAP file (its one owner, ``McapFile``), the ticks'
+    records built per batch (``TickRecords``), the scene's (``MessageRecords``), and with a
+    live view the SDK's channels on the server's context (``live``: no file sink on it)."""
+
+    def __init__(self, fd: int, ctrl: np.ndarray, layout: LogLayout, scene_spec, live) -> None:
+        def failed(errno: int) -> None:  # once: the file writes nothing after it
+            ctrl[ERRNO] = errno
+            ctrl[STATUS] = WRITE_FAILED
+
+        self.file = McapFile(fd, PROFILE, LIBRARY, failed)
+        self.layout, self.columns = layout, layout.columns()
+        ids = [
+            self.file.channel(t.name, "cdr", (t.type_name, "ros2msg", t.definition))
+            for t in layout.topics
+        ]
+        sizes = [t.dtype.itemsize for t in layout.topics]
+        self.tick_records = TickRecords(self.file, ids, sizes, prefix=CDR_HEADER)
+        self.scene_records = MessageRecords(self.file)
+        self.scene_ids: dict[str, int] = {}
+        self.live_scene: dict[str, Any] = {}
+        self.live_ticks: list[Any] = []
+        scene_channels = []
+        if scene_spec is not None:
+            from teleop_rt.recording.scene import scene_topics
+
+            scene_channels = scene_topics(scene_spec)
+        for topic, encoding, schema in scene_channels:
+            self.scene_ids[topic] = self.file.channel(topic, encoding, schema)
+        if live is not None:
+            self.live_ticks = [
+                _live_channel(live, t.name, "cdr", (t.type_name, "ros2msg", t.definition)).base.log
+                for t in layout.topics
+            ]
+            self.live_scene = {
+                topic: _live_channel(live, topic, encoding, schema).log
+                for topic, encoding, schema in scene_channels
+            }
+
+    def ticks(self, rows: np.ndarray, period_ns: int, start_ns: int) -> bool:
+        """A batch of rows as the four topics' records (True if a chunk was written), and on
+        the live view message by message."""
+        stamps = start_ns + rows[:, 0].astype(np.int64) * period_ns
+        payloads = [
+            self.layout.encode(rows, t, self.columns[t.name]).view(np.uint8).reshape(len(rows), -1)
+            for t in self.layout.topics
+        ]
+        chunked = self.tick_records.add(payloads, stamps)
+        if self.live_ticks:
+            _live_emit(payloads, self.live_ticks, stamps)
+        return chunked
+
+    def scene(self, topic: str, data: bytes, stamp: int) -> None:
+        self.scene_records.add(self.scene_ids[topic], data, stamp)
+        live = self.live_scene.get(topic)
+        if live is not None:
+            live(data, log_time=stamp)
+
+
+def _live_channel(context, topic: str, encoding: str, schema: tuple[str, str, bytes]):
+    name, schema_encoding, data = schema
+    return foxglove.Channel(
+        topic, message_encoding=encoding, context=context,
+        schema=foxglove.Schema(name=name, encoding=schema_encoding, data=data),
+    )  # fmt: skip
 
 
 def write_options() -> MCAPWriteOptions:
-    """The SDK's MCAP options of a log (also tools/bench.py's floor of the writer)."""
-    # LZ4, not Zstd: half the writer's CPU per tick (about 10 against 20 us for the four
-    # messages), for files about 18 % larger (330 against 280 bytes per tick of the paper
-    # experiment); on a 2-core machine the writer's CPU is taken from the control loop
+    """The SDK's MCAP options of a log before this writer built its own chunks (LZ4, 256 kB
+    chunks): tools/bench.py's floor of the SDK's per-message log call."""
     return MCAPWriteOptions(compression=MCAPCompression.Lz4, chunk_size=256 * 1024, profile=PROFILE)
 
 
-class _Sink:
-    """The MCAP file as the SDK's file-like object. The first write error is reported in the
-    control block and ends writing: later writes (the SDK keeps writing, and would log an error
-    per message if they raised) are counted as done and dropped."""
-
-    def __init__(self, path: str, ctrl: np.ndarray) -> None:
-        self.fd = os.open(path, os.O_WRONLY | os.O_TRUNC)  # created by the control process
-        self.ctrl = ctrl
-        self.pos = self.end = 0
-        self.failed = False
-
-    def write(self, data) -> int:
-        view = memoryview(data).cast("B")
-        n = len(view)
-        if not self.failed:
-            try:
-                done = 0
-                while done < n:
-                    done += os.write(self.fd, view[done:])
-            except OSError as err:
-                self.failed = True
-                self.ctrl[ERRNO] = err.errno or 0
-                self.ctrl[STATUS] = WRITE_FAILED
-        self.pos += n
-        self.end = max(self.end, self.pos)
-        return n
-
-    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
-        base = {os.SEEK_SET: 0, os.SEEK_CUR: self.pos, os.SEEK_END: self.end}[whence]
-        self.pos = base + offset
-        if not self.failed:
-            os.lseek(self.fd, self.pos, os.SEEK_SET)
-        return self.pos
-
-    def flush(self) -> None:
-        pass  # unbuffered: every write is a system call on the file
-
-    def close(self) -> None:
-        os.close(self.fd)
-
-
-def _describe(writer, start_ns: int, metadata: dict[str, str], attachments) -> int:
+def _describe(file: McapFile, start_ns: int, metadata: dict[str, str], attachments) -> int:
     """The ``teleop_rt`` metadata with the start time, and the attachments; return start_ns."""
     seconds, ns = divmod(start_ns, 1_000_000_000)
     utc = _dt.datetime.fromtimestamp(seconds, _dt.timezone.utc)
@@ -276,33 +304,25 @@ def _describe(writer, start_ns: int, metadata: dict[str, str], attachments) -> i
         "start_time_ns": str(start_ns),
         "start_time_utc": utc.isoformat(timespec="microseconds").replace("+00:00", "Z"),
     }
-    writer.write_metadata("teleop_rt", {**metadata, **start})
+    file.metadata("teleop_rt", {**metadata, **start})
     for name, data in attachments.items():
         media = "application/yaml" if name.endswith(".yaml") else "application/xml"
-        writer.attach(
-            log_time=start_ns, create_time=start_ns, name=name, media_type=media, data=data
-        )
+        file.attach(name, media, data, start_ns)
     return start_ns
 
 
-def _emit(rows: np.ndarray, encoders, layout: LogLayout, period_ns: int, start_ns: int) -> None:
-    """Encode a batch per topic with numpy (header included), then log tick by tick, the topics
-    of a tick together (LZ4 packs them into 282 bytes a tick, 356 topic by topic).
-
-    It calls the SDK's own ``BaseChannel.log`` (``Channel.base``), which ``Channel.log`` calls
-    after type checks and an encoding lookup that took a third of the writer's CPU per message
-    (3.0 against 4.2 us a tick for the four topics)."""
-    n = len(rows)
-    payloads = []
-    for ch, topic, cols in encoders:
-        size = topic.dtype.itemsize + len(CDR_HEADER)
-        block = np.empty((n, size), dtype=np.uint8)
-        block[:, : len(CDR_HEADER)] = np.frombuffer(CDR_HEADER, dtype=np.uint8)
-        block[:, len(CDR_HEADER) :] = layout.encode(rows, topic, cols).view(np.uint8).reshape(n, -1)
-        payloads.append((ch.base.log, block.tobytes(), size))
-    stamps = (start_ns + rows[:, 0].astype(np.int64) * period_ns).tolist()
-    for i, stamp in enumerate(stamps):
-        for log, data, size in payloads:
+def _live_emit(payloads: list[np.ndarray], logs: list, stamps: np.ndarray) -> None:
+    """The live view's four topics, tick by tick through the SDK's ``BaseChannel.log`` (the
+    server sends a message per tick; only with --live)."""
+    prefix = np.frombuffer(CDR_HEADER, np.uint8)
+    blocks = []
+    for log, payload in zip(logs, payloads, strict=True):
+        block = np.empty((len(payload), len(prefix) + payload.shape[1]), np.uint8)
+        block[:, : len(prefix)] = prefix
+        block[:, len(prefix) :] = payload
+        blocks.append((log, block.tobytes(), block.shape[1]))
+    for i, stamp in enumerate(stamps.tolist()):
+        for log, data, size in blocks:
             log(data[i * size : (i + 1) * size], stamp, None)
 
 
