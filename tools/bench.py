@@ -276,6 +276,7 @@ def writer_floors(log: Path, topics: list[str], tmp: Path, repeat: int = 5) -> d
             log(data, stamp)
         sdk_us.append((time.process_time_ns() - t0) / 1e3 / (len(calls) / len(topics)))
         writer.close()
+    chunk_us = [_chunk_floor(messages, topics) for _ in range(repeat)]
     fork_ms = []
     for _ in range(repeat):
         pid = os.fork()
@@ -284,7 +285,34 @@ def writer_floors(log: Path, topics: list[str], tmp: Path, repeat: int = 5) -> d
         usage = os.wait4(pid, 0)[2]
         fork_ms.append(1e3 * (usage.ru_utime + usage.ru_stime))
     return {"sdk_log_us_per_tick": min(sdk_us), "messages_per_tick": len(topics),
-            "fork_exit_ms": min(fork_ms)}  # fmt: skip
+            "chunks_us_per_tick": min(chunk_us), "fork_exit_ms": min(fork_ms)}  # fmt: skip
+
+
+def _chunk_floor(messages: list[tuple[str, bytes, int]], topics: list[str]) -> float:
+    """CPU per tick of the writer's own chunks for the same ready payloads: message records
+    built per batch of 1 024 ticks (``TickRecords``), LZ4, CRCs and message indexes, into an
+    MCAP file on /dev/null (``McapFile``)."""
+    from teleop_rt.recording.chunks import TickRecords
+    from teleop_rt.recording.mcap_file import McapFile
+
+    per_topic = {t: [(d[4:], s) for topic, d, s in messages if topic == t] for t in topics}
+    ticks = min(len(v) for v in per_topic.values())
+    payloads = [np.frombuffer(b"".join(d for d, _ in per_topic[t][:ticks]), np.uint8)
+                .reshape(ticks, -1) for t in topics]  # fmt: skip
+    stamps = np.array([s for _, s in per_topic[topics[0]][:ticks]], np.int64)
+    fd = os.open(os.devnull, os.O_WRONLY)
+    try:
+        t0 = time.process_time_ns()
+        file = McapFile(fd, "ros2", "bench", lambda errno: None)
+        ids = [file.channel(t, "cdr", (t, "ros2msg", b"uint8[] data\n")) for t in topics]
+        records = TickRecords(file, ids, [p.shape[1] for p in payloads], prefix=b"\0\1\0\0")
+        for lo in range(0, ticks, 1024):
+            records.add([p[lo : lo + 1024] for p in payloads], stamps[lo : lo + 1024])
+        records.flush()
+        file.close()
+        return (time.process_time_ns() - t0) / 1e3 / ticks
+    finally:
+        os.close(fd)
 
 
 CHANNEL_KINDS = {  # label -> overrides; the first is the baseline
@@ -628,7 +656,9 @@ def run(args, cfg, joints: list[int]) -> int:
               f"tick (goal, issue 27: <= 5); the log {size} bytes per tick")  # fmt: skip
         fl = full["floors"]
         print(f"  the writer's floors: the SDK's log call alone {fl['sdk_log_us_per_tick']:.2f} us "
-              f"per tick ({fl['messages_per_tick']} messages); a bare fork and exit of this "
+              f"per tick ({fl['messages_per_tick']} messages; the writer before its own "
+              f"chunks); the writer's own chunks of the same payloads "
+              f"{fl['chunks_us_per_tick']:.2f} us per tick; a bare fork and exit of this "
               f"process {fl['fork_exit_ms']:.1f} ms")  # fmt: skip
         out.update(pinocchio_floor_us=floor, full_tick_us=full, controller_side_us=ctrl,
                    site_alone_us=sites)  # fmt: skip

@@ -1,18 +1,22 @@
 """The MCAP writer process: turns rows from the shared-memory ring into messages on disk.
 
-MCAP is written with the Foxglove SDK (``foxglove-sdk``, a Rust MCAP writer): about 0.75 us per
-message here (its ``BaseChannel.log`` called from a loop over a numpy-encoded batch), against
-about 12 us with the pure-Python ``mcap`` writer, which would cost more CPU than the whole
-control tick. (``mcap`` reads the logs back: ``teleop_rt.recording.reader``.)
+The file has one owner, ``McapFile`` (``teleop_rt.recording.mcap_file``: header, schemas and
+channels, metadata, attachments, chunks, summary, footer, serialised by the ``mcap`` package's
+record classes). The four per-tick topics' message records are built with numpy a batch at a
+time and cut into LZ4 chunks with their message indexes (``teleop_rt.recording.chunks``):
+no Python call per message. The Foxglove SDK's per-message ``BaseChannel.log`` that wrote
+them before cost about 0.5 us a message, most of the writer's CPU (docs/benchmarks.md). The
+3D scene's messages (50 Hz) are encoded by the SDK's message classes (``encode``) and go in
+chunks of their own. (``mcap``, ``teleop_rt.recording.reader``, reads the logs back.)
 
 It runs in its own process (the other core), so the control loop pays only for packing one
 row. It ignores SIGINT/SIGTERM (the control process handles them and closes the log), and
 finishes the file by itself when the control process dies, so a killed session still leaves
 a valid MCAP holding every row that reached the ring.
 
-A write error (a full disk, a file size limit) is caught once in ``_Sink``: it is reported in
-the control block and nothing more is written (the SDK would log one line per message), and
-the process ends; the file keeps every chunk written before the error.
+A write error (a full disk, a file size limit) is caught once in ``McapFile``: it is reported
+in the control block and nothing more is written, and the process ends; the file keeps every
+chunk written before the error (a chunk and its message indexes are one write).
 
 Shared memory: ``CONTROL_BYTES`` of int64 control words, then ``capacity`` rows of float64:
   ctrl[0] rows published by the control process (written after the row itself)
@@ -25,9 +29,10 @@ Shared memory: ``CONTROL_BYTES`` of int64 control words, then ``capacity`` rows 
 
 Beside the four topics of the schema it writes the 3D scene (``teleop_rt.recording.scene``:
 robots, transforms, environment, hand target) from the same rows, and with ``--live`` serves
-everything it writes over Foxglove's WebSocket protocol from the same foxglove context
-(``teleop_rt.recording.live``); the ring's rows carry the scene's few extra columns
-(``LogLayout.ring_width``).
+everything it writes over Foxglove's WebSocket protocol from a foxglove context that has the
+server and no file sink (``teleop_rt.recording.live``): only then are the four topics logged
+message by message, through the SDK, to the server; the ring's rows carry the scene's few
+extra columns (``LogLayout.ring_width``).
 
 Log times are wall-clock: the start time plus the tick's time (``start_time_ns + k *
 period_ns``), so a log lines up with the world in Foxglove and beside other recordings. The
