@@ -61,22 +61,22 @@ class TickRecords:
         self.dtype, self.starts = tick_dtype(self.sizes)
         self.per_chunk = max(1, chunk_bytes // self.dtype.itemsize)
         self.sequence = 0  # messages per channel so far (every channel has one a tick)
-        self.pending: list[np.ndarray] = []
-        self.pending_ticks = 0
-        self._template = np.zeros(0, self.dtype)
+        # the pending ticks' records, in place: the constant fields (opcode, length, channel,
+        # CDR header) are written once when the buffer is made, a batch fills the rest, and a
+        # chunk's records are compressed from the buffer itself (no copy per batch)
+        self.buf = self._blank(self.per_chunk + 1024)
+        self.pending = 0
 
     def _blank(self, n: int) -> np.ndarray:
-        """n ticks' records with the constant fields filled (kept for the next batch)."""
-        if len(self._template) < n:
-            t = np.zeros(max(n, 2 * len(self._template)), self.dtype)
-            prefix = np.frombuffer(self.prefix, np.uint8)
-            for i, (cid, size) in enumerate(zip(self.ids, self.sizes, strict=True)):
-                t[f"op{i}"] = Opcode.MESSAGE
-                t[f"len{i}"] = _MESSAGE_HEAD - 9 + size
-                t[f"ch{i}"] = cid
-                t[f"data{i}"][:, : len(prefix)] = prefix
-            self._template = t
-        return self._template[:n].copy()
+        """Records of n ticks with the constant fields filled."""
+        t = np.zeros(n, self.dtype)
+        prefix = np.frombuffer(self.prefix, np.uint8)
+        for i, (cid, size) in enumerate(zip(self.ids, self.sizes, strict=True)):
+            t[f"op{i}"] = Opcode.MESSAGE
+            t[f"len{i}"] = _MESSAGE_HEAD - 9 + size
+            t[f"ch{i}"] = cid
+            t[f"data{i}"][:, : len(prefix)] = prefix
+        return t
 
     def add(self, payloads: list[np.ndarray], stamps: np.ndarray) -> bool:
         """A batch: per topic an (n, size) uint8 array of payloads (after the prefix), and the
@@ -85,7 +85,11 @@ class TickRecords:
         n = len(stamps)
         if n == 0:
             return False
-        recs = self._blank(n)
+        if self.pending + n > len(self.buf):  # a larger batch than before: a larger buffer
+            bigger = self._blank(self.pending + n + self.per_chunk)
+            bigger[: self.pending] = self.buf[: self.pending]
+            self.buf = bigger
+        recs = self.buf[self.pending : self.pending + n]
         seq = (np.arange(self.sequence + 1, self.sequence + n + 1) & 0xFFFFFFFF).astype("<u4")
         skip = len(self.prefix)
         for i, payload in enumerate(payloads):
@@ -94,22 +98,21 @@ class TickRecords:
             recs[f"pub{i}"] = stamps
             recs[f"data{i}"][:, skip:] = payload
         self.sequence += n
-        self.pending.append(recs)
-        self.pending_ticks += n
+        self.pending += n
         return self.flush(whole_only=True)
 
     def flush(self, whole_only: bool = False) -> bool:
         """Write the pending ticks as chunks (``whole_only``: full chunks only, the rest stays
         pending); True if a chunk was written."""
-        if not self.pending_ticks or (whole_only and self.pending_ticks < self.per_chunk):
+        pending, per = self.pending, self.per_chunk
+        if not pending or (whole_only and pending < per):
             return False
-        recs = self.pending[0] if len(self.pending) == 1 else np.concatenate(self.pending)
-        cut = len(recs) - len(recs) % self.per_chunk if whole_only else len(recs)
-        for lo in range(0, cut, self.per_chunk):
-            self._chunk(recs[lo : min(lo + self.per_chunk, cut)])
-        rest = recs[cut:]
-        self.pending = [rest] if len(rest) else []
-        self.pending_ticks = len(rest)
+        cut = pending - pending % per if whole_only else pending
+        for lo in range(0, cut, per):
+            self._chunk(self.buf[lo : min(lo + per, cut)])
+        if cut < pending:  # the rest to the front (fewer than a chunk's ticks)
+            self.buf[: pending - cut] = self.buf[cut:pending].copy()
+        self.pending = pending - cut
         return True
 
     def _chunk(self, recs: np.ndarray) -> None:
@@ -122,7 +125,7 @@ class TickRecords:
             entries[:, 0] = stamps
             entries[:, 1] = where + np.uint64(self.starts[i])
             indexes.by_channel[cid] = entries
-        self.file.chunk(recs.tobytes(), indexes)
+        self.file.chunk(recs.view(np.uint8).data, indexes)  # the buffer itself
 
 
 class MessageRecords:

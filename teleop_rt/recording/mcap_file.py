@@ -140,7 +140,7 @@ class McapFile:
             data_size=len(data), name=name, media_type=media_type,
         ))  # fmt: skip
 
-    def chunk(self, records: bytes, indexes: ChunkIndexes) -> None:
+    def chunk(self, records: bytes | memoryview, indexes: ChunkIndexes) -> None:
         """One Chunk of ``records`` (whole message records), LZ4-compressed, then its Message
         Index records, in one write; counted in the Statistics and the Chunk Indexes."""
         if not indexes.messages:
