@@ -455,6 +455,7 @@ def wave_step(
             f[Pt.PEER_SUM * n + j] = rx[Pk.WAVE_SUM * n + j]
             f[Pt.PEER_ENERGY * n + j] = rx[Pk.WAVE_ENERGY * n + j]
         debt = f[Pt.DEBT * n + j]
+        paid = 0.0  # this tick's pay-back of the debt, per second (the gap's share leaves it out)
         if reflected and not valid and i[Pt.LAST_SEQ] >= 0:  # (before the first: zeros)
             # the TO brakes: the wave that gives omega_t = 0, u_r = tau_t / sqrt(2b), all of it
             # reflected (zero power, whatever the contact); the HSI holds the TO's effort of
@@ -472,11 +473,12 @@ def wave_step(
             if debt != 0.0:
                 slow = f[Pt.SKIP_DEBT * n + j]
                 if slow == 0.0:
-                    w += rate * debt
+                    paid = rate * debt
                 else:  # the skip debt at its own rate, the rest at the drift correction's
                     pay = skip_rate * slow
-                    w += rate * (debt - slow) + pay
+                    paid = rate * (debt - slow) + pay
                     f[Pt.SKIP_DEBT * n + j] = slow - pay * dt
+                w += paid
         elif how == ZERO or (valid and (how == HOLD or synced)):
             w = r  # (zero: zeros when none arrived; else the wave as it was sent)
         elif not valid:
@@ -530,8 +532,11 @@ def wave_step(
             f[Pt.USED_SUM * n + j] = used_sum + w * dt
             if valid:
                 f[Pt.DEBT * n + j] = f[Pt.PEER_SUM * n + j] - f[Pt.USED_SUM * n + j]
-                if skipped > 0:  # the skipped packets' share of what this gap added
-                    f[Pt.SKIP_DEBT * n + j] += skipped / gap * (f[Pt.DEBT * n + j] - debt)
+                if skipped > 0:  # the skipped packets' share of what this gap added: the
+                    # debt beyond what is left of the last after this tick's pay-back (the
+                    # skip debt has had its own; the rest of the debt keeps its rate)
+                    added = f[Pt.DEBT * n + j] - (debt - paid * dt)
+                    f[Pt.SKIP_DEBT * n + j] += skipped / gap * added
                 slow = f[Pt.SKIP_DEBT * n + j]
                 if slow != 0.0:  # never more than the debt, nor of the other sign
                     total = f[Pt.DEBT * n + j]
