@@ -29,14 +29,21 @@ from teleop_rt.declarations import (
     CODEC_RECONSTRUCTIONS,
     DEFAULT_MODE,
     DEFAULT_RECONSTRUCTION,
+    EXCHANGE_J,
+    EXCHANGE_MIN_TICKS,
+    EXCHANGE_WEBER,
+    MAX_CODEC_INTERVAL,
     MAX_DELAY_MS,
+    MIN_CODEC_INTERVAL,
     PLAYOUT_DEFAULT,
+    VELOCITY_GAIN_S_PER_RAD,
     WAVE_DRIFT_TIME_S,
     WAVE_SKIP_TIME_S,
     ChannelMode,
     Playout,
     Reconstruction,
     Space,
+    deadband_problem,
 )
 from teleop_rt.errors import ConfigError, quote
 from teleop_rt.hal.can.config import CanSpec
@@ -57,7 +64,7 @@ MAX_TICKS = 100_000_000  # timing statistics are preallocated per tick (16 bytes
 TickCount = Annotated[int, Field(ge=0, le=MAX_TICKS)]
 MAX_STOP_TICKS = 100_000  # a staged stop that long is no stop (100 s at 1 kHz)
 MAX_SEED = 2**63 - 1
-MAX_CODEC_INTERVAL = 10_000  # ticks: a codec silent longer than 10 s at 1 kHz is a lost peer
+CodecTicks = Annotated[int, Field(ge=MIN_CODEC_INTERVAL, le=MAX_CODEC_INTERVAL)]
 
 
 class Strict(StrictModel):
@@ -158,11 +165,11 @@ class DeadbandSpec(Strict):
     # TO): near zero a relative band alone would send at every sign change
     floor_hsi: NonNegFloat = 0.01
     floor_to: NonNegFloat = 0.01
-    min_interval_ticks: Annotated[int, Field(ge=1, le=MAX_CODEC_INTERVAL)] = 1
-    max_interval_ticks: Annotated[int, Field(ge=1, le=MAX_CODEC_INTERVAL)] = 100
+    min_interval_ticks: CodecTicks = 1
+    max_interval_ticks: CodecTicks = 100
     # velocity-adaptive deadband (Kammerl et al., Presence 2010): the Weber fraction grows
     # with the port's velocity, weber * (1 + gain |omega|); 0 keeps it constant
-    velocity_gain_s_per_rad: NonNegFloat = 0.0
+    velocity_gain_s_per_rad: NonNegFloat = VELOCITY_GAIN_S_PER_RAD
     # how the peer reconstructs a site's signal between its packets: linear extrapolates the
     # last two (Hinterseer et al., IEEE Trans. Signal Process. 56(2), 2008), hold keeps the
     # last one; None: the channel mode's measured best (teleop_rt.com.codec.PREDICTIONS_BY_MODE)
@@ -171,31 +178,26 @@ class DeadbandSpec(Strict):
     # TDPA only: a site also sends once this much energy has crossed its port, in or out, since
     # its last packet (the energy deadband of teleop_rt.com.codec; docs/codec.md measures it at
     # D = 1 ms, where the hold's lag costs felt stiffness); 0: off
-    exchange_j: NonNegFloat = 0.0
+    exchange_j: NonNegFloat = EXCHANGE_J
     # ... and that step grows by this fraction of the energy crossed over the last
     # codec.EXCHANGE_WINDOW_TICKS (Weber's rule on the energy: a steady flow, foam's damping,
     # sends a packet per fraction of the window); 0: the fixed step
-    exchange_weber: NonNegFloat = 0.0
+    exchange_weber: NonNegFloat = EXCHANGE_WEBER
     # ... and it sends no sooner than this many ticks after the last packet (the deadband's
     # own crossings still go out at once; docs/codec.md, "the energy deadband's pace"); 1: off
-    exchange_min_ticks: Annotated[int, Field(ge=1, le=MAX_CODEC_INTERVAL)] = 1
+    exchange_min_ticks: CodecTicks = EXCHANGE_MIN_TICKS
 
     @model_validator(mode="after")
     def _intervals(self) -> DeadbandSpec:
-        if self.min_interval_ticks > self.max_interval_ticks:
-            raise ValueError(
-                f"min_interval_ticks = {self.min_interval_ticks} is above max_interval_ticks "
-                f"= {self.max_interval_ticks}"
+        # (the fields' own bounds are their types; the rules between them are the codec's)
+        for side in ("hsi", "to"):
+            problem = deadband_problem(
+                getattr(self, f"weber_{side}"), getattr(self, f"floor_{side}"),
+                self.min_interval_ticks, self.max_interval_ticks, self.velocity_gain_s_per_rad,
+                self.exchange_j, self.exchange_weber, self.exchange_min_ticks,
             )
-        if self.exchange_weber > 0 and not self.exchange_j > 0:
-            raise ValueError("exchange_weber grows the energy step exchange_j: set exchange_j > 0")
-        if self.exchange_min_ticks > 1 and not self.exchange_j > 0:
-            raise ValueError(
-                "exchange_min_ticks paces the energy step exchange_j: set exchange_j > 0"
-            )
-        if self.exchange_min_ticks > self.max_interval_ticks:
-            raise ValueError(f"exchange_min_ticks = {self.exchange_min_ticks} is above "
-                             f"max_interval_ticks = {self.max_interval_ticks}")
+            if problem:
+                raise ValueError(problem)
         return self
 
 
