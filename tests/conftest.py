@@ -176,6 +176,10 @@ SLOW_TESTS = {
         "test_the_scaled_two_port_s_energy_is_the_channel_s",
     ),
     "test_wave_drift.py": ("test_corrected_ports_are_passive_for_any_delays_losses_and_inputs",),
+    "test_wave_schedule.py": (
+        "test_the_schedule_follows_its_closed_form",
+        "test_scheduled_ports_are_passive_for_any_b_delays_losses_and_inputs",
+    ),
 }
 
 
