@@ -643,16 +643,22 @@ def wave_step(
 @jit
 def schedule_b(f: np.ndarray, i: np.ndarray, n: int, rx_i: np.ndarray) -> None:
     """The wave impedance scheduled by the delay this port measures: a packet's age
-    a = now - its sender tick (ticks; >= D, the playout delay, under either playout rule) sets
-    the target b_0 min(1, max(floor, D / a)), so that the wave channel's free-space inertia,
-    about b T at one-way delay T (its displayed impedance b tanh(sT)), stays about the clean
-    link's b_0 D; b moves toward it by at most ``b_rate`` b_0 per second, and is held on ticks
-    with no packet (no new age). Passive by construction: the transform at each port conserves
-    power for whatever b > 0 it uses in that tick (omega tau = (u^2 - v^2) / 2 at that b), so
-    the wave energies the budgets count are the port's energy at any schedule; what changes is
-    only the impedance displayed (Niemeyer & Slotine, IEEE JOE 1991, on b as the tuning knob;
-    Tanner & Niemeyer, WHC 2005, on b ~ inertia / delay in free space; Hirche & Buss on b and
-    the perceived stiffness). With the age at D, b stays b_0 bit for bit."""
+    a = now - its sender tick (ticks; >= D, the playout delay, under either playout rule; over
+    a network it also holds the sites' tick offset, 0 in one process as in the study) sets the
+    target b_0 min(1, max(floor, a_min / a)), so that the wave channel's free-space inertia,
+    about b T at one-way delay T, stays about the clean link's b_0 a_min; b moves toward it
+    by at most ``b_rate`` b_0 per second, and is held on ticks with no packet (no new age).
+    Passive by construction: the transform at each port conserves power for whatever b > 0
+    it uses in that tick (omega tau = (u^2 - v^2) / 2 at that b), so the wave energies the
+    budgets count are the port's energy at any schedule; what changes is only the impedance
+    displayed: b tanh(sT), an inertia about b T in free space, a stiffness
+    about b / T against a wall (Niemeyer & Slotine, IEEE JOE 1991, on b as the tuning knob; a
+    b switched between a low free-motion and a high contact value, passive under
+    time-varying delay: J. Robotics 2015, article 861425, hindawi.com/journals/jr/2015/861425,
+    found by its abstract, its scheme not checked against this one; Lozano, Chopra & Spong's
+    time-varying-delay wave gain, 2002, which the search did not find and this does not use).
+    The reference a_min is the least age used so far (the path's own floor: the clean link's
+    delay as this port can know it), so a clean link's b is b_0 bit for bit."""
     Pt, Pk = Port.idx, Packet.idx
     if rx_i[Pk.VALID] == 0:
         return
