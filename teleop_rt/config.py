@@ -230,6 +230,10 @@ class ChannelSpec(Strict):
     # loss's with wave_drift_time_s; None (the default): one debt (docs/transparency_under_loss.md,
     # "s37": 2 s meets the foam sawtooth row, costs T_p under jitter)
     wave_skip_time_s: PositiveFloat | None = WAVE_SKIP_TIME_S
+    # the wave impedance scheduled by the delay each port measures (a packet's age): b D / age,
+    # between WAVE_B_FLOOR b and b, rate-limited (teleop_rt.com.port.schedule_b); off, the
+    # default: b as configured (docs/transparency_under_loss.md, "s38")
+    wave_impedance_schedule: bool = False
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # docs/passivity.md). None, the default, switches it off.
@@ -789,6 +793,22 @@ class SessionConfig(Strict):
             raise ValueError(
                 "mapping.posture_rad: the posture acts with mapping.posture_gain_per_s > 0 "
                 "(its gain k_p, 1/s; 0 turns the posture task off)"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _impedance_schedule_needs_its_correction(self) -> SessionConfig:
+        # the schedule's b, moving, drifts the TO off the HSI; its correction rides on the
+        # drift correction of corrected/reflected, and the deadband codec's held ticks would
+        # read as aged packets (teleop_rt.com.port.schedule_b)
+        c = self.channel
+        if c.wave_impedance_schedule and (
+            c.mode != "wave" or c.wave_reconstruction not in ("corrected", "reflected")
+            or c.codec != "none"
+        ):
+            raise ValueError(
+                "channel.wave_impedance_schedule needs channel.mode wave with "
+                "wave_reconstruction corrected or reflected and codec none"
             )
         return self
 

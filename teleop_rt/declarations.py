@@ -38,6 +38,13 @@ WAVE_DRIFT_TIME_S = 0.25
 # constant of its own, s (channel.wave_skip_time_s; None, the default: one debt): 2 s meets the
 # foam sawtooth row but costs T_p and drift under jitter (docs/transparency_under_loss.md, "s37")
 WAVE_SKIP_TIME_S: float | None = None
+# the wave impedance scheduled by the delay (channel.wave_impedance_schedule, off by default;
+# teleop_rt.com.port.schedule_b): b = b_0 D / age of the packet used, between this share of b_0
+# and b_0, moving by at most WAVE_B_RATE b_0 per second (docs/transparency_under_loss.md, "s38")
+WAVE_B_FLOOR, WAVE_B_RATE = 0.125, 0.5
+# ... and the TO's position correction of the drift it causes stays on this long, s, after b
+# is back at b_0
+WAVE_B_HOLD_S = 1.0
 
 # --- the deadband codec (teleop_rt.com.codec; channel.deadband) --------------------------------
 # the ticks between two packets a codec sends (min_interval_ticks, max_interval_ticks) and the

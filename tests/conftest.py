@@ -177,6 +177,10 @@ SLOW_TESTS = {
     ),
     "test_wave_drift.py": ("test_corrected_ports_are_passive_for_any_delays_losses_and_inputs",),
     "test_wire.py": ("test_a_decoder_binds_no_encoder",),  # (a fresh interpreter loads kernels)
+    "test_wave_schedule.py": (
+        "test_the_schedule_follows_its_closed_form",
+        "test_scheduled_ports_are_passive_for_any_b_delays_losses_and_inputs",
+    ),
 }
 
 
