@@ -1100,9 +1100,11 @@ def load(path: str | Path, overrides: list[str] | None = None) -> SessionConfig:
     """Load, override and validate a session config file."""
     path = Path(path)
     data = read_yaml(path)
+    if not isinstance(data, dict):  # named here: from_dict cannot tell which file it was
+        raise ConfigError(
+            f"{shown(path)}: expected a mapping at the top level, got {type(data).__name__}"
+        )
     if overrides:
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: expected a mapping at the top level")
         data = apply_overrides(data, overrides)
     return from_dict(data, base_dir=path.resolve().parent)
 

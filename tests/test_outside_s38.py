@@ -1,0 +1,123 @@
+"""Attacks from outside, session 38: what the docs promise against what the command line and
+the config schema do (every flag, every log argument, every key), and a config file that is
+not a mapping. Each test drives the real parser, schema or CLI."""
+
+from __future__ import annotations
+
+import argparse
+import re
+import typing
+from pathlib import Path
+
+import pytest
+from pydantic import BaseModel
+
+from teleop_rt.cli import _build_parser, main
+from teleop_rt.config import SessionConfig
+from tests.test_cli import assert_one_error_line
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# --- the synopsis of every command ----------------------------------------------------------
+def _synopsis(page: Path) -> dict[str, str]:
+    """Each command's lines of the page's first ``teleop-rt ...`` code block, by command."""
+    block = next(b for b in page.read_text().split("```")[1::2] if "teleop-rt run CONFIG" in b)
+    lines: dict[str, str] = {}
+    command = None
+    for line in block.splitlines():
+        m = re.match(r"teleop-rt (\w+)(.*)", line)
+        if m:
+            command, line = m.group(1), m.group(2)
+        if command:
+            lines[command] = lines.get(command, "") + " " + line
+    return lines
+
+
+def _subcommands() -> dict[str, argparse.ArgumentParser]:
+    parser = _build_parser()
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return dict(action.choices)
+
+
+@pytest.mark.parametrize("page", ["README.md", "docs/usage.md"])
+def test_the_synopsis_names_every_flag_of_each_command_and_no_other(page: str) -> None:
+    synopsis = _synopsis(ROOT / page)
+    commands = _subcommands()
+    assert set(synopsis) == set(commands), page
+    for name, sub in commands.items():
+        shown = set(re.findall(r"(?<![\w-])(--?[a-z][\w-]*)", synopsis[name]))
+        options = [a for a in sub._actions if a.option_strings and a.help != argparse.SUPPRESS]
+        unshown = [a.option_strings for a in options
+                   if not set(a.option_strings) - {"-h", "--help"} & shown
+                   and "-h" not in a.option_strings]  # fmt: skip
+        known = {o for a in sub._actions for o in a.option_strings}
+        assert not unshown, f"{page}: teleop-rt {name}: {unshown} not in the synopsis"
+        assert shown <= known, f"{page}: teleop-rt {name}: {sorted(shown - known)} unknown"
+
+
+@pytest.mark.parametrize("page", ["README.md", "docs/usage.md"])
+def test_a_command_that_takes_two_site_logs_says_so_in_the_synopsis(page: str) -> None:
+    synopsis = _synopsis(ROOT / page)
+    for name, sub in _subcommands().items():
+        many = [a for a in sub._actions if not a.option_strings and a.nargs in ("+", "*")]
+        assert bool(many) == ("HSI.mcap TO.mcap" in synopsis[name]), (page, name)
+
+
+# --- every key of the config ------------------------------------------------------------------
+# where a section's keys are described: configs.md for all, and the pages it sends a section to
+PAGES_BY_SECTION = {
+    "link": ("docs/configs.md", "docs/network.md"),
+    "can": ("docs/can.md", "configs/can_emulated.yaml"),
+}
+
+
+def _models(annotation: object) -> list[type[BaseModel]]:
+    found = [m for a in typing.get_args(annotation) for m in _models(a)]
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        found.append(annotation)
+    return found
+
+
+def _keys(model: type[BaseModel], prefix: str = "") -> list[str]:
+    keys = []
+    for name, field in model.model_fields.items():
+        keys.append(prefix + name)
+        for sub in _models(field.annotation):
+            keys += _keys(sub, f"{prefix}{name}.")
+    return sorted(set(keys))
+
+
+def _described(leaf: str, text: str, page: str) -> bool:
+    """``leaf`` is written as code in the page's prose (a span may wrap) or as a key in its YAML
+    (an example file, or a fenced block of a page)."""
+    key = re.compile(r"\b" + re.escape(leaf) + r":")
+    if page.endswith(".yaml"):
+        return bool(key.search(text))
+    parts = text.split("```")
+    prose, fenced = parts[0::2], parts[1::2]
+    spans = [s for p in prose for s in re.findall(r"`([^`]*)`", p)]  # paired in order
+    word = re.compile(r"\b" + re.escape(leaf) + r"\b")
+    return any(word.search(s) for s in spans) or any(key.search(b) for b in fenced)
+
+
+def test_every_config_key_is_described_where_the_docs_send_a_reader() -> None:
+    missing = []
+    for key in _keys(SessionConfig):
+        pages = PAGES_BY_SECTION.get(key.split(".")[0], ("docs/configs.md",))
+        leaf = key.rsplit(".", 1)[-1]
+        if not any(_described(leaf, (ROOT / p).read_text(), p) for p in pages):
+            missing.append(key)
+    assert not missing, f"config keys described nowhere the docs send a reader: {missing}"
+
+
+# --- a config file that is not a mapping --------------------------------------------------------
+@pytest.mark.parametrize("text", ["- 1\n- 2\n", "just words\n", "42\n"])
+@pytest.mark.parametrize("sets", [[], ["--set", "channel.delay_ms=10"]])
+def test_a_config_that_is_not_a_mapping_is_one_line_naming_the_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], text: str, sets: list[str]
+) -> None:
+    path = tmp_path / "not_a_mapping.yaml"
+    path.write_text(text)
+    assert main(["check", str(path), *sets]) == 2
+    assert_one_error_line(capsys.readouterr().err, str(path), "expected a mapping")
