@@ -8,12 +8,16 @@ import argparse
 import re
 import typing
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 from pydantic import BaseModel
 
 from teleop_rt.cli import _build_parser, main
+from teleop_rt.com import zenoh_link
+from teleop_rt.com.port import HSI, Packet
 from teleop_rt.config import SessionConfig
+from teleop_rt.errors import SafetyStop
 from tests.test_cli import assert_one_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -121,3 +125,30 @@ def test_a_config_that_is_not_a_mapping_is_one_line_naming_the_file(
     path.write_text(text)
     assert main(["check", str(path), *sets]) == 2
     assert_one_error_line(capsys.readouterr().err, str(path), "expected a mapping")
+
+
+# --- a site held off (SIGSTOP) ------------------------------------------------------------------
+def test_a_site_held_off_longer_than_the_peer_timeout_stops_and_says_so(monkeypatch) -> None:
+    """SIGSTOP of a site for 2 s, its peer's packets queued meanwhile: on SIGCONT its loop
+    went on (exit 0 at TDPA with the codec, whose timeout adds a maximum interval of up to
+    10 s), or stopped blaming a peer that had sent all along. Now the own gap is the stop."""
+    pytest.importorskip("zenoh")
+    from tests.test_zenoh_attacks import hsi_link, wire
+
+    link = hsi_link()
+    now = [10**12]
+    monkeypatch.setattr(zenoh_link, "time", SimpleNamespace(monotonic_ns=lambda: now[0]))
+    period, into = round(link.period_ns), Packet(2)
+    try:
+        link.start()
+        for k in range(600):  # ticks 1 ms apart, the TO's packets on time: no stop
+            link.tick[0], now[0] = k, link.start_ns + k * period
+            link._arrive(wire(k), now[0])
+            link.receive(HSI, into)
+        k = 600 + 2000  # held off for 2 s; the TO's packet of that tick arrived first
+        link.tick[0], now[0] = k, link.start_ns + k * period
+        link._arrive(wire(k), now[0])
+        with pytest.raises(SafetyStop, match="this site was held off for 2001 ms between two"):
+            link.receive(HSI, into)
+    finally:
+        link.close()
