@@ -152,3 +152,34 @@ def test_a_site_held_off_longer_than_the_peer_timeout_stops_and_says_so(monkeypa
             link.receive(HSI, into)
     finally:
         link.close()
+
+
+# --- a Zenoh locator that the site would refuse ---------------------------------------------
+@pytest.mark.parametrize(
+    ("locator", "named"),
+    [
+        ("garbage", "not a Zenoh locator"),
+        ("udp/127.0.0.1:99999", "the port must be a whole number 0..65535"),
+        ("tcp/127.0.0.1", "needs HOST:PORT"),
+        ("udp/127.0.0.1:x", "the port must be"),
+    ],
+)
+def test_a_locator_the_site_would_refuse_is_refused_by_check(
+    locator: str, named: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`check` said ok to udp/127.0.0.1:99999; the site then failed to open Zenoh ('invalid
+    port value'), a line naming no key."""
+    code = main(["check", str(ROOT / "configs/stiff_wall.yaml"),
+                 "--set", f"link.zenoh.to.connect=['{locator}']"])  # fmt: skip
+    assert code == 2
+    assert_one_error_line(capsys.readouterr().err, "link.zenoh.to.connect", locator, named)
+
+
+@pytest.mark.parametrize(
+    "locator",
+    ["udp/127.0.0.1:7447", "udp/[::1]:0", "tcp/localhost:7447?iface=lo", "unixsock-stream//tmp/s"],
+)
+def test_a_locator_of_any_valid_form_is_accepted(locator: str) -> None:
+    from teleop_rt.config import ZenohEndpoints
+
+    assert ZenohEndpoints(connect=[locator]).connect == [locator]
