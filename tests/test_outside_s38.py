@@ -183,3 +183,23 @@ def test_a_locator_of_any_valid_form_is_accepted(locator: str) -> None:
     from teleop_rt.config import ZenohEndpoints
 
     assert ZenohEndpoints(connect=[locator]).connect == [locator]
+
+
+# --- a deadband with the codec off ------------------------------------------------------------
+@pytest.mark.parametrize(
+    ("sets", "warned"),
+    [
+        (["channel.deadband.weber_hsi=0.3"], True),  # tuned, codec off: silently unused before
+        (["channel.deadband.exchange_j=1e-4", "channel.mode=tdpa"], True),
+        ([], False),
+        (["channel.codec=deadband", "channel.delay_ms=10", "channel.deadband.weber_hsi=0.3"],
+         False),
+    ],
+)
+def test_a_deadband_without_the_codec_is_a_warning(
+    sets: list[str], warned: bool, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = [a for s in sets for a in ("--set", s)]
+    assert main(["check", str(ROOT / "configs/stiff_wall.yaml"), *args]) == 0
+    err = capsys.readouterr().err
+    assert ("warning: channel.deadband is set but not used" in err) == warned, err
