@@ -521,6 +521,37 @@ class ZenohEndpoints(Strict):
     # crystal does, to show the receivers following it (teleop_rt.com.drift)
     clock_ppm: Annotated[float, Field(ge=-10_000, le=10_000, allow_inf_nan=False)] = 0.0
 
+    @field_validator("listen", "connect")
+    @classmethod
+    def _locators(cls, v: list[str]) -> list[str]:
+        for locator in v:
+            _check_locator(locator)
+        return v
+
+
+# Zenoh's locators over IP (PROTO/HOST:PORT); others (unixsock-stream/PATH, serial/...) are
+# left to Zenoh to judge
+IP_SCHEMES = ("udp", "tcp", "tls", "quic", "ws")
+
+
+def _check_locator(locator: str) -> None:
+    """A locator ``check`` can judge as the site would: else Zenoh refuses it only when the
+    site opens its session ('invalid port value'), after a check that said ok."""
+    scheme, sep, rest = locator.partition("/")
+    if not sep or not scheme or not rest:
+        raise ValueError(f"{locator!r} is not a Zenoh locator (PROTO/ADDRESS, e.g. "
+                         "udp/127.0.0.1:7447)")  # fmt: skip
+    if scheme.lower() not in IP_SCHEMES:
+        return
+    address = rest.split("?", 1)[0].split("#", 1)[0]
+    host, colon, port = address.rpartition(":")
+    if not colon or not host or host == "[]":
+        raise ValueError(
+            f"{locator!r} needs HOST:PORT after {scheme}/ (e.g. {scheme}/127.0.0.1:7447)"
+        )
+    if not (port.isdigit() and int(port) <= 65535):
+        raise ValueError(f"{locator!r}: the port must be a whole number 0..65535, not {port!r}")
+
 
 class TlsFiles(Strict):
     certificate: Path  # PEM, with a subjectAltName matching the endpoint's host name
@@ -1122,9 +1153,11 @@ def load(path: str | Path, overrides: list[str] | None = None) -> SessionConfig:
     """Load, override and validate a session config file."""
     path = Path(path)
     data = read_yaml(path)
+    if not isinstance(data, dict):  # named here: from_dict cannot tell which file it was
+        raise ConfigError(
+            f"{shown(path)}: expected a mapping at the top level, got {type(data).__name__}"
+        )
     if overrides:
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: expected a mapping at the top level")
         data = apply_overrides(data, overrides)
     return from_dict(data, base_dir=path.resolve().parent)
 
