@@ -356,6 +356,7 @@ def _start_within_limits(session) -> None:
 def _print_warnings(session) -> None:
     from teleop_rt.analysis.contact import contact_warnings
     from teleop_rt.cli_sites import insecure_warnings
+    from teleop_rt.config import DeadbandSpec
     from teleop_rt.safety import safety_warnings
 
     cfg = session.cfg
@@ -366,6 +367,11 @@ def _print_warnings(session) -> None:
             f"the config's can section is not used: the backends are {_backends_text(cfg)!r} "
             "(--backend can, or hsi:can / to:can, uses it)"
         )
+    if cfg.channel.codec == "none" and cfg.channel.deadband != DeadbandSpec():
+        # the section is read only with the codec on: a tuned deadband with the codec left off
+        # would otherwise run every tick's packet without a word
+        lines.append("channel.deadband is set but not used: channel.codec is 'none' "
+                     "(--set channel.codec=deadband uses it)")  # fmt: skip
     for line in lines:
         print(f"teleop-rt: warning: {line}", file=sys.stderr)
 

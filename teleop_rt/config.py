@@ -29,14 +29,21 @@ from teleop_rt.declarations import (
     CODEC_RECONSTRUCTIONS,
     DEFAULT_MODE,
     DEFAULT_RECONSTRUCTION,
+    EXCHANGE_J,
+    EXCHANGE_MIN_TICKS,
+    EXCHANGE_WEBER,
+    MAX_CODEC_INTERVAL,
     MAX_DELAY_MS,
+    MIN_CODEC_INTERVAL,
     PLAYOUT_DEFAULT,
+    VELOCITY_GAIN_S_PER_RAD,
     WAVE_DRIFT_TIME_S,
     WAVE_SKIP_TIME_S,
     ChannelMode,
     Playout,
     Reconstruction,
     Space,
+    deadband_problem,
 )
 from teleop_rt.errors import ConfigError, quote
 from teleop_rt.hal.can.config import CanSpec
@@ -57,7 +64,7 @@ MAX_TICKS = 100_000_000  # timing statistics are preallocated per tick (16 bytes
 TickCount = Annotated[int, Field(ge=0, le=MAX_TICKS)]
 MAX_STOP_TICKS = 100_000  # a staged stop that long is no stop (100 s at 1 kHz)
 MAX_SEED = 2**63 - 1
-MAX_CODEC_INTERVAL = 10_000  # ticks: a codec silent longer than 10 s at 1 kHz is a lost peer
+CodecTicks = Annotated[int, Field(ge=MIN_CODEC_INTERVAL, le=MAX_CODEC_INTERVAL)]
 
 
 class Strict(StrictModel):
@@ -158,11 +165,11 @@ class DeadbandSpec(Strict):
     # TO): near zero a relative band alone would send at every sign change
     floor_hsi: NonNegFloat = 0.01
     floor_to: NonNegFloat = 0.01
-    min_interval_ticks: Annotated[int, Field(ge=1, le=MAX_CODEC_INTERVAL)] = 1
-    max_interval_ticks: Annotated[int, Field(ge=1, le=MAX_CODEC_INTERVAL)] = 100
+    min_interval_ticks: CodecTicks = 1
+    max_interval_ticks: CodecTicks = 100
     # velocity-adaptive deadband (Kammerl et al., Presence 2010): the Weber fraction grows
     # with the port's velocity, weber * (1 + gain |omega|); 0 keeps it constant
-    velocity_gain_s_per_rad: NonNegFloat = 0.0
+    velocity_gain_s_per_rad: NonNegFloat = VELOCITY_GAIN_S_PER_RAD
     # how the peer reconstructs a site's signal between its packets: linear extrapolates the
     # last two (Hinterseer et al., IEEE Trans. Signal Process. 56(2), 2008), hold keeps the
     # last one; None: the channel mode's measured best (teleop_rt.com.codec.PREDICTIONS_BY_MODE)
@@ -171,31 +178,26 @@ class DeadbandSpec(Strict):
     # TDPA only: a site also sends once this much energy has crossed its port, in or out, since
     # its last packet (the energy deadband of teleop_rt.com.codec; docs/codec.md measures it at
     # D = 1 ms, where the hold's lag costs felt stiffness); 0: off
-    exchange_j: NonNegFloat = 0.0
+    exchange_j: NonNegFloat = EXCHANGE_J
     # ... and that step grows by this fraction of the energy crossed over the last
     # codec.EXCHANGE_WINDOW_TICKS (Weber's rule on the energy: a steady flow, foam's damping,
     # sends a packet per fraction of the window); 0: the fixed step
-    exchange_weber: NonNegFloat = 0.0
+    exchange_weber: NonNegFloat = EXCHANGE_WEBER
     # ... and it sends no sooner than this many ticks after the last packet (the deadband's
     # own crossings still go out at once; docs/codec.md, "the energy deadband's pace"); 1: off
-    exchange_min_ticks: Annotated[int, Field(ge=1, le=MAX_CODEC_INTERVAL)] = 1
+    exchange_min_ticks: CodecTicks = EXCHANGE_MIN_TICKS
 
     @model_validator(mode="after")
     def _intervals(self) -> DeadbandSpec:
-        if self.min_interval_ticks > self.max_interval_ticks:
-            raise ValueError(
-                f"min_interval_ticks = {self.min_interval_ticks} is above max_interval_ticks "
-                f"= {self.max_interval_ticks}"
+        # (the fields' own bounds are their types; the rules between them are the codec's)
+        for side in ("hsi", "to"):
+            problem = deadband_problem(
+                getattr(self, f"weber_{side}"), getattr(self, f"floor_{side}"),
+                self.min_interval_ticks, self.max_interval_ticks, self.velocity_gain_s_per_rad,
+                self.exchange_j, self.exchange_weber, self.exchange_min_ticks,
             )
-        if self.exchange_weber > 0 and not self.exchange_j > 0:
-            raise ValueError("exchange_weber grows the energy step exchange_j: set exchange_j > 0")
-        if self.exchange_min_ticks > 1 and not self.exchange_j > 0:
-            raise ValueError(
-                "exchange_min_ticks paces the energy step exchange_j: set exchange_j > 0"
-            )
-        if self.exchange_min_ticks > self.max_interval_ticks:
-            raise ValueError(f"exchange_min_ticks = {self.exchange_min_ticks} is above "
-                             f"max_interval_ticks = {self.max_interval_ticks}")
+            if problem:
+                raise ValueError(problem)
         return self
 
 
@@ -228,6 +230,10 @@ class ChannelSpec(Strict):
     # loss's with wave_drift_time_s; None (the default): one debt (docs/transparency_under_loss.md,
     # "s37": 2 s meets the foam sawtooth row, costs T_p under jitter)
     wave_skip_time_s: PositiveFloat | None = WAVE_SKIP_TIME_S
+    # the wave impedance scheduled by the delay each port measures (a packet's age): b D / age,
+    # between WAVE_B_FLOOR b and b, rate-limited (teleop_rt.com.port.schedule_b); off, the
+    # default: b as configured (docs/transparency_under_loss.md, "s38")
+    wave_impedance_schedule: bool = False
     # TDPA's position-drift compensation: the TO moves toward the HSI's position with this
     # time constant, within what its passivity controller allows (better T_p, worse T_tau:
     # docs/passivity.md). None, the default, switches it off.
@@ -515,6 +521,37 @@ class ZenohEndpoints(Strict):
     # crystal does, to show the receivers following it (teleop_rt.com.drift)
     clock_ppm: Annotated[float, Field(ge=-10_000, le=10_000, allow_inf_nan=False)] = 0.0
 
+    @field_validator("listen", "connect")
+    @classmethod
+    def _locators(cls, v: list[str]) -> list[str]:
+        for locator in v:
+            _check_locator(locator)
+        return v
+
+
+# Zenoh's locators over IP (PROTO/HOST:PORT); others (unixsock-stream/PATH, serial/...) are
+# left to Zenoh to judge
+IP_SCHEMES = ("udp", "tcp", "tls", "quic", "ws")
+
+
+def _check_locator(locator: str) -> None:
+    """A locator ``check`` can judge as the site would: else Zenoh refuses it only when the
+    site opens its session ('invalid port value'), after a check that said ok."""
+    scheme, sep, rest = locator.partition("/")
+    if not sep or not scheme or not rest:
+        raise ValueError(f"{locator!r} is not a Zenoh locator (PROTO/ADDRESS, e.g. "
+                         "udp/127.0.0.1:7447)")  # fmt: skip
+    if scheme.lower() not in IP_SCHEMES:
+        return
+    address = rest.split("?", 1)[0].split("#", 1)[0]
+    host, colon, port = address.rpartition(":")
+    if not colon or not host or host == "[]":
+        raise ValueError(
+            f"{locator!r} needs HOST:PORT after {scheme}/ (e.g. {scheme}/127.0.0.1:7447)"
+        )
+    if not (port.isdigit() and int(port) <= 65535):
+        raise ValueError(f"{locator!r}: the port must be a whole number 0..65535, not {port!r}")
+
 
 class TlsFiles(Strict):
     certificate: Path  # PEM, with a subjectAltName matching the endpoint's host name
@@ -787,6 +824,22 @@ class SessionConfig(Strict):
             raise ValueError(
                 "mapping.posture_rad: the posture acts with mapping.posture_gain_per_s > 0 "
                 "(its gain k_p, 1/s; 0 turns the posture task off)"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _impedance_schedule_needs_its_correction(self) -> SessionConfig:
+        # the schedule's b, moving, drifts the TO off the HSI; its correction rides on the
+        # drift correction of corrected/reflected, and the deadband codec's held ticks would
+        # read as aged packets (teleop_rt.com.port.schedule_b)
+        c = self.channel
+        if c.wave_impedance_schedule and (
+            c.mode != "wave" or c.wave_reconstruction not in ("corrected", "reflected")
+            or c.codec != "none"
+        ):
+            raise ValueError(
+                "channel.wave_impedance_schedule needs channel.mode wave with "
+                "wave_reconstruction corrected or reflected and codec none"
             )
         return self
 
@@ -1100,9 +1153,11 @@ def load(path: str | Path, overrides: list[str] | None = None) -> SessionConfig:
     """Load, override and validate a session config file."""
     path = Path(path)
     data = read_yaml(path)
+    if not isinstance(data, dict):  # named here: from_dict cannot tell which file it was
+        raise ConfigError(
+            f"{shown(path)}: expected a mapping at the top level, got {type(data).__name__}"
+        )
     if overrides:
-        if not isinstance(data, dict):
-            raise ConfigError(f"{path}: expected a mapping at the top level")
         data = apply_overrides(data, overrides)
     return from_dict(data, base_dir=path.resolve().parent)
 

@@ -38,6 +38,54 @@ WAVE_DRIFT_TIME_S = 0.25
 # constant of its own, s (channel.wave_skip_time_s; None, the default: one debt): 2 s meets the
 # foam sawtooth row but costs T_p and drift under jitter (docs/transparency_under_loss.md, "s37")
 WAVE_SKIP_TIME_S: float | None = None
+# the wave impedance scheduled by the delay (channel.wave_impedance_schedule, off by default;
+# teleop_rt.com.port.schedule_b): b = b_0 D / age of the packet used, between this share of b_0
+# and b_0, moving by at most WAVE_B_RATE b_0 per second (docs/transparency_under_loss.md, "s38")
+WAVE_B_FLOOR, WAVE_B_RATE = 0.125, 0.5
+# ... and the TO's position correction of the drift it causes stays on this long, s, after b
+# is back at b_0
+WAVE_B_HOLD_S = 1.0
+
+# --- the deadband codec (teleop_rt.com.codec; channel.deadband) --------------------------------
+# the ticks between two packets a codec sends (min_interval_ticks, max_interval_ticks) and the
+# energy deadband's pace (exchange_min_ticks) lie in this range: 1, a packet may go every tick;
+# a codec silent longer than 10 s at 1 kHz is a lost peer
+MIN_CODEC_INTERVAL, MAX_CODEC_INTERVAL = 1, 10_000
+# the codec's options, off by default: the velocity-adaptive Weber fraction's gain, s/rad;
+# TDPA's energy deadband step, J, its Weber fraction and its pace, ticks (1: sends at once)
+VELOCITY_GAIN_S_PER_RAD = 0.0
+EXCHANGE_J = 0.0
+EXCHANGE_WEBER = 0.0
+EXCHANGE_MIN_TICKS = MIN_CODEC_INTERVAL
+
+
+def deadband_problem(
+    weber: float, floor: float, min_ticks: int, max_ticks: int, velocity_gain: float,
+    exchange_j: float, exchange_weber: float, exchange_min_ticks: int,
+) -> str | None:  # fmt: skip
+    """The first rule the deadband codec's parameters break, as one line in the config's names
+    (channel.deadband), or None: the config's check and ``codec.configure`` (which tests and
+    tools call without a config) both ask this."""
+    if not (0.0 < weber < 1.0 and floor >= 0.0 and velocity_gain >= 0.0):
+        return "the deadband needs 0 < weber < 1, floor >= 0, velocity_gain_s_per_rad >= 0"
+    ticks = (("min_interval_ticks", min_ticks), ("max_interval_ticks", max_ticks),
+             ("exchange_min_ticks", exchange_min_ticks))  # fmt: skip
+    for name, value in ticks:
+        if not MIN_CODEC_INTERVAL <= value <= MAX_CODEC_INTERVAL:
+            return f"{name} = {value} is not in {MIN_CODEC_INTERVAL} .. {MAX_CODEC_INTERVAL}"
+    if min_ticks > max_ticks:
+        return f"min_interval_ticks = {min_ticks} is above max_interval_ticks = {max_ticks}"
+    if not (exchange_j >= 0.0 and exchange_weber >= 0.0):
+        return "exchange_j and exchange_weber are >= 0"
+    if exchange_weber > 0 and not exchange_j > 0:
+        return "exchange_weber grows the energy step exchange_j: set exchange_j > 0"
+    if exchange_min_ticks > EXCHANGE_MIN_TICKS and not exchange_j > 0:
+        return "exchange_min_ticks paces the energy step exchange_j: set exchange_j > 0"
+    if exchange_min_ticks > max_ticks:
+        return (f"exchange_min_ticks = {exchange_min_ticks} is above max_interval_ticks = "
+                f"{max_ticks}")  # fmt: skip
+    return None
+
 
 # what the channel couples (channel.space; teleop_rt.mapping): joint j to joint j, or the tools
 # in task space, each robot through its own Jacobian: the plane (x, y), 3-D position (x, y, z),

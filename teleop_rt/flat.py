@@ -61,11 +61,13 @@ def _kernel_cache_dir() -> Path:
 numba.config.CACHE_DIR = str(_kernel_cache_dir())  # type: ignore[attr-defined]
 # processes that start together compile one at a time (numba's cache is not safe otherwise)
 COMPILE_LOCK = CompileLock(Path(numba.config.CACHE_DIR))  # type: ignore[attr-defined]
-_njit = numba.njit(cache=True, nogil=True)
+# (a folder that cannot be written: not cached at all, rather than in numba's fallback folders,
+# which the hash does not key; COMPILE_LOCK says so at the first compilation)
+_njit = numba.njit(cache=COMPILE_LOCK.caches, nogil=True)
 # for the small helpers that slice the buffers: inlined where they are called, which saves the
 # call (about a third of a slice's cost here); the view itself still costs tens of ns for its
 # reference counting, which is why the plant's kernels index by offset instead
-_njit_inline = numba.njit(cache=True, nogil=True, inline="always")
+_njit_inline = numba.njit(cache=COMPILE_LOCK.caches, nogil=True, inline="always")
 
 
 def jit(func: Callable[..., Any]) -> Any:

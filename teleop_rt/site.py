@@ -510,7 +510,8 @@ def port_for(cfg: SessionConfig, n: int, side: int) -> Port:
     b = per_joint(ch.wave_impedance, n, "channel.wave_impedance")
     port = make_port(side, ch.mode, b, cfg.delay_ticks, cfg.dt, ch.wave_filter_hz,
                      ch.wave_reconstruction, ch.tdpa_drift_time_s,
-                     ch.wave_drift_time_s, ch.wave_skip_time_s)  # fmt: skip
+                     ch.wave_drift_time_s, ch.wave_skip_time_s,
+                     ch.wave_impedance_schedule)  # fmt: skip
     if ch.codec != "none":
         db, own = ch.deadband, "hsi" if side == HSI else "to"
         of_hsi, of_to = codec.predictions(ch.mode, db.prediction_hsi, db.prediction_to)

@@ -6,6 +6,7 @@ cannot be passive, and that the links carry nothing for a tick it does not send.
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 import sys
@@ -23,7 +24,7 @@ from teleop_rt.com.channel import TwoPort, make_port, make_ports
 from teleop_rt.com.codec import codec_receive, codec_send
 from teleop_rt.com.port import HSI, TO, Packet, port_input, port_step
 from teleop_rt.com.zenoh_link import HandshakeError, ZenohLink, _first_difference
-from teleop_rt.declarations import CODEC_RECONSTRUCTION, CODEC_RECONSTRUCTIONS
+from teleop_rt.declarations import CODEC_RECONSTRUCTION, CODEC_RECONSTRUCTIONS, MAX_CODEC_INTERVAL
 from teleop_rt.errors import ConfigError
 from teleop_rt.session import Session
 from tests.conftest import CONFIGS
@@ -476,6 +477,41 @@ def test_a_codec_that_cannot_be_passive_is_refused(sets: list[str], words: str) 
                     ["channel.delay_ms=20", "channel.codec=deadband", *sets])  # fmt: skip
     assert words in str(err.value)
     assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "sets",
+    [{"max_interval_ticks": MAX_CODEC_INTERVAL + 1},
+     {"min_interval_ticks": 0},
+     {"min_interval_ticks": 5, "max_interval_ticks": 2},
+     {"exchange_j": 1e-5, "exchange_min_ticks": 101},
+     {"exchange_min_ticks": 3},
+     {"exchange_weber": 0.05},
+     {"exchange_j": -1.0},
+     {"weber_hsi": 1.0, "weber_to": 1.0},
+     {"velocity_gain_s_per_rad": -0.1}],
+)  # fmt: skip
+def test_the_codec_takes_the_config_s_defaults_and_refuses_what_it_refuses(sets: dict) -> None:
+    """The deadband's defaults and rules are declared once (teleop_rt.declarations):
+    ``codec.configure``, called by tools and tests without a config, defaults to the config's
+    values and refuses in one line what ``channel.deadband`` refuses (before, it took any
+    max_interval_ticks above the config's 10 000)."""
+    spec = config.DeadbandSpec()
+    defaults = inspect.signature(codec.configure).parameters
+    for arg, key in (("velocity_gain", "velocity_gain_s_per_rad"), ("exchange_j", "exchange_j"),
+                     ("exchange_weber", "exchange_weber"),
+                     ("exchange_min_ticks", "exchange_min_ticks")):  # fmt: skip
+        assert defaults[arg].default == getattr(spec, key), arg
+    with pytest.raises(ConfigError) as err:
+        config.load(CONFIGS / "stiff_wall.yaml", ["channel.delay_ms=20", "channel.codec=deadband",
+                    "channel.mode=tdpa", *(f"channel.deadband.{k}={v}" for k, v in sets.items())])
+    assert "\n" not in str(err.value)
+    d = {**spec.model_dump(), **sets}
+    port = make_port(TO, "tdpa", [1.5], 20, 1e-3, None)
+    with pytest.raises(ValueError, match="^the deadband codec: [^\n]+$"):
+        codec.configure(port, d["weber_to"], d["floor_to"], d["min_interval_ticks"],
+                        d["max_interval_ticks"], d["velocity_gain_s_per_rad"], "hold", "hold",
+                        d["exchange_j"], d["exchange_weber"], d["exchange_min_ticks"])  # fmt: skip
 
 
 def test_a_codec_mismatch_between_the_sites_is_a_refusal_naming_it() -> None:

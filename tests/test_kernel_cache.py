@@ -6,13 +6,17 @@ The race itself is not deterministic (it failed now and then, never on demand), 
 test checks the property that prevents it directly: a process that compiles while another holds
 the cache's lock blocks on that lock (seen in /proc/locks) until it is released. The second runs
 the two sites' warm-ups at once from an empty cache: both succeed, and one waited for the other.
+A cache that cannot be written (no folder, a read-only one, a write beyond RLIMIT_FSIZE) is one
+note per start and an uncached kernel: no traceback, no cache in numba's unkeyed fallbacks.
 """
 
 from __future__ import annotations
 
+import ctypes
 import fcntl
 import json
 import os
+import resource
 import subprocess
 import sys
 import time
@@ -21,7 +25,7 @@ from pathlib import Path
 import pytest
 
 from teleop_rt.flat import _source_hash
-from teleop_rt.kernel_lock import LOCK_NAME
+from teleop_rt.kernel_lock import LOCK_NAME, UNCACHED_COST
 from tests.conftest import CONFIGS
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,6 +47,45 @@ def plus_one(x):
 y = plus_one(twice(np.float64(1.0)))  # two kernels: two compilations, each takes the lock
 print(json.dumps({"y": float(y), "waited": COMPILE_LOCK.waited}))
 """
+
+CACHED = """
+import json
+import numpy as np
+from teleop_rt.flat import jit
+
+@jit
+def twice(x):
+    return 2.0 * x
+
+y = twice(np.float64(1.0))
+
+@jit  # decorated after a compilation (a module imported late): after a failed write too
+def plus_one(x):
+    return x + 1.0
+
+y = plus_one(y)
+hits = sum(twice.stats.cache_hits.values()) + sum(plus_one.stats.cache_hits.values())
+print(json.dumps({"y": float(y), "hits": hits}))
+"""
+NO_NAMESPACE = 77  # the child's exit status when it cannot have a mount namespace of its own
+
+
+def read_only(folder: Path):
+    """A preexec for a child that sees ``folder`` read-only, root included (its own mount
+    namespace, private: the host's mounts are untouched); NO_NAMESPACE if refused."""
+    path = str(folder).encode()
+    ms_rdonly, ms_remount, ms_bind, ms_rec, ms_private = 1, 32, 4096, 16384, 1 << 18
+
+    def preexec() -> None:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if (libc.unshare(0x00020000) != 0  # CLONE_NEWNS
+                or libc.mount(b"none", b"/", None, ms_rec | ms_private, None) != 0
+                or libc.mount(path, path, None, ms_bind, None) != 0
+                or libc.mount(b"none", path, None, ms_remount | ms_bind | ms_rdonly, None) != 0):
+            os._exit(NO_NAMESPACE)
+
+    return preexec
+
 
 WARM_UP = """
 import json, os, sys, time
@@ -123,19 +166,62 @@ def test_a_long_wait_for_the_lock_is_a_note_naming_the_holder(tmp_path: Path) ->
     assert notes[0].startswith("teleop-rt: note: waiting") and f"pid {os.getpid()}" in notes[0]
 
 
-def test_an_unusable_cache_folder_is_one_note_and_the_kernel_still_runs(tmp_path: Path) -> None:
-    """No lock file can be made (a file where the folder should be; read-only for root too):
-    one note on stderr, and numba compiles on its own fallback."""
-    cache = tmp_path / "cache"
-    cache.write_text("not a folder")
-    script = tmp_path / "kernel.py"
-    script.write_text(KERNEL)
-    run = subprocess.run([sys.executable, str(script)], env=env_with_cache(cache),
-                         capture_output=True, text=True, timeout=TIMEOUT_S)  # fmt: skip
+def uncached_runs(tmp_path: Path, why: str, preexec=None) -> None:
+    """CACHED run against the (fresh) folder tmp_path / "cache" that cannot be written
+    (``preexec`` makes it so in the child): it compiles and runs its kernel, writes no cache
+    anywhere (numba's fallback was a __pycache__ by the script, not keyed by the sources), so
+    the next start compiles again, and says so in one line on stderr naming the folder and
+    ``why``."""
+    script = tmp_path / "kernel.py"  # a file: numba caches only kernels with a source file
+    script.write_text(CACHED)
+    folder = tmp_path / "cache" / _source_hash()
+    run = subprocess.run([sys.executable, str(script)], env=env_with_cache(tmp_path / "cache"),
+                         capture_output=True, text=True, timeout=TIMEOUT_S,
+                         preexec_fn=preexec)  # fmt: skip
+    if run.returncode == NO_NAMESPACE:
+        pytest.skip("no mount namespace here (unshare refused)")
     assert run.returncode == 0, run.stderr
-    assert json.loads(run.stdout) == {"y": 3.0, "waited": 0}
-    notes = [line for line in run.stderr.splitlines() if "cache lock" in line]
-    assert len(notes) == 1 and notes[0].startswith("teleop-rt: note: "), run.stderr
+    assert json.loads(run.stdout) == {"y": 3.0, "hits": 0}
+    assert run.stderr.splitlines() == [
+        f"teleop-rt: note: the kernel cache {folder} cannot be written ({why}): every start "
+        f"compiles the kernels again ({UNCACHED_COST}); NUMBA_CACHE_DIR moves it"
+    ], run.stderr
+    assert not list(tmp_path.rglob("*.nb*"))
+
+
+def test_an_unusable_cache_folder_is_one_note_and_the_kernel_still_runs(tmp_path: Path) -> None:
+    """No folder can be made (a file where it should be; unwritable for root too): one note on
+    stderr (no lock is needed: nothing is written), the kernel compiled and run uncached (numba
+    cached it by the script instead, unkeyed, and only the lock said anything)."""
+    (tmp_path / "cache").write_text("not a folder")
+    uncached_runs(tmp_path, "Not a directory")
+
+
+def test_a_read_only_cache_folder_is_one_note_and_nothing_is_cached_elsewhere(
+    tmp_path: Path,
+) -> None:  # fmt: skip
+    """A read-only folder (for root: bind-mounted read-only in the child's own mount namespace;
+    else its mode): the start compiles, caches nowhere else and says so, once."""
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    if os.geteuid() != 0:
+        cache.chmod(0o555)
+        uncached_runs(tmp_path, "Permission denied")
+    else:
+        uncached_runs(tmp_path, "Read-only file system", read_only(cache))
+
+
+def test_a_cache_write_beyond_the_file_size_limit_is_one_note_not_a_traceback(
+    tmp_path: Path,
+) -> None:  # fmt: skip
+    """RLIMIT_FSIZE (as a full disk: the folder probes fine, the write fails): numba raised
+    "OSError: [Errno 27] File too large" out of the first compilation, a traceback; now the
+    kernel runs uncached and the start says so once."""
+
+    def limited() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (1024, 1024))
+
+    uncached_runs(tmp_path, "File too large", limited)
 
 
 def test_two_sites_warming_up_at_once_from_an_empty_cache_both_succeed(tmp_path: Path) -> None:

@@ -7,8 +7,12 @@ decoder."""
 
 from __future__ import annotations
 
+import os
 import struct
+import subprocess
+import sys
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -237,3 +241,21 @@ def test_encode_and_decode_allocate_nothing_they_keep() -> None:
         one()
     assert net_blocks(one, 10_000) < 100
     assert decoder.counts[OK] == 10_100
+
+
+def test_a_decoder_binds_no_encoder() -> None:
+    """A decoder's buffer only holds what arrived: a process that only decodes (a packet of the
+    independent struct writer, accepted) never loads the encoder, which a bound one did
+    (0.2-0.8 s from the on-disk cache on this host); encoding into it is one clear error."""
+    if not hasattr(wire._encode, "overloads"):
+        pytest.skip("NUMBA_DISABLE_JIT: no kernel to load")
+    raw = struct_layout(packet(2), 7, 0, SENDER).hex()
+    code = ("import sys; from teleop_rt.com import wire; from teleop_rt.com.port import Packet\n"
+            f"d = wire.Decoder(2, {SENDER}); status = d.decode(bytes.fromhex('{raw}'), 7, "
+            "Packet(2))\nprint(status, len(wire._encode.overloads))")  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=600)  # fmt: skip
+    assert out.stdout.split() == [str(OK), "0"], out.stderr
+    with pytest.raises(ValueError, match="this wire buffer is a decoder's"):
+        encode_into(Decoder(2, SENDER)._rx, packet(2), 7, 0, SENDER)

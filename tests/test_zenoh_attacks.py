@@ -298,9 +298,9 @@ def test_a_forged_jump_of_the_sequence_never_stales_the_genuine_packets() -> Non
     assert rx.arrive(100, wire(100, side=HSI)) != 0 and not rx.fresh  # reflected: side
 
 
-@pytest.fixture
-def link():
-    """A HSI's link on a free loopback port, its receiver set as the handshake sets it."""
+def hsi_link() -> ZenohLink:
+    """A HSI's link on a free loopback port, its receiver set as the handshake sets it (its
+    tick: ``link.tick[0]``; close it)."""
     at = f"udp/127.0.0.1:{free_port()}"
     cfg = config.load(PAPER, ["channel.delay_ms=20", f"link.zenoh.hsi.listen=[{at}]",
                               f"link.zenoh.to.connect=[{at}]"])  # fmt: skip
@@ -309,7 +309,13 @@ def link():
     zl.session_id = SID
     zl.receiver = Receiver(2, cfg.delay_ticks, SID, TO)
     zl.drift = DriftFollower(zl.receiver.playout, cfg.link.max_drift_ppm)
-    zl.tick = tick
+    zl.tick = tick  # type: ignore[attr-defined]
+    return zl
+
+
+@pytest.fixture
+def link():
+    zl = hsi_link()
     yield zl
     zl.close()
 
@@ -343,7 +349,7 @@ def test_the_peer_timeout_counts_after_a_start_up_grace(link, monkeypatch) -> No
     monkeypatch.setattr(zenoh_link, "time", SimpleNamespace(monotonic_ns=lambda: now[0]))
     into = Packet(2)
     link.start()
-    for ms in (200, 500):  # 200 ms of nothing, then the grace's last instant: within it
+    for ms in range(1, 501):  # a tick a ms of nothing, to the grace's last instant: within it
         now[0] = link.start_ns + ms * 1_000_000
         link.receive(HSI, into)
     now[0] += 1_000_000

@@ -145,25 +145,26 @@ def make_port(
     side: int, mode: ChannelMode, wave_impedance: list[float], delay_ticks: int, dt: float,
     filter_hz: float | None, reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION,
     drift_time_s: float | None = None, wave_drift_time_s: float = WAVE_DRIFT_TIME_S,
-    wave_skip_time_s: float | None = WAVE_SKIP_TIME_S,
+    wave_skip_time_s: float | None = WAVE_SKIP_TIME_S, wave_impedance_schedule: bool = False,
 ) -> Port:  # fmt: skip
     """Site ``side``'s port of a channel of ``mode`` ('wave', 'tdpa' or 'direct'; a wave
     channel's ``reconstruction`` of missing waves: 'bounded', 'corrected', 'reflected', 'zero',
     'hold' or 'integral'; TDPA's drift compensation time constant, None: off; the wave
     integral's pay-back time constant of 'corrected' and 'reflected', and that of the part a
-    change of the delay brought under the newest playout)."""
+    change of the delay brought under the newest playout; the wave impedance scheduled by
+    the delay, ``teleop_rt.com.port.schedule_b``)."""
     return Port(side, wave_impedance, delay_ticks, dt, MODES[mode], filter_hz,
                 RECONSTRUCTIONS[reconstruction], drift_time_s, wave_drift_time_s,
-                wave_skip_time_s)  # fmt: skip
+                wave_skip_time_s, wave_impedance_schedule)  # fmt: skip
 
 
 def make_ports(
     mode: ChannelMode, wave_impedance: list[float], delay_ticks: int, dt: float,
     filter_hz: float | None, reconstruction: Reconstruction = DEFAULT_RECONSTRUCTION,
     drift_time_s: float | None = None, wave_drift_time_s: float = WAVE_DRIFT_TIME_S,
-    wave_skip_time_s: float | None = WAVE_SKIP_TIME_S,
+    wave_skip_time_s: float | None = WAVE_SKIP_TIME_S, wave_impedance_schedule: bool = False,
 ) -> tuple[Port, Port]:  # fmt: skip
     """The HSI's and the TO's port of a channel of ``mode`` (a two-port in one object)."""
     args = (mode, wave_impedance, delay_ticks, dt, filter_hz, reconstruction, drift_time_s,
-            wave_drift_time_s, wave_skip_time_s)  # fmt: skip
+            wave_drift_time_s, wave_skip_time_s, wave_impedance_schedule)  # fmt: skip
     return make_port(HSI, *args), make_port(TO, *args)

@@ -103,7 +103,14 @@ import numpy as np
 
 from teleop_rt.com.link import LF, LI, InProcessLink, entry_size, packet_floats
 from teleop_rt.com.port import WAVE, Packet, Port
-from teleop_rt.declarations import REFLECTED
+from teleop_rt.declarations import (
+    EXCHANGE_J,
+    EXCHANGE_MIN_TICKS,
+    EXCHANGE_WEBER,
+    REFLECTED,
+    VELOCITY_GAIN_S_PER_RAD,
+    deadband_problem,
+)
 from teleop_rt.flat import jit
 
 NONE, DEADBAND = 0, 1
@@ -143,8 +150,10 @@ PREDICTIONS_BY_MODE = {"wave": ("linear", "hold"), "tdpa": ("hold", "linear")}
 
 def configure(
     port: Port, weber: float, floor: float, min_ticks: int, max_ticks: int,
-    velocity_gain: float = 0.0, prediction: str = "linear", peer_prediction: str | None = None,
-    exchange_j: float = 0.0, exchange_weber: float = 0.0, exchange_min_ticks: int = 1,
+    velocity_gain: float = VELOCITY_GAIN_S_PER_RAD, prediction: str = "linear",
+    peer_prediction: str | None = None,
+    exchange_j: float = EXCHANGE_J, exchange_weber: float = EXCHANGE_WEBER,
+    exchange_min_ticks: int = EXCHANGE_MIN_TICKS,
 ) -> None:  # fmt: skip
     """Switch the deadband codec on at ``port`` (its own signal's Weber fraction and floor;
     ``prediction``: how the peer reconstructs this port's packets between them, 'linear' or
@@ -152,16 +161,13 @@ def configure(
     peer_prediction = prediction if peer_prediction is None else peer_prediction
     if prediction not in PREDICTIONS or peer_prediction not in PREDICTIONS:
         raise ValueError(f"the codec's prediction is one of {sorted(PREDICTIONS)}")
-    if not 0.0 < weber < 1.0 or floor < 0.0 or velocity_gain < 0.0:
-        raise ValueError("the deadband needs 0 < weber < 1, floor >= 0, velocity_gain >= 0")
-    if not exchange_j >= 0.0 or (exchange_j > 0.0 and int(port.mode) == WAVE):
-        raise ValueError("the codec's exchange_j is >= 0 J, and only for TDPA")
-    if not exchange_weber >= 0.0 or (exchange_weber > 0.0 and not exchange_j > 0.0):
-        raise ValueError("the codec's exchange_weber is >= 0, and needs exchange_j > 0")
-    if not 1 <= exchange_min_ticks <= max_ticks or (exchange_min_ticks > 1 and not exchange_j > 0):
-        raise ValueError("the codec's exchange_min_ticks is 1 .. max_ticks; > 1 needs exchange_j")
-    if not 1 <= min_ticks <= max_ticks:
-        raise ValueError("the codec's intervals need 1 <= min_ticks <= max_ticks")
+    # (called without a config too: the rules, and their numbers, are the config's own)
+    problem = deadband_problem(weber, floor, min_ticks, max_ticks, velocity_gain, exchange_j,
+                               exchange_weber, exchange_min_ticks)  # fmt: skip
+    if problem:
+        raise ValueError(f"the deadband codec: {problem}")
+    if exchange_j > 0.0 and int(port.mode) == WAVE:
+        raise ValueError("the codec's exchange_j is only for TDPA")
     if port.delay_ticks < 1:
         raise ValueError("the codec needs a delay of at least one tick")
     port.codec = DEADBAND

@@ -13,7 +13,7 @@ import numpy as np
 
 from teleop_rt.com.codec import codec_line_ahead, codec_receive, codec_send
 from teleop_rt.com.link import link_deliver
-from teleop_rt.com.port import HSI, TO, port_step
+from teleop_rt.com.port import HSI, TO, Packet, Port, port_step
 from teleop_rt.flat import jit
 
 
@@ -24,6 +24,7 @@ def port_stage(
 ) -> None:  # fmt: skip
     """The port (eq 9, 10) on the packet received, between the codec's receive and send
     (``teleop_rt.com.codec``; idle without one)."""
+    port_i[Port.idx.NOW_TICK] = tx_i[Packet.idx.TICK]  # (a packet's age: the delay schedule)
     codec_receive(port, port_i, n, rx, rx_i)
     port_step(port, port_i, n, rx, rx_i, tx)
     codec_send(port, port_i, n, tx, tx_i)

@@ -111,6 +111,9 @@ from teleop_rt.declarations import (
     REFLECTED,
     TDPA,
     WAVE,
+    WAVE_B_FLOOR,
+    WAVE_B_HOLD_S,
+    WAVE_B_RATE,
     WAVE_DRIFT_TIME_S,
     WAVE_SKIP_TIME_S,
     ZERO,
@@ -148,6 +151,12 @@ class Port(Block):
     b = Vector("wave impedance per joint, N m s/rad", param=True)
     sqrt_2b = Vector(param=True)
     sqrt_2_over_b = Vector(param=True)
+    b_now = Vector("the wave impedance in use, N m s/rad: ``b`` unless scheduled by the delay "
+                   "(``schedule_b``)")
+    sqrt_2b_now = Vector()
+    sqrt_2_over_b_now = Vector()
+    pos_ref = Vector("the TO's position offset from the HSI's when b left b_0 (the correction "
+                     "removes only what the schedule added to it)")
     flow = Vector("omega: the HSI's input (omega_c), the TO's output (omega_t), rad/s")
     effort = Vector("tau: the HSI's output (tau_c), the TO's input (tau_t), N m")
     wave_out = Vector("the wave this port sends: u_l (HSI), v_r (TO)")
@@ -185,8 +194,18 @@ class Port(Block):
     wave_drift_rate = Scalar("``corrected``: 1 / wave_drift_time_s, 1/s", param=True)
     skip_rate = Scalar("``corrected``: 1 / wave_skip_time_s, the skip debt's rate, 1/s (0: "
                        "off, one debt at wave_drift_rate)", param=True)
+    b_floor = Scalar("the scheduled b's floor, a share of ``b``", param=True)
+    b_rate = Scalar("the scheduled b moves by at most this share of ``b`` per second, 1/s",
+                    param=True)  # fmt: skip
     dt = Scalar(param=True)
     side = Int("HSI or TO", param=True)
+    b_schedule = Int("1: b scheduled by the age of the packets used (``schedule_b``)", param=True)
+    now_tick = Int("this site's tick (set by the port stage: a packet's age is this minus its "
+                   "sender tick)")
+    age_floor = Int("the least age of a packet used so far, ticks (the path's own delay: the "
+                    "schedule's reference; -1 none yet)")
+    b_moved = Int("ticks left of the TO's position correction after b last differed from b_0")
+    b_hold_ticks = Int("the correction stays on this long after b is back at b_0", param=True)
     mode = Int("DIRECT, WAVE or TDPA", param=True)
     delay_ticks = Int("nominal one-way delay; 0 couples directly", param=True)
     filtered = Int("1: received waves are low-passed", param=True)
@@ -260,6 +279,9 @@ class Port(Block):
         drift_time_s: float | None = None,
         wave_drift_time_s: float = WAVE_DRIFT_TIME_S,
         wave_skip_time_s: float | None = WAVE_SKIP_TIME_S,
+        wave_impedance_schedule: bool = False,
+        b_floor: float = WAVE_B_FLOOR,
+        b_rate: float = WAVE_B_RATE,
     ) -> None:
         b = [float(x) for x in wave_impedance]
         if mode == WAVE and any(not x > 0 for x in b):
@@ -284,6 +306,14 @@ class Port(Block):
             self.b[:] = b
             self.sqrt_2b[:] = [math.sqrt(2.0 * x) for x in b]
             self.sqrt_2_over_b[:] = [math.sqrt(2.0 / x) for x in b]
+            self.b_now[:], self.sqrt_2b_now[:] = self.b, self.sqrt_2b
+            self.sqrt_2_over_b_now[:] = self.sqrt_2_over_b
+        if not 0.0 < b_floor <= 1.0 or not b_rate > 0.0:
+            raise ValueError("the scheduled b's floor must be in (0, 1] of b, its rate > 0")
+        # (only a wave channel over a delay has waves to schedule)
+        self.b_schedule = int(bool(wave_impedance_schedule) and mode == WAVE and delay_ticks > 0)
+        self.b_floor, self.b_rate = b_floor, b_rate
+        self.b_hold_ticks, self.age_floor = round(WAVE_B_HOLD_S / dt), -1
         # the filter acts on received waves; with no delay there are none (direct coupling)
         self.filter_hz = filter_hz if delay_ticks > 0 and mode == WAVE else None
         self.filtered = int(self.filter_hz is not None)
@@ -408,10 +438,27 @@ def wave_step(
     alpha, filtered, dt = f[s + Pt.ALPHA], i[Pt.FILTERED] != 0, f[s + Pt.DT]
     half_dt = 0.5 * dt
     flow, effort = vec(f, Pt.FLOW, n), vec(f, Pt.EFFORT, n)
-    b, s2b, s2ob = vec(f, Pt.B, n), vec(f, Pt.SQRT_2B, n), vec(f, Pt.SQRT_2_OVER_B, n)
     w_in, w_out, received = vec(f, Pt.WAVE_IN, n), vec(f, Pt.WAVE_OUT, n), vec(rx, Pk.WAVE, n)
     held = vec(f, Pt.HELD, n)
     hsi, how, valid = i[Pt.SIDE] == HSI, i[Pt.RECONSTRUCTION], rx_i[Pk.VALID] != 0
+    scheduled = i[Pt.B_SCHEDULE] != 0
+    if scheduled:  # b scheduled by the delay: the transform at this tick's b
+        schedule_b(f, i, n, rx_i)
+        if not hsi:  # the position correction's window: while b is off b_0, and a while after
+            moved = False
+            for j in range(n):
+                moved = moved or f[Pt.B_NOW * n + j] != f[Pt.B * n + j]
+            if moved:
+                if i[Pt.B_MOVED] == 0:
+                    for j in range(n):
+                        f[Pt.POS_REF * n + j] = f[Pt.PEER_X_SUM * n + j] - f[Pt.OUT_SUM * n + j]
+                i[Pt.B_MOVED] = i[Pt.B_HOLD_TICKS]
+            elif i[Pt.B_MOVED] > 0:
+                i[Pt.B_MOVED] -= 1
+        b, s2b = vec(f, Pt.B_NOW, n), vec(f, Pt.SQRT_2B_NOW, n)
+        s2ob = vec(f, Pt.SQRT_2_OVER_B_NOW, n)
+    else:
+        b, s2b, s2ob = vec(f, Pt.B, n), vec(f, Pt.SQRT_2B, n), vec(f, Pt.SQRT_2_OVER_B, n)
     terminated = i[Pt.TERMINATED] != 0
     coded = i[Pt.CODEC] != 0  # the deadband codec (teleop_rt.com.codec) is on
     reflected = how == REFLECTED
@@ -433,6 +480,7 @@ def wave_step(
     acted = synced = False
     for j in range(n):
         used_sum = f[Pt.USED_SUM * n + j]
+        pos = 0.0  # the position correction's part of the wave used
         r = received[j]
         e_r = r * r * half_dt  # (the term the sender added to its wave energy, bit for bit)
         if valid:
@@ -455,6 +503,7 @@ def wave_step(
             f[Pt.PEER_SUM * n + j] = rx[Pk.WAVE_SUM * n + j]
             f[Pt.PEER_ENERGY * n + j] = rx[Pk.WAVE_ENERGY * n + j]
         debt = f[Pt.DEBT * n + j]
+        paid = 0.0  # this tick's pay-back of the debt, per second (the gap's share leaves it out)
         if reflected and not valid and i[Pt.LAST_SEQ] >= 0:  # (before the first: zeros)
             # the TO brakes: the wave that gives omega_t = 0, u_r = tau_t / sqrt(2b), all of it
             # reflected (zero power, whatever the contact); the HSI holds the TO's effort of
@@ -472,17 +521,29 @@ def wave_step(
             if debt != 0.0:
                 slow = f[Pt.SKIP_DEBT * n + j]
                 if slow == 0.0:
-                    w += rate * debt
+                    paid = rate * debt
                 else:  # the skip debt at its own rate, the rest at the drift correction's
                     pay = skip_rate * slow
-                    w += rate * (debt - slow) + pay
+                    paid = rate * (debt - slow) + pay
                     f[Pt.SKIP_DEBT * n + j] = slow - pay * dt
+                w += paid
         elif how == ZERO or (valid and (how == HOLD or synced)):
             w = r  # (zero: zeros when none arrived; else the wave as it was sent)
         elif not valid:
             w = 0.0 if expired else held[j]
         else:  # catch the integral up in this tick: the samples missed and this one
             w = (f[Pt.PEER_SUM * n + j] - used_sum) / dt
+        if scheduled and not hsi and i[Pt.B_MOVED] > 0:
+            # b moving with the delay scales a wave decoded at another b than it was encoded
+            # with (the TO's velocity sqrt(b_h / b_t) the HSI's): position drift that the wave
+            # integral does not see; so the TO moves toward the HSI's position as of its newest
+            # packet at the drift correction's rate (d omega_t = sqrt(2 / b) d u_r), within
+            # the budget below (position tracking with wave variables: Chopra, Spong, Hirche &
+            # Buss, ACC 2003)
+            # (not counted in the integral used: the wave integral's debt would undo it)
+            pos = rate * 0.5 * s2b[j] * (f[Pt.PEER_X_SUM * n + j] - f[Pt.OUT_SUM * n + j]
+                                         - f[Pt.POS_REF * n + j])
+            w += pos
         e = w * w * half_dt
         got = f[Pt.GOT_ENERGY * n + j]
         w_save = w
@@ -527,11 +588,14 @@ def wave_step(
         # in step with the peer's integral after a packet (what the bound cut is not caught
         # up later: that would need energy the peer did not send)
         if corrected:  # the integral as used, and what it owes after a packet
-            f[Pt.USED_SUM * n + j] = used_sum + w * dt
+            f[Pt.USED_SUM * n + j] = used_sum + (w - pos) * dt
             if valid:
                 f[Pt.DEBT * n + j] = f[Pt.PEER_SUM * n + j] - f[Pt.USED_SUM * n + j]
-                if skipped > 0:  # the skipped packets' share of what this gap added
-                    f[Pt.SKIP_DEBT * n + j] += skipped / gap * (f[Pt.DEBT * n + j] - debt)
+                if skipped > 0:  # the skipped packets' share of what this gap added: the
+                    # debt beyond what is left of the last after this tick's pay-back (the
+                    # skip debt has had its own; the rest of the debt keeps its rate)
+                    added = f[Pt.DEBT * n + j] - (debt - paid * dt)
+                    f[Pt.SKIP_DEBT * n + j] += skipped / gap * added
                 slow = f[Pt.SKIP_DEBT * n + j]
                 if slow != 0.0:  # never more than the debt, nor of the other sign
                     total = f[Pt.DEBT * n + j]
@@ -561,6 +625,8 @@ def wave_step(
         else:  # omega_t = (sqrt(2b) u_r - tau_t) / b ; v_r = u_r - sqrt(2/b) tau_t
             flow[j] = (s2b[j] * w_in[j] - effort[j]) / b[j]
             w_out[j] = w_in[j] - s2ob[j] * effort[j]
+            if scheduled:
+                f[Pt.OUT_SUM * n + j] += flow[j] * dt  # (its position, for the correction)
         sent = w_out[j]
         tx[Pk.WAVE * n + j] = sent
         f[Pt.WAVE_SUM * n + j] += sent * dt
@@ -577,6 +643,51 @@ def wave_step(
             tx[Pk.WAVE_ENERGY * n + j] = f[Pt.WAVE_ENERGY * n + j]
     if acted:
         i[Pt.ACTED] += 1
+
+
+@jit
+def schedule_b(f: np.ndarray, i: np.ndarray, n: int, rx_i: np.ndarray) -> None:
+    """The wave impedance scheduled by the delay this port measures: a packet's age
+    a = now - its sender tick (ticks; >= D, the playout delay, under either playout rule; over
+    a network it also holds the sites' tick offset, 0 in one process as in the study) sets the
+    target b_0 min(1, max(floor, a_min / a)), so that the wave channel's free-space inertia,
+    about b T at one-way delay T, stays about the clean link's b_0 a_min; b moves toward it
+    by at most ``b_rate`` b_0 per second, and is held on ticks with no packet (no new age).
+    Passive by construction: the transform at each port conserves power for whatever b > 0
+    it uses in that tick (omega tau = (u^2 - v^2) / 2 at that b), so the wave energies the
+    budgets count are the port's energy at any schedule; what changes is only the impedance
+    displayed: b tanh(sT), an inertia about b T in free space, a stiffness
+    about b / T against a wall (Niemeyer & Slotine, IEEE JOE 1991, on b as the tuning knob; a
+    b switched between a low free-motion and a high contact value, passive under
+    time-varying delay: J. Robotics 2015, article 861425, hindawi.com/journals/jr/2015/861425,
+    found by its abstract, its scheme not checked against this one; Lozano, Chopra & Spong's
+    time-varying-delay wave gain, 2002, which the search did not find and this does not use).
+    The reference a_min is the least age used so far (the path's own floor: the clean link's
+    delay as this port can know it), so a clean link's b is b_0 bit for bit."""
+    Pt, Pk = Port.idx, Packet.idx
+    if rx_i[Pk.VALID] == 0:
+        return
+    s = Pt.N_VECTORS * n
+    age = i[Pt.NOW_TICK] - rx_i[Pk.TICK]
+    if i[Pt.AGE_FLOOR] < 0 or age < i[Pt.AGE_FLOOR]:
+        i[Pt.AGE_FLOOR] = max(age, 1)
+    d = i[Pt.AGE_FLOOR]
+    share = 1.0 if age <= d else max(f[s + Pt.B_FLOOR], d / age)
+    step = f[s + Pt.B_RATE] * f[s + Pt.DT]
+    for j in range(n):
+        b0, now = f[Pt.B * n + j], f[Pt.B_NOW * n + j]
+        target = b0 * share
+        if target == now:
+            continue
+        new = min(max(target, now - step * b0), now + step * b0)
+        if new >= b0:  # back at b_0: its own transform, bit for bit
+            f[Pt.B_NOW * n + j] = b0
+            f[Pt.SQRT_2B_NOW * n + j] = f[Pt.SQRT_2B * n + j]
+            f[Pt.SQRT_2_OVER_B_NOW * n + j] = f[Pt.SQRT_2_OVER_B * n + j]
+        else:
+            f[Pt.B_NOW * n + j] = new
+            f[Pt.SQRT_2B_NOW * n + j] = math.sqrt(2.0 * new)
+            f[Pt.SQRT_2_OVER_B_NOW * n + j] = math.sqrt(2.0 / new)
 
 
 @jit

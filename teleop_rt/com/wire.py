@@ -115,15 +115,25 @@ def crc32(u8: np.ndarray, length: int) -> int:
 
 class WireBuffer:
     """One packet's bytes, preallocated as 8-byte words (the kernels view them as floats and
-    bytes); ``data`` is what goes on the network (a memoryview of exactly one packet)."""
+    bytes); ``data`` is what goes on the network (a memoryview of exactly one packet).
+    ``sends``: the buffer is encoded into (``encode_into``); a decoder's (False) only holds
+    what arrived, and binds no encoder."""
 
-    def __init__(self, n: int) -> None:
+    def __init__(self, n: int, sends: bool = True) -> None:
         self.n, self.size = n, wire_size(n)
         self.words = np.zeros(self.size // 8, dtype=np.int64)
         self.data = int_view(self.words.view(np.uint8))
-        # ``encode_into``'s compiled entry point (no dispatcher typing three arrays a packet)
-        probe = Packet(n)
-        self._encode = compiled_for(_encode, self.words, n, probe.f, probe.i, 0, 0, 0)
+        self._encode = _receive_only
+        if sends:
+            # ``encode_into``'s compiled entry point (no dispatcher typing three arrays a
+            # packet), bound here, before any tick: a process that only decodes would
+            # otherwise load (or compile) the encoder for nothing (0.2-0.8 s here, by load)
+            probe = Packet(n)
+            self._encode = compiled_for(_encode, self.words, n, probe.f, probe.i, 0, 0, 0)
+
+
+def _receive_only(*args: object) -> None:
+    raise ValueError("encode_into: this wire buffer is a decoder's (WireBuffer(n, sends=False))")
 
 
 def encode_into(
@@ -201,7 +211,7 @@ class Decoder:
             raise ValueError(f"a packet's sender is side 0 (HSI) or 1 (TO), not {sender}")
         self.n, self.size, self.sender = n, wire_size(n), sender
         self.bounds = (bounds or WireBounds()).array(n)
-        self._rx = WireBuffer(n)
+        self._rx = WireBuffer(n, sends=False)  # (what arrived: never encoded into)
         self._rx_data = self._rx.data
         # used_seq, sender_time_ns, seen_tick, then the counters by reason
         self.state = np.zeros(COUNTS + len(REASONS), dtype=np.int64)

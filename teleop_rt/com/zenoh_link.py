@@ -347,6 +347,8 @@ class ZenohLink(Link):
         self.timeout_ns = round((spec.peer_timeout_ms + silent_ms) * 1e6)
         self.grace_ns = max(0, round(STARTUP_GRACE_S * 1e9) - self.timeout_ns)
         self.last_arrival_ns = 0
+        self._last_receive_ns = 0  # CLOCK_MONOTONIC of the previous receive; 0: none yet
+        self.held_ns = round(spec.peer_timeout_ms * 1e6)  # this site's own gap that stops it
         self.heard = False  # a fresh packet of the peer has arrived since the start
         self.hellos_ignored: dict[str, int] = {}  # invalid hellos by reason
         self.sent = 0
@@ -502,6 +504,7 @@ class ZenohLink(Link):
         here, and the peer's silence from here plus the start-up grace."""
         self.start_ns = time.monotonic_ns()
         self.last_arrival_ns = self.start_ns + self.grace_ns
+        self._last_receive_ns = 0  # the first tick's own gap is not counted (the grace's)
 
     # --- the Link interface -------------------------------------------------------------------
     def _arrive(self, data: bytes, now_ns: int | None = None) -> None:  # on Zenoh's thread
@@ -530,7 +533,20 @@ class ZenohLink(Link):
 
     def receive(self, side: int, into: Packet) -> None:
         k = self._tick()
-        silent = time.monotonic_ns() - self.last_arrival_ns
+        now = time.monotonic_ns()
+        # this site's own loop held off (SIGSTOP, a debugger, a starved CPU) longer than the
+        # peer timeout left its robot unsupervised as a silent peer would: a stop, which says
+        # so (the peer's packets may have arrived all along, queued: the silence below would
+        # not fire, or blame the peer; with the codec it waits a maximum interval more)
+        gap = now - self._last_receive_ns if self._last_receive_ns else 0
+        self._last_receive_ns = now
+        if gap > self.held_ns:
+            raise SafetyStop(
+                f"tick {k}: link: this site was held off for {gap / 1e6:.0f} ms between two "
+                f"ticks (stopped or starved of CPU; link.peer_timeout_ms = "
+                f"{self.cfg.link.peer_timeout_ms:g}): its robot went unsupervised"
+            )
+        silent = now - self.last_arrival_ns
         if silent > self.timeout_ns:
             since = "" if self.heard else " since the start"
             silent += 0 if self.heard else self.grace_ns
