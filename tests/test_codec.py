@@ -530,10 +530,16 @@ def test_a_codec_mismatch_between_the_sites_is_a_refusal_naming_it() -> None:
     assert _first_difference(a, b, "channel") == ("channel.d.w", 0.1, 0.2)
 
 
-def test_over_zenoh_a_silent_codec_is_no_lost_peer_and_a_lost_peer_still_stops() -> None:
+def test_over_zenoh_a_silent_codec_is_no_lost_peer_and_a_lost_peer_still_stops(
+    monkeypatch,
+) -> None:
     """The peer timeout (50 ms) counts from the end of the codec's maximum interval (100 ms):
     100 ms of nothing after a packet is a codec's silence, 200 ms a lost peer. A tick the
-    codec does not send never reaches the transport."""
+    codec does not send never reaches the transport. The site ticks every ms on a clock of the
+    test's (a site held off between two ticks for longer than the timeout stops by itself)."""
+    from types import SimpleNamespace
+
+    from teleop_rt.com import zenoh_link
     from teleop_rt.com.drift import DriftFollower
     from teleop_rt.com.playout import Receiver
     from teleop_rt.errors import SafetyStop
@@ -549,13 +555,22 @@ def test_over_zenoh_a_silent_codec_is_no_lost_peer_and_a_lost_peer_still_stops()
         link.receiver = Receiver(2, cfg.delay_ticks, SID, TO)
         link.drift = DriftFollower(link.receiver.playout, cfg.link.max_drift_ppm)
         into, mine = Packet(2), Packet(2)
+        now = [time.monotonic_ns()]
+        clock = SimpleNamespace(**{n: getattr(time, n) for n in dir(time) if n[0] != "_"})
+        clock.monotonic_ns = lambda: now[0]
+        monkeypatch.setattr(zenoh_link, "time", clock)
         link.start()
         link._arrive(wire(0))
-        time.sleep(0.1)
-        link.receive(HSI, into)  # within the interval plus the timeout: no stop
-        time.sleep(0.1)
-        with pytest.raises(SafetyStop, match="after the codec's maximum interval of 100 ticks"):
+        for _ in range(100):  # 100 ms: within the interval plus the timeout, no stop
+            now[0] += 1_000_000
             link.receive(HSI, into)
+        ms = 100
+        with pytest.raises(SafetyStop, match="after the codec's maximum interval of 100 ticks"):
+            while ms < 200:
+                now[0] += 1_000_000
+                ms += 1
+                link.receive(HSI, into)
+        assert ms == 151  # the first tick past interval + timeout (150 ms)
         mine.unsent = 1
         link.send(HSI, mine)
         link.end_tick(HSI)
