@@ -134,6 +134,47 @@ def test_damaged_logs_work_or_are_one_line(real_log, kind, where, tmp_path, caps
             assert_one_error_line(err, str(path))
 
 
+def _chunk_bodies(src: bytes):
+    """(offset of the records, their length) of each chunk of an MCAP file, in order."""
+    at = 8  # after the magic
+    while at + 9 <= len(src):
+        op, length = src[at], int.from_bytes(src[at + 1 : at + 9], "little")
+        if op == 0x06:  # chunk: start, end, size, crc, compression, records length, records
+            n = int.from_bytes(src[at + 9 + 28 : at + 9 + 32], "little")
+            records = at + 9 + 32 + n + 8
+            yield records, int.from_bytes(src[records - 8 : records], "little")
+        at += 9 + length
+
+
+def test_a_flip_that_still_decompresses_is_caught_by_the_chunk_crc(real_log, tmp_path, capsys):
+    """A flipped byte among LZ4's literals decompresses, to wrong values: once it replayed a
+    recorded torque of 874 N m into a safety stop (exit 3, no line). The chunk's CRC catches it:
+    the ticks before the chunk are read, the damage is named."""
+    import lz4.frame
+
+    from teleop_rt.recording.reader import read_log
+
+    records, length = list(_chunk_bodies(real_log))[1]
+    clean = lz4.frame.decompress(real_log[records : records + length])
+    for at in range(records + length // 2, records + length):  # the first flip that decodes
+        damaged = bytearray(real_log)
+        damaged[at] ^= 0x10
+        try:
+            if lz4.frame.decompress(damaged[records : records + length]) != clean:
+                break
+        except RuntimeError:
+            continue
+    else:
+        pytest.fail("no flip in the chunk decompresses")
+    path = tmp_path / "flipped.mcap"
+    path.write_bytes(bytes(damaged))
+    log = read_log(path)
+    assert log.cut_reason is not None and "CRC mismatch" in log.cut_reason, log.cut_reason
+    assert 0 < len(log.topics["/hsi"]) < 1200  # the first chunk's ticks, not the rest
+    code, _, err = cli(["replay", str(path), "--json", "--no-log"], capsys)
+    assert code == 0 and err.startswith("teleop-rt: warning: ") and "gaps" in err, (code, err)
+
+
 def test_enough_damaged_variants() -> None:
     assert len(VARIANTS) >= 60
 
