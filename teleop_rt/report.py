@@ -159,8 +159,8 @@ def codec_text(figures: dict) -> str:
         f"sent {figures['sent']} packets ({figures['rate_hz']:.0f} /s, "
         f"{100 * figures['reduction']:.1f} % fewer): deadband {figures['by_threshold']}, "
         f"max interval {figures['by_max_interval']}, energy room {figures['by_energy']}; "
-        f"peer's silences held {figures['peer_held_ticks']} ticks, lost "
-        f"{figures['peer_expired_ticks']}"
+        f"peer's silences held {figures['peer_held_ticks']} ticks, "
+        f"{figures['peer_expired_ticks']} past its maximum interval (as losses)"
     )
 
 
@@ -236,9 +236,13 @@ def print_site_comparison(out: dict, console: Console | None = None) -> None:
 def _link_text(link: dict) -> str:
     peer = link.get("from_peer") or {}
     delay = peer.get("delay_ticks") or {}
+    lost = f"lost {peer.get('lost', 0)}"
+    if "silent_ticks" in peer:  # the peer's codec: a tick with no packet is no loss
+        lost += (f" packets (by their numbers; {peer['silent_ticks']} ticks with none: its "
+                 "codec's silences, the losses among them)")  # fmt: skip
     return (
         f"sent {link.get('sent', 0)}; from the peer: received {peer.get('received', 0)}, used "
-        f"{peer.get('used', 0)}, lost {peer.get('lost', 0)}, late {peer.get('late', 0)}, "
+        f"{peer.get('used', 0)}, {lost}, late {peer.get('late', 0)}, "
         f"duplicated {peer.get('duplicated', 0)}, reordered {peer.get('reordered', 0)}, rejected "
         f"{peer.get('rejected', 0)}{_by_reason(peer.get('rejected_by_reason'))}; one-way delay "
         f"p50 {delay.get('p50')} / p99 {delay.get('p99')} / max {delay.get('max')} ticks"

@@ -173,7 +173,8 @@ class Session:
                     "tick (the playout delay)"
                 )
             self.link = ImpairedLink(n, cfg.delay_ticks, self.dt, impairment,
-                                     playout=cfg.link.playout)  # fmt: skip
+                                     playout=cfg.link.playout,
+                                     codec=cfg.channel.codec != "none")  # fmt: skip
         self.monitor = ChannelMonitor(n, self.dt)
         self.metrics = TransparencyAccumulator(n, self.dt)
         self.pair = PairState(n)

@@ -53,14 +53,17 @@ def packet(n: int, tick: int = 5, values: np.ndarray | None = None) -> Packet:
     return p
 
 
-def encoded(p: Packet, session: int = SESSION_ID, side: int = SENDER) -> bytes:
-    return bytes(encode_into(WireBuffer(p.n), p, session, 123_456_789, side))
+def encoded(
+    p: Packet, session: int = SESSION_ID, side: int = SENDER, number: int | None = None
+) -> bytes:  # fmt: skip
+    return bytes(encode_into(WireBuffer(p.n), p, session, 123_456_789, side, number))
 
 
-def struct_layout(p: Packet, session: int, time_ns: int, side: int) -> bytes:
+def struct_layout(p: Packet, session: int, time_ns: int, side: int, number: int) -> bytes:
     """The layout of the module's docstring, written field by field with struct and zlib."""
     n = p.n
-    head = struct.pack("<4sBBHQQqq", b"TRWV", 4, side, n, session, p.seq, p.tick, time_ns)
+    head = struct.pack("<4sBBHQQqqQ", b"TRWV", 5, side, n, session, p.seq, p.tick, time_ns,
+                       number)  # fmt: skip
     vectors = (p.x, p.wave, p.wave_sum, p.x_sum, p.wave_energy, p.e_in, p.e_out)
     body = head + struct.pack(f"<{7 * n}ddQ", *np.concatenate(vectors), p.energy, p.engaged)
     return body + struct.pack("<II", zlib.crc32(body), 0)
@@ -85,9 +88,13 @@ def sentinel(n: int) -> Packet:
 def test_the_layout_is_the_documented_one() -> None:
     for n, side in ((1, HSI), (2, TO), (7, HSI)):
         p = packet(n, tick=2**40 + 3)
-        raw = bytes(encode_into(WireBuffer(n), p, SESSION_ID, -5, side))
-        assert len(raw) == wire_size(n) == 64 + 56 * n
-        assert raw == struct_layout(p, SESSION_ID, -5, side)
+        raw = bytes(encode_into(WireBuffer(n), p, SESSION_ID, -5, side, 2**39 + n))
+        assert len(raw) == wire_size(n) == 72 + 56 * n
+        assert raw == struct_layout(p, SESSION_ID, -5, side, 2**39 + n)
+        # a sender that numbers nothing: every tick sent from tick 0, the number its tick
+        assert bytes(encode_into(WireBuffer(n), p, SESSION_ID, -5, side)) == struct_layout(
+            p, SESSION_ID, -5, side, p.tick
+        )  # fmt: skip
 
 
 finite = st.floats(allow_nan=False, allow_infinity=False, min_value=-1e6, max_value=1e6)
@@ -131,7 +138,7 @@ def test_random_bytes_are_rejected_counted_and_never_written(raw) -> None:
 def test_random_bytes_of_the_right_size_with_a_valid_crc_never_raise(body) -> None:
     """Past the CRC: the header and values of random bytes are still checked."""
     decoder, into = Decoder(2, SENDER), sentinel(2)
-    raw = b"TRWV\x04\x01\x02\x00" + body[8:]
+    raw = b"TRWV\x05\x01\x02\x00" + body[8:]
     status = decoder.decode(reseal(raw + bytes(8)), SESSION_ID, into)
     assert status in (SESSION, NON_FINITE, IMPLAUSIBLE, OK)
     assert status == OK or untouched(into)
@@ -182,6 +189,7 @@ def test_each_reason_is_counted_under_its_own_name() -> None:
     good = encoded(p)
     case(good[:-1], SIZE)
     case(b"XRWV" + good[4:], MAGIC_VERSION)
+    case(reseal(good[:4] + bytes([4]) + good[5:]), MAGIC_VERSION)  # version 4: no number
     case(reseal(good[:4] + bytes([3]) + good[5:]), MAGIC_VERSION)  # version 3: no engaged
     case(reseal(good[:4] + bytes([2]) + good[5:]), MAGIC_VERSION)  # version 2: no side
     case(reseal(good[:4] + struct.pack("<H", 1) + good[6:]), MAGIC_VERSION)  # version 1
@@ -202,6 +210,9 @@ def test_each_reason_is_counted_under_its_own_name() -> None:
     q = packet(n, values=good_values.copy())
     q.seq = -1  # 2**64 - 1 on the wire
     case(encoded(q), IMPLAUSIBLE)
+    # the packet's number: in [0, tick] (at most one packet a tick from tick 0)
+    case(encoded(p, number=p.tick + 1), IMPLAUSIBLE)
+    case(encoded(p, number=2**64 - 1), IMPLAUSIBLE)  # (-1 as the kernels read it)
     ahead = packet(n, tick=p.tick, values=good_values.copy())
     ahead.seq = p.tick + 1000  # a forged jump of the sequence: beyond what can play
     assert decoder.decode(encoded(ahead), SESSION_ID, into, newest=p.tick + 50) == AHEAD
@@ -215,10 +226,10 @@ def test_each_reason_is_counted_under_its_own_name() -> None:
     newer = packet(n, tick=p.seq + 1, values=good_values.copy())
     assert decoder.decode(encoded(newer), SESSION_ID, into) == OK
     assert decoder.counts_by_reason() == {
-        "ok": 1, "size": 1, "magic_version": 4, "checksum": 1, "joints": 1, "session": 1,
-        "side": 1, "non_finite": 6, "implausible": 13, "ahead": 2, "stale": 2,
+        "ok": 1, "size": 1, "magic_version": 5, "checksum": 1, "joints": 1, "session": 1,
+        "side": 1, "non_finite": 6, "implausible": 15, "ahead": 2, "stale": 2,
     }  # fmt: skip
-    assert decoder.rejected == 32
+    assert decoder.rejected == 35
 
 
 def test_the_bounds_must_be_positive_and_finite() -> None:
@@ -249,7 +260,7 @@ def test_a_decoder_binds_no_encoder() -> None:
     (0.2-0.8 s from the on-disk cache on this host); encoding into it is one clear error."""
     if not hasattr(wire._encode, "overloads"):
         pytest.skip("NUMBA_DISABLE_JIT: no kernel to load")
-    raw = struct_layout(packet(2), 7, 0, SENDER).hex()
+    raw = struct_layout(packet(2), 7, 0, SENDER, 3).hex()
     code = ("import sys; from teleop_rt.com import wire; from teleop_rt.com.port import Packet\n"
             f"d = wire.Decoder(2, {SENDER}); status = d.decode(bytes.fromhex('{raw}'), 7, "
             "Packet(2))\nprint(status, len(wire._encode.overloads))")  # fmt: skip

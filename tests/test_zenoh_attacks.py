@@ -40,8 +40,9 @@ S = 1_000_000_000
 
 # --- hellos -------------------------------------------------------------------------------
 def test_a_peer_of_another_wire_version_is_refused_in_one_line() -> None:
-    """Version 4 added the packet's clutch state: a version-3 peer's hello carries no
-    ``wire_version`` (and its packets would all be dropped as ``magic_version``)."""
+    """Version 5 added the packet's number (version 4 the clutch state): an older peer's hello
+    carries another ``wire_version``, or none (its packets would all be dropped as
+    ``magic_version``)."""
     from types import SimpleNamespace
 
     from teleop_rt.com.wire import VERSION
@@ -50,7 +51,8 @@ def test_a_peer_of_another_wire_version_is_refused_in_one_line() -> None:
     mine = {"site": "hsi", **shared_parts(config.load(PAPER), 2), "peer_timeout_ms": 100}
     assert mine["wire_version"] == VERSION
     older = {k: v for k, v in mine.items() if k != "wire_version"} | {"site": "to"}
-    for theirs, there in ((older, "None"), (older | {"wire_version": 3}, "3")):
+    for theirs, there in ((older, "None"), (older | {"wire_version": 3}, "3"),
+                          (older | {"wire_version": 4}, "4")):  # fmt: skip
         with pytest.raises(HandshakeError) as err:
             ZenohLink._check_compatible(SimpleNamespace(peer="to"), mine, theirs)  # type: ignore[arg-type]
         assert str(err.value) == (

@@ -83,10 +83,12 @@ class ImpairedLink(Link):
         bounds: WireBounds | None = None,
         early_ticks: int | None = None,
         playout: str = PLAYOUT_DEFAULT,
+        codec: bool = False,
     ) -> None:
         """``delay_ticks``: the playout delay D (>= 1); ``impairment``: what the network does
         (None: nothing); ``bounds``: the decoders' (both directions; generous by default);
-        ``playout``: the receivers' policy (``teleop_rt.com.playout``)."""
+        ``playout``: the receivers' policy (``teleop_rt.com.playout``); ``codec``: the sites
+        run the codec (the receivers count losses by the packets' numbers)."""
         if delay_ticks < 1:
             raise ValueError("an impaired link needs a playout delay of at least one tick")
         spec = impairment or ImpairmentSpec()
@@ -99,7 +101,7 @@ class ImpairedLink(Link):
         self._flight = [InFlight(self._wire[0].size, imp.max_delay_ticks)
                         for imp in self.impairments]  # fmt: skip
         self.receivers = [Receiver(n, delay_ticks, session_id, 1 - side, bounds, early_ticks,
-                                   playout) for side in (HSI, TO)]  # fmt: skip
+                                   playout, codec=codec) for side in (HSI, TO)]  # fmt: skip
         self._sent: list[Packet | None] = [None, None]
         self._ticks = [0, 0]  # ticks each side has ended
         self.sent = [0, 0]
@@ -122,8 +124,9 @@ class ImpairedLink(Link):
             self._ticks[side] = tick + 1
             self._sent[side] = None
             return
+        # numbered by the packets sent (the receiver counts a loss by a jump of the number)
         data = encode_into(self._wire[side], packet, self.session_id, tick * self._period_ns,
-                           side)  # fmt: skip
+                           side, self.sent[side])  # fmt: skip
         impairment, flight = self.impairments[side], self._flight[side]
         for k in range(impairment.decide(packet.tick)):
             flight.put(impairment.arrivals[k], data)

@@ -21,7 +21,15 @@ skips packets; one that grows leaves ticks with none); the ports keep the channe
   and what a peer with a wrong clock can queue).
 
 ``lost`` counts playout ticks whose packet was not there (never arrived, or late; ``newest``:
-ticks with no packet newer than the last used), ``skipped`` sender ticks passed over unused. Every
+ticks with no packet newer than the last used), ``skipped`` sender ticks passed over unused.
+With the codec (``Receiver(codec=True)``) a sender is silent on most ticks, and a tick with no
+packet is no loss: the receiver cannot tell a silence from a loss by the tick. Each packet then
+carries its number (how many its sender had sent before it: ``teleop_rt.com.wire``), and a
+packet used whose number jumped past the one used before counts the packets between as
+``lost`` (never arrived, or late) or, those that had arrived and were passed over for a newer
+one, ``skipped``; the per-tick count is ``silent_ticks`` (the peer's silences, and the losses
+among them). A jump counts at most as many packets as the sender's tick moved (a sender sends
+at most one a tick): a forged number costs no more than the per-tick rule would. Every
 arrival's one-way delay in ticks, k - s - offset, goes into a preallocated histogram (p50, p99;
 delays beyond it count in its last bin, the max is exact). Packets sit in a ring indexed by
 sender tick (``early_ticks + 1`` slots): nothing is allocated per packet.
@@ -44,6 +52,7 @@ import numpy as np
 
 from teleop_rt.com.port import Packet
 from teleop_rt.com.wire import (
+    NUMBER,
     OK,
     REASONS,
     SEEN_TICK,
@@ -61,16 +70,21 @@ from teleop_rt.flat import compiled_for, jit
 EARLY_SLACK_TICKS = 50  # default early horizon beyond D: room for the clocks' offset
 NONE = -(1 << 62)  # an empty slot's sender tick
 
-# the state's entries: parameters, then counters (COUNTERS, in order)
-DELAY, EARLY_TICKS, SLOTS, OFFSET, NEWEST, LAST_TAKEN, MAX_DELAY, POLICY = range(8)
+# the state's entries: parameters and the last used packet's number and sender tick, then
+# counters (COUNTERS, in order; then the packets' own, PACKET_COUNTERS)
+(DELAY, EARLY_TICKS, SLOTS, OFFSET, NEWEST, LAST_TAKEN, MAX_DELAY, POLICY, USED_NUMBER,
+ USED_TICK) = range(10)  # fmt: skip
 FIXED, NEWEST_POLICY = 0, 1
 POLICIES = {"fixed": FIXED, "newest": NEWEST_POLICY}
 COUNTERS = ("received", "used", "lost", "late", "duplicated", "reordered", "early", "skipped",
             "repeated")  # fmt: skip
 RECEIVED, USED, LOST, LATE, DUPLICATED, REORDERED, EARLY, SKIPPED, REPEATED = range(
-    8, 8 + len(COUNTERS)
+    10, 10 + len(COUNTERS)
 )
-HISTOGRAM = 8 + len(COUNTERS)  # the delay histogram's first bin
+# by the packets' numbers: sent, not used and never there in time, or passed over for a newer
+PACKET_COUNTERS = ("lost_packets", "skipped_packets")
+LOST_PACKETS, SKIPPED_PACKETS = range(10 + len(COUNTERS), 10 + len(COUNTERS) + 2)
+HISTOGRAM = 10 + len(COUNTERS) + len(PACKET_COUNTERS)  # the delay histogram's first bin
 # what arrive() did with a packet
 STORED, DROPPED_LATE, DROPPED_DUPLICATE, DROPPED_EARLY = range(4)
 
@@ -101,12 +115,14 @@ class Playout:
         self.st = np.zeros(HISTOGRAM + bins, dtype=np.int64)
         self.st[[DELAY, EARLY_TICKS, SLOTS]] = delay_ticks, early, slots
         self.st[[NEWEST, LAST_TAKEN]] = NONE
+        self.st[[USED_NUMBER, USED_TICK]] = -1  # (as if packet -1 of tick -1 was used)
         self.st[POLICY] = POLICIES[policy]
         self.histogram = self.st[HISTOGRAM:]
         probe = Packet(n)
         self.ring_f = np.zeros((slots, probe.f.size))
-        # per slot: the packet's ints, then the slot's sender tick and whether it was used
-        self.ring_i = np.zeros((slots, probe.i.size + 2), dtype=np.int64)
+        # per slot: the packet's ints, then the slot's sender tick, whether it was used and
+        # the packet's number
+        self.ring_i = np.zeros((slots, probe.i.size + 3), dtype=np.int64)
         self.ring_i[:, probe.i.size] = NONE
         # ``take``'s compiled entry point, once a tick (``compiled_for``: no dispatcher typing
         # five arrays; a Packet's buffers are float64 and int64 vectors, as the probe's)
@@ -126,9 +142,11 @@ class Playout:
         jumps over sender ticks (``skipped``)."""
         self.st[OFFSET] = offset_ticks
 
-    def arrive(self, k: int, packet: Packet) -> int:
-        """A packet (valid, decoded) arriving at receiver tick ``k``: STORED or why dropped."""
-        return _arrive(self.st, self.ring_f, self.ring_i, k, packet.f, packet.i)
+    def arrive(self, k: int, packet: Packet, number: int | None = None) -> int:
+        """A packet (valid, decoded) arriving at receiver tick ``k``: STORED or why dropped.
+        ``number``: the packet's (None: its tick, as from a sender that sends every tick)."""
+        number = packet.tick if number is None else number
+        return _arrive(self.st, self.ring_f, self.ring_i, k, packet.f, packet.i, number)
 
     def late(self, k: int, sender_tick: int) -> None:
         """A late arrival that was dropped before reaching the buffer (the decoder's stale)."""
@@ -140,6 +158,10 @@ class Playout:
 
     def counters(self) -> dict[str, int]:
         return {name: int(self.st[RECEIVED + k]) for k, name in enumerate(COUNTERS)}
+
+    def packet_counters(self) -> dict[str, int]:
+        """Packets lost and skipped by the jumps of their numbers (``PACKET_COUNTERS``)."""
+        return {name: int(self.st[LOST_PACKETS + k]) for k, name in enumerate(PACKET_COUNTERS)}
 
     def delay_percentiles(self) -> dict[str, int | None]:
         """One-way delay of the arrivals, ticks: p50, p99 (upper bins) and the exact max."""
@@ -170,7 +192,7 @@ def _count_late(st: np.ndarray, k: int, sender_tick: int) -> None:
 @jit
 def _arrive(
     st: np.ndarray, ring_f: np.ndarray, ring_i: np.ndarray, k: int, pf: np.ndarray,
-    pi: np.ndarray,
+    pi: np.ndarray, number: int,
 ) -> int:  # fmt: skip
     Pk = Packet.idx
     r_tick, r_used = Pk.N_INTS, Pk.N_INTS + 1  # a slot's sender tick and used flag
@@ -196,6 +218,7 @@ def _arrive(
         ring_i[slot, j] = pi[j]
     ring_i[slot, r_tick] = s
     ring_i[slot, r_used] = 0
+    ring_i[slot, Pk.N_INTS + 2] = number
     if s < st[NEWEST]:
         st[REORDERED] += 1
     else:
@@ -230,6 +253,7 @@ def _take(
             if ring_i[slot, r_tick] == found and ring_i[slot, r_used] == 0:
                 if last != NONE:
                     st[SKIPPED] += found - last - 1
+                _count_jump(st, ring_i, found, ring_i[slot, Pk.N_INTS + 2])
                 st[LAST_TAKEN] = found
                 for j in range(pf.size):
                     pf[j] = ring_f[slot, j]
@@ -249,6 +273,28 @@ def _take(
     pf[:] = 0.0
     pi[:] = 0
     return 0
+
+
+@jit
+def _count_jump(st: np.ndarray, ring_i: np.ndarray, s: int, number: int) -> None:
+    """The packet of sender tick ``s`` and number ``number`` is used: the packets its sender
+    sent since the last one used, by the jump of their numbers (at most the jump of the
+    ticks: a sender sends at most one a tick, so a forged number counts no more than the
+    per-tick rule), each lost or, if it is still in the ring unused, skipped."""
+    Pk = Packet.idx
+    r_tick, r_used = Pk.N_INTS, Pk.N_INTS + 1
+    jump = min(number - st[USED_NUMBER], s - st[USED_TICK]) - 1
+    if jump > 0:
+        passed = 0  # arrived in time, passed over for a newer one (newest; a retarget)
+        for t in range(max(st[USED_TICK] + 1, s - st[SLOTS] + 1), s):
+            slot = t % st[SLOTS]
+            if ring_i[slot, r_tick] == t and ring_i[slot, r_used] == 0:
+                passed += 1
+        passed = min(passed, jump)
+        st[SKIPPED_PACKETS] += passed
+        st[LOST_PACKETS] += jump - passed
+    st[USED_NUMBER] = number
+    st[USED_TICK] = s
 
 
 # what ``_receive`` notes per arrival: a table by sender tick (modulo its rows) of the first
@@ -274,7 +320,7 @@ def _receive(
     status = _decode(words, n, session, sender, newest, bounds, dstate, pf, pi)
     fresh = False
     if status == OK:
-        stored = _arrive(st, ring_f, ring_i, k, pf, pi)
+        stored = _arrive(st, ring_f, ring_i, k, pf, pi, dstate[NUMBER])
         fresh = stored == STORED or stored == DROPPED_LATE
         s = dstate[SEEN_TICK]
         delay = now_ns - dstate[SENDER_TIME]
@@ -305,13 +351,16 @@ class Receiver:
         policy: str = PLAYOUT_DEFAULT,
         arrivals: int = 1,
         delays: int = 0,
+        codec: bool = False,
     ) -> None:
         """``sender``: the side whose packets this direction carries (0 HSI, 1 TO);
+        ``codec``: the sender's codec is on (its silences are no losses: ``stats`` counts
+        lost and skipped packets by their numbers, and the ticks with none as silent);
         ``arrivals``: rows of the table of arrivals by sender tick (``arrived``: sender tick,
         receiver tick, one-way delay ns; -1 empty); ``delays``: how many fresh arrivals'
         one-way delays (ns) to keep (``delays_ns``, in arrival order, ``delay_count`` of
         them)."""
-        self.session_id = session_id
+        self.session_id, self.codec = session_id, codec
         self.decoder = Decoder(n, sender, bounds)
         self.playout = Playout(n, delay_ticks, early_ticks, policy=policy)
         self._scratch = Packet(n)
@@ -354,9 +403,16 @@ class Receiver:
         """What the link did in this direction (``sent``: the sender's count, if known)."""
         counts = self.decoder.counts
         rejected = {REASONS[r]: int(counts[r]) for r in range(len(REASONS)) if r not in (OK, STALE)}
+        counters = self.playout.counters()
+        if self.codec:  # a tick with no packet is the codec's silence, or a loss among them
+            by_number = self.playout.packet_counters()
+            counters["silent_ticks"] = counters.pop("lost")
+            counters["lost"] = by_number["lost_packets"]
+            del counters["skipped"]  # (the ticks passed over: silences too)
+            counters["skipped"] = by_number["skipped_packets"]
         return {
             "sent": sent,
-            **self.playout.counters(),
+            **counters,
             "rejected": sum(rejected.values()),
             "rejected_by_reason": {k: v for k, v in rejected.items() if v},
             "delay_ticks": self.playout.delay_percentiles(),

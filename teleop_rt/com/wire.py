@@ -1,11 +1,11 @@
 """The packet on the network: one fixed little-endian layout, encoded without allocation and
 decoded defensively.
 
-Layout (n joints; 64 + 56 n bytes, every field 8-byte aligned)::
+Layout (n joints; 72 + 56 n bytes, every field 8-byte aligned)::
 
     offset      type     field
     0           u32      magic b"TRWV"
-    4           u8       version (4)
+    4           u8       version (5)
     5           u8       the sender's side: 0 the HSI, 1 the TO
     6           u16      n, the joint count
     8           u64      session id (both sites' handshake agrees on it)
@@ -14,7 +14,11 @@ Layout (n joints; 64 + 56 n bytes, every field 8-byte aligned)::
     32          i64      the sender's time, ns, CLOCK_MONOTONIC (``time.monotonic_ns``): the
                          same clock in every process of one host, so a receiver on the same
                          host measures the one-way delay; across hosts only ticks compare
-    40          f64[n]   x, the sender's port input            \\
+    40          u64      the packet's number: how many packets the sender had sent before it
+                         (its copies share it). With the codec a sender is silent most ticks,
+                         so only a jump of this number, not of the sequence (the sender's
+                         tick), is a packet lost (``teleop_rt.com.playout``)
+    48          f64[n]   x, the sender's port input            \\
                 f64[n]   wave, the sender's outgoing wave       |
                 f64[n]   its wave integral (dt sum of waves)    |
                 f64[n]   its port input's integral              |
@@ -22,17 +26,18 @@ Layout (n joints; 64 + 56 n bytes, every field 8-byte aligned)::
                 f64[n]   E_in per joint, J (monotone)           |  in its order
                 f64[n]   E_out per joint, J (monotone)          |
                 f64      energy crossed the sender's port, J    /
-    48 + 56 n   u64      engaged: 1 the sender's operator map couples, 0 it is decoupled (the
+    56 + 56 n   u64      engaged: 1 the sender's operator map couples, 0 it is decoupled (the
                          HSI's clutch pressed or its operator away: the TO decouples on it)
-    56 + 56 n   u32      CRC-32 (zlib's) of every byte before it
-    60 + 56 n   u32      zero
+    64 + 56 n   u32      CRC-32 (zlib's) of every byte before it
+    68 + 56 n   u32      zero
 
 The decoder rejects, and counts by reason, a packet of the wrong size, magic or version, a
 corrupted one (CRC), one for another joint count or session, one sent by the receiver's own
 side (``side``: its own packets reflected back, or a second site of its role), one holding a
 non-finite value or a magnitude beyond the bounds it was given (the integrals within the
 energy bound's magnitude; the cumulative wave energy, E_in and E_out also >= 0; ``engaged``
-0 or 1: ``implausible``), one whose
+0 or 1; the packet's number in [0, tick], as a sender that sends at most one packet a tick
+from tick 0 numbers them: ``implausible``), one whose
 sequence number or tick is beyond the newest the receiver can play (``ahead``: the playout's
 early horizon; a forged jump of the sequence would otherwise make every genuine packet stale),
 and one whose sequence number is not newer than the newest one the receiver has used
@@ -59,11 +64,12 @@ if sys.byteorder != "little":  # the layout is read through native views
     raise ImportError("teleop_rt.com.wire needs a little-endian host")
 
 MAGIC = int.from_bytes(b"TRWV", "little")
-# 2: the integrals, wave energy and E_in/E_out per joint; 3: the sender's side; 4: engaged
-VERSION = 4
+# 2: the integrals, wave energy and E_in/E_out per joint; 3: the sender's side; 4: engaged;
+# 5: the packet's number (a codec's silence is no loss: only a jump of the number is)
+VERSION = 5
 NO_LIMIT = (1 << 63) - 1  # ``decode``'s newest tick when the caller bounds nothing
-HEADER_WORDS = 5  # magic/version/n, session, seq, tick, time
-W_ID, W_SESSION, W_SEQ, W_TICK, W_TIME = range(HEADER_WORDS)
+HEADER_WORDS = 6  # magic/version/n, session, seq, tick, time, number
+W_ID, W_SESSION, W_SEQ, W_TICK, W_TIME, W_NUMBER = range(HEADER_WORDS)
 # the Packet's vectors, then its one scalar; the decoder's checks rely on the cumulative
 # energies (wave energy, E_in, E_out) being its last vectors
 assert len(Packet.SCALARS) == 1
@@ -75,7 +81,8 @@ ID_MASK = (1 << 40) - 1  # magic and version: the low 40 bits of word 0 (then si
  STALE) = range(11)  # fmt: skip
 REASONS = ("ok", "size", "magic_version", "checksum", "joints", "session", "side", "non_finite",
            "implausible", "ahead", "stale")  # fmt: skip
-USED_SEQ, SENDER_TIME, SEEN_TICK, COUNTS = range(4)  # the decoder's state, then its counters
+# the decoder's state (NUMBER: the last accepted packet's number), then its counters
+USED_SEQ, SENDER_TIME, SEEN_TICK, NUMBER, COUNTS = range(5)
 
 
 def wire_size(n: int) -> int:
@@ -129,7 +136,7 @@ class WireBuffer:
             # packet), bound here, before any tick: a process that only decodes would
             # otherwise load (or compile) the encoder for nothing (0.2-0.8 s here, by load)
             probe = Packet(n)
-            self._encode = compiled_for(_encode, self.words, n, probe.f, probe.i, 0, 0, 0)
+            self._encode = compiled_for(_encode, self.words, n, probe.f, probe.i, 0, 0, 0, 0)
 
 
 def _receive_only(*args: object) -> None:
@@ -142,23 +149,29 @@ def encode_into(
     session_id: int,
     time_ns: int,
     side: int,
+    number: int | None = None,
 ) -> memoryview:
     """``packet`` (its tick and seq as they are) of the site on ``side`` (0 HSI, 1 TO) into
-    ``buffer``; returns ``buffer.data``. No allocation (session_id and time_ns below 2**63
-    pass as they are)."""
+    ``buffer``; returns ``buffer.data``. ``number``: how many packets the sender sent before
+    this one (None: the packet's tick, what a sender that sends every tick from tick 0 has
+    sent). No allocation (session_id and time_ns below 2**63 pass as they are)."""
     n = buffer.n
     if packet.n != n:
         raise ValueError(f"a {packet.n}-joint packet into a {n}-joint wire buffer")
     if session_id >= 1 << 63:
         session_id = _as_i64(session_id)
-    buffer._encode(buffer.words, n, packet.f, packet.i, session_id, time_ns, side)
+    if number is None:
+        number = packet.tick
+    elif number >= 1 << 63:  # (a test's forged one: the kernel's int64 with the same bits)
+        number = _as_i64(number)
+    buffer._encode(buffer.words, n, packet.f, packet.i, session_id, time_ns, side, number)
     return buffer.data
 
 
 @jit
 def _encode(
     words: np.ndarray, n: int, pf: np.ndarray, pi: np.ndarray, session: int, time_ns: int,
-    side: int,
+    side: int, number: int,
 ) -> None:  # fmt: skip
     Pk = Packet.idx
     floats = words.view(np.float64)  # (fewer array arguments: each costs ~80 ns a call)
@@ -167,6 +180,7 @@ def _encode(
     words[W_SEQ] = pi[Pk.SEQ]
     words[W_TICK] = pi[Pk.TICK]
     words[W_TIME] = time_ns
+    words[W_NUMBER] = number
     for k in range(Pk.N_VECTORS * n + 1):
         floats[HEADER_WORDS + k] = pf[k]
     last = words.size - 1
@@ -289,6 +303,7 @@ def _decode(
         pi[Pk.UNSENT] = 0  # (it arrived: it was sent)
         pi[Pk.ENGAGED] = words[words.size - 2]
         state[SENDER_TIME] = words[W_TIME]
+        state[NUMBER] = words[W_NUMBER]
     return status
 
 
@@ -311,6 +326,10 @@ def _check(
     if ((w >> 40) & 0xFF) != sender:  # our own packets reflected back, or a second of our role
         return SIDE
     if words[W_SEQ] < 0:  # beyond 2**63: no sender counts that far
+        return IMPLAUSIBLE
+    # at most one packet a tick from tick 0: a number beyond the tick is forged (and the tick
+    # is bounded by ``ahead`` below, so the number is too)
+    if words[W_NUMBER] < 0 or words[W_NUMBER] > words[W_TICK]:
         return IMPLAUSIBLE
     m = Pk.N_VECTORS * n
     for k in range(m + 1):

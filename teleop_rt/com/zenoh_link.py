@@ -464,7 +464,7 @@ class ZenohLink(Link):
         self.receiver = Receiver(
             self.n, self.cfg.delay_ticks, session_id, 1 - self.side,
             policy=self.cfg.link.playout, arrivals=self._arrival_slots,
-            delays=self._delay_capacity,
+            delays=self._delay_capacity, codec=self.cfg.channel.codec != "none",
         )  # fmt: skip
         self.drift = DriftFollower(self.receiver.playout, self.cfg.link.max_drift_ppm)
         self.transport.listen(f"{self.base}/{self.peer}/waves", self._arrive)
@@ -586,7 +586,8 @@ class ZenohLink(Link):
             self.not_sent += 1
             return
         now = time.monotonic_ns()
-        data = encode_into(self._wire, packet, self.session_id, now, self.side)
+        # numbered by the packets sent: the peer counts a loss by a jump of the number
+        data = encode_into(self._wire, packet, self.session_id, now, self.side, self.sent)
         impairment = self.impairment
         if impairment is None:
             self.transport.send(data, now)

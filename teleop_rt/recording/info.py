@@ -147,7 +147,10 @@ def _headline(summary: dict | None) -> dict | None:
     link = summary.get("link")
     if isinstance(link, dict) and isinstance(link.get("from_peer"), dict):  # a site's
         peer = link["from_peer"]
-        out["from_peer"] = {k: peer.get(k) for k in ("received", "used", "lost", "late")}
+        from_peer = {k: peer.get(k) for k in ("received", "used", "lost", "late")}
+        if "silent_ticks" in peer:  # the peer's codec: ticks with no packet, not losses
+            from_peer["silent_ticks"] = peer["silent_ticks"]
+        out["from_peer"] = from_peer
     out.update(
         missed_deadlines=timing.get("missed_deadlines"),
         late_over_period=timing.get("late_over_period"),

@@ -183,7 +183,8 @@ def format_pair(m: dict) -> str:
         peer = s["from_peer"]
         if peer:
             rows.append((f"{name} received", ", ".join(
-                f"{k} {peer.get(k)}" for k in ("received", "used", "lost", "late"))))  # fmt: skip
+                f"{k} {peer.get(k)}" for k in ("received", "used", "lost", "late",
+                                               "silent_ticks") if k in peer)))  # fmt: skip
         if s["gaps"]:
             rows.append((f"{name} log gaps", gap_text(s["gaps"], s["missing_ticks"])))
         if s["truncated"]:
